@@ -1,0 +1,206 @@
+"""The one place that starts Warp for mgso.
+
+It initialises Warp once, points the kernel cache at a stable directory, turns a device name (``cpu``, ``cuda:0``,
+``auto``) into a Warp device, and splits pixel-parallel CPU launches over the cores.
+
+Why the split: a Warp CPU launch runs its threads as one serial loop on one core, but it releases the GIL, so two
+Python threads launching disjoint halves of the same kernel run on two cores (design.md section 4: 1.95x on two
+cores, identical output). Only kernels whose outputs do not overlap between chunks may be split: on the CPU
+``wp.atomic_add`` is not atomic across launches that run at the same time. Reductions therefore write per-block
+partial buffers, and :func:`launch_split` keeps chunk borders on block borders (``align``).
+
+Convention for splittable kernels: the first kernel parameter is ``offset: int`` and the kernel computes its global
+index as ``offset + wp.tid()`` over a 1-D launch. :func:`launch_split` passes the offset; on a GPU it launches once
+with offset 0.
+
+Nothing here runs at import time: importing ``mgso_kernels`` neither initialises Warp nor compiles anything.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from pathlib import Path
+from typing import Any, Sequence
+
+import warp as wp
+
+__all__ = [
+    "default_cache_dir",
+    "init",
+    "is_initialised",
+    "resolve_device",
+    "default_device",
+    "cpu_threads",
+    "set_cpu_threads",
+    "split_ranges",
+    "launch_split",
+    "ensure_loaded",
+]
+
+log = logging.getLogger(__name__)
+
+_lock = threading.RLock()
+_initialised = False
+_default_device: str | None = None
+_threads = 0  # 0 = all available cores
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def default_cache_dir() -> Path:
+    """Warp's kernel cache for mgso: ``$WARP_CACHE_PATH`` if set, else ``<user cache>/mgso/warp-<version>``.
+
+    A stable directory means a second run (and CI's second run) loads compiled kernels instead of compiling them
+    again (4-7 s a module on a 2-core machine).
+    """
+    env = os.environ.get("WARP_CACHE_PATH")
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "mgso" / f"warp-{wp.config.version}"
+
+
+def is_initialised() -> bool:
+    return _initialised
+
+
+def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threads: int | None = None,
+         quiet: bool = True) -> str:
+    """Initialise Warp (once per process) and return the resolved default device name.
+
+    ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (the first CUDA device when there is one, else the CPU).
+    ``cache_dir``: where compiled kernels are kept; default :func:`default_cache_dir`. Only honoured by the first
+    call in a process (Warp reads it when it initialises).
+    ``threads``: CPU threads for split launches, 0 for all cores; ``None`` keeps the current setting.
+    """
+    global _initialised, _default_device
+    with _lock:
+        if not _initialised:
+            cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+            cache.mkdir(parents=True, exist_ok=True)
+            wp.config.kernel_cache_dir = str(cache)
+            wp.config.quiet = quiet
+            wp.init()
+            _initialised = True
+        if threads is not None:
+            set_cpu_threads(threads)
+        _default_device = resolve_device(device)
+        return _default_device
+
+
+def resolve_device(device: str | None = "auto") -> str:
+    """Turn ``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` into a Warp device name, with a clear error if absent."""
+    if not _initialised:
+        init("cpu")
+    name = (device or "auto").strip().lower()
+    if name == "auto":
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    if name == "cuda":
+        name = "cuda:0"
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise RuntimeError(f"device {device!r} was asked for, but Warp sees no CUDA device on this machine; "
+                           "use --device cpu (or auto)")
+    try:
+        wp.get_device(name)
+    except Exception as exc:  # Warp raises ValueError/RuntimeError depending on the name
+        raise ValueError(f"unknown device {device!r}: expected cpu, cuda, cuda:N or auto ({exc})") from None
+    return name
+
+
+def default_device() -> str:
+    """The device chosen by the last :func:`init` call (initialising on the CPU if nobody did)."""
+    if _default_device is None:
+        return init("cpu")
+    return _default_device
+
+
+def cpu_threads() -> int:
+    """Number of threads CPU split launches use."""
+    if _threads > 0:
+        return _threads
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def set_cpu_threads(threads: int) -> None:
+    """Set the threads used by CPU split launches (0 = all available cores)."""
+    global _threads
+    if threads < 0:
+        raise ValueError(f"threads must be >= 0, got {threads}")
+    _threads = int(threads)
+
+
+def _get_pool(n: int) -> ThreadPoolExecutor:
+    global _pool, _pool_size
+    with _lock:
+        if _pool is None or _pool_size < n:
+            if _pool is not None:
+                _pool.shutdown(wait=True)
+            _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="mgso-warp")
+            _pool_size = n
+        return _pool
+
+
+def split_ranges(dim: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
+    """Split ``range(dim)`` into at most ``parts`` contiguous ranges whose inner borders are multiples of ``align``."""
+    if dim <= 0:
+        return []
+    parts = max(1, int(parts))
+    align = max(1, int(align))
+    blocks = -(-dim // align)
+    parts = min(parts, blocks)
+    out = []
+    start_block = 0
+    for p in range(parts):
+        end_block = (blocks * (p + 1)) // parts
+        lo, hi = start_block * align, min(dim, end_block * align)
+        if hi > lo:
+            out.append((lo, hi))
+        start_block = end_block
+    return out
+
+
+def ensure_loaded(kernel: Any, device: str) -> None:
+    """Compile/load a kernel's module on ``device`` now (on the calling thread), not inside a worker thread."""
+    wp.load_module(kernel.module, device=device)
+
+
+def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | None = None, *,
+                 align: int = 1, min_chunk: int = 4096, threads: int | None = None,
+                 record_tape: bool = False) -> int:
+    """Launch a 1-D kernel ``kernel(offset, *inputs)`` over ``dim`` threads, split over CPU cores.
+
+    The kernel's first parameter must be ``offset: int``; thread ``i`` of a chunk starting at ``lo`` handles
+    global index ``lo + i``. Chunk borders are multiples of ``align`` (so per-block partial sums never straddle two
+    chunks). Chunks are at least ``min_chunk`` threads, so tiny launches stay single. On CUDA this is one launch.
+    Returns the number of chunks launched.
+    """
+    device = device or default_device()
+    if dim <= 0:
+        return 0
+    args = kernel.adj.args
+    if not args or args[0].label != "offset":
+        raise TypeError(f"launch_split: kernel {kernel.key!r} must take `offset: int` as its first parameter")
+    n = threads if threads is not None else cpu_threads()
+    is_cpu = wp.get_device(device).is_cpu
+    parts = 1 if not is_cpu else max(1, min(n, dim // max(1, min_chunk)))
+    ranges = split_ranges(dim, parts, align)
+    if len(ranges) <= 1:
+        wp.launch(kernel, dim=dim, inputs=[0, *inputs], device=device, record_tape=record_tape)
+        return 1
+    ensure_loaded(kernel, device)
+    pool = _get_pool(len(ranges))
+    futures = [pool.submit(partial(wp.launch, kernel, dim=hi - lo, inputs=[lo, *inputs], device=device,
+                                   record_tape=record_tape))
+               for lo, hi in ranges[1:]]
+    lo, hi = ranges[0]
+    wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device=device, record_tape=record_tape)
+    for f in futures:
+        f.result()
+    return len(ranges)

@@ -1,0 +1,33 @@
+"""Shared fixtures: Warp on the CPU (tests never need a GPU), the real-data folder, deterministic seeds."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mgso.io.paths import shared_data_dir
+
+
+@pytest.fixture(scope="session")
+def wp_device():
+    """Warp initialised once for the test session, on the CPU unless MGSO_TEST_DEVICE says otherwise."""
+    from mgso_kernels import runtime
+
+    return runtime.init(os.environ.get("MGSO_TEST_DEVICE", "cpu"))
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """``../shared/data`` (or ``$MGSO_DATA``); tests that need it skip when it is absent."""
+    d = shared_data_dir()
+    if d is None:
+        pytest.skip("real recordings not found: set MGSO_DATA or place them in ../shared/data")
+    return d
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

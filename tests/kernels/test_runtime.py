@@ -1,0 +1,69 @@
+import numpy as np
+import pytest
+import warp as wp
+
+from mgso_kernels import runtime
+
+
+@wp.kernel(enable_backward=False)
+def box_blur3(offset: int, img: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)):
+    i = offset + wp.tid()
+    h = img.shape[0]
+    w = img.shape[1]
+    y = i // w
+    x = i - y * w
+    acc = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = wp.clamp(y + dy, 0, h - 1)
+            xx = wp.clamp(x + dx, 0, w - 1)
+            acc += img[yy, xx]
+    out[y, x] = acc / 9.0
+
+
+def test_split_ranges_cover_and_align():
+    for dim in [1, 7, 100, 4097, 100000]:
+        for parts in [1, 2, 3, 8]:
+            for align in [1, 16, 64]:
+                r = runtime.split_ranges(dim, parts, align)
+                assert r[0][0] == 0 and r[-1][1] == dim
+                assert all(a[1] == b[0] for a, b in zip(r, r[1:]))
+                assert all(lo % align == 0 for lo, _ in r)
+                assert len(r) <= parts
+
+
+def test_split_launch_equals_single_launch(wp_device):
+    rng = np.random.default_rng(0)
+    img = rng.random((240, 320)).astype(np.float32)
+    a = wp.array(img, dtype=wp.float32, device=wp_device)
+    single = wp.zeros_like(a)
+    split = wp.zeros_like(a)
+    n1 = runtime.launch_split(box_blur3, img.size, [a, single], wp_device, threads=1)
+    n2 = runtime.launch_split(box_blur3, img.size, [a, split], wp_device, threads=4, min_chunk=1000)
+    assert n1 == 1
+    if wp.get_device(wp_device).is_cpu:
+        assert n2 == 4
+    assert np.array_equal(single.numpy(), split.numpy())
+    # and both equal the obvious NumPy twin
+    pad = np.pad(img, 1, mode="edge")
+    ref = sum(pad[1 + dy:1 + dy + 240, 1 + dx:1 + dx + 320] for dy in (-1, 0, 1) for dx in (-1, 0, 1)) / 9.0
+    assert np.allclose(single.numpy(), ref, atol=1e-6)
+
+
+def test_split_requires_offset_parameter(wp_device):
+    @wp.kernel(enable_backward=False)
+    def no_offset(a: wp.array(dtype=float)):
+        a[wp.tid()] = 1.0
+
+    with pytest.raises(TypeError, match="offset"):
+        runtime.launch_split(no_offset, 10, [wp.zeros(10, dtype=float, device=wp_device)], wp_device)
+
+
+def test_resolve_device(wp_device):
+    assert runtime.resolve_device("cpu") == "cpu"
+    assert runtime.resolve_device("auto") in ("cpu", "cuda:0")
+    if not wp.is_cuda_available():
+        with pytest.raises(RuntimeError, match="no CUDA"):
+            runtime.resolve_device("cuda:0")
+    with pytest.raises(ValueError, match="unknown device"):
+        runtime.resolve_device("tpu")

@@ -1,0 +1,123 @@
+import numpy as np
+import pytest
+
+from mgso import geometry as g
+
+
+def random_rotation(rng):
+    return g.so3_exp(rng.normal(size=3))
+
+
+def test_so3_exp_log_roundtrip(rng):
+    for scale in [1e-9, 1e-5, 0.3, 2.0, np.pi - 1e-6]:
+        w = rng.normal(size=3)
+        w = w / np.linalg.norm(w) * scale
+        R = g.so3_exp(w)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(g.so3_exp(g.so3_log(R)), R, atol=1e-9)
+    # exactly pi: the axis is recovered up to sign, and exp gives the same rotation back
+    R = g.so3_exp(np.array([0.0, np.pi, 0.0]))
+    assert np.allclose(g.so3_exp(g.so3_log(R)), R, atol=1e-9)
+
+
+def test_so3_exp_matches_series(rng):
+    from scipy.linalg import expm
+
+    w = rng.normal(size=3)
+    assert np.allclose(g.so3_exp(w), expm(g.hat(w)), atol=1e-12)
+
+
+def test_se3_exp_matches_matrix_exponential(rng):
+    from scipy.linalg import expm
+
+    xi = rng.normal(size=6)
+    m = np.zeros((4, 4))
+    m[:3, :3] = g.hat(xi[3:])
+    m[:3, 3] = xi[:3]
+    assert np.allclose(g.se3_exp(xi), expm(m), atol=1e-10)
+    assert np.allclose(g.se3_log(g.se3_exp(xi)), xi, atol=1e-10)
+
+
+def test_se3_batch_and_inverse(rng):
+    xis = rng.normal(size=(5, 6))
+    Ts = g.se3_exp(xis)
+    assert Ts.shape == (5, 4, 4)
+    for xi, T in zip(xis, Ts):
+        assert np.allclose(T, g.se3_exp(xi))
+    assert np.allclose(g.se3_inverse(Ts) @ Ts, np.eye(4), atol=1e-12)
+
+
+def test_se3_adjoint(rng):
+    T = g.se3_exp(rng.normal(size=6))
+    xi = rng.normal(size=6) * 0.1
+    lhs = T @ g.se3_exp(xi) @ g.se3_inverse(T)
+    assert np.allclose(lhs, g.se3_exp(g.se3_adjoint(T) @ xi), atol=1e-10)
+
+
+def test_interpolate_endpoints_and_midpoint(rng):
+    T0 = g.se3_exp(rng.normal(size=6))
+    T1 = T0 @ g.se3_exp(np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.4]))
+    assert np.allclose(g.se3_interpolate(T0, T1, 0.0), T0)
+    assert np.allclose(g.se3_interpolate(T0, T1, 1.0), T1, atol=1e-12)
+    mid = g.se3_interpolate(T0, T1, 0.5)
+    assert np.allclose(mid, T0 @ g.se3_exp(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.2])), atol=1e-12)
+
+
+def test_sim3_exp_log_roundtrip(rng):
+    from scipy.linalg import expm
+
+    for xi in [rng.normal(size=7), np.r_[rng.normal(size=6), 0.0], np.r_[rng.normal(size=3), 0, 0, 0, 0.5]]:
+        S = g.sim3_exp(xi)
+        m = np.zeros((4, 4))
+        m[:3, :3] = g.hat(xi[3:6]) + xi[6] * np.eye(3)
+        m[:3, 3] = xi[:3]
+        assert np.allclose(S, expm(m), atol=1e-10)
+        assert np.allclose(g.sim3_log(S), xi, atol=1e-9)
+        assert np.allclose(g.sim3_inverse(S) @ S, np.eye(4), atol=1e-10)
+
+
+def test_quaternion_orders(rng):
+    R = random_rotation(rng)
+    q_xyzw = g.matrix_to_quat_xyzw(R)
+    q_wxyz = g.matrix_to_quat_wxyz(R)
+    assert q_xyzw[3] >= 0 and q_wxyz[0] >= 0
+    assert np.allclose(q_xyzw, np.r_[q_wxyz[1:], q_wxyz[0]])
+    assert np.allclose(g.quat_xyzw_to_matrix(q_xyzw), R, atol=1e-12)
+    assert np.allclose(g.quat_wxyz_to_matrix(q_wxyz), R, atol=1e-12)
+    # 90 degrees about z: (x,y,z,w) = (0, 0, sin 45, cos 45)
+    Rz = g.so3_exp([0, 0, np.pi / 2])
+    assert np.allclose(g.matrix_to_quat_xyzw(Rz), [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    # all the branches of Shepperd's method
+    for w in ([np.pi * 0.999, 0, 0], [0, np.pi * 0.999, 0], [0, 0, np.pi * 0.999]):
+        Rb = g.so3_exp(w)
+        assert np.allclose(g.quat_wxyz_to_matrix(g.matrix_to_quat_wxyz(Rb)), Rb, atol=1e-12)
+
+
+def test_orthonormalize_fixes_round_off(rng):
+    R = random_rotation(rng)
+    noisy = R + 4e-4 * rng.normal(size=(3, 3))
+    Ro = g.orthonormalize(noisy)
+    assert np.allclose(Ro @ Ro.T, np.eye(3), atol=1e-12)
+    assert np.linalg.norm(Ro - R) < 2e-3
+
+
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_umeyama_recovers_transform(rng, with_scale):
+    src = rng.normal(size=(50, 3))
+    R = random_rotation(rng)
+    t = rng.normal(size=3)
+    s = 2.7 if with_scale else 1.0
+    dst = s * src @ R.T + t
+    al = g.umeyama_alignment(src, dst, with_scale=with_scale)
+    assert np.allclose(al.rotation, R, atol=1e-10)
+    assert np.allclose(al.translation, t, atol=1e-10)
+    assert np.isclose(al.scale, s)
+    assert np.allclose(al.apply_points(src), dst, atol=1e-10)
+
+
+def test_umeyama_rejects_bad_input():
+    with pytest.raises(ValueError, match="at least 3"):
+        g.umeyama_alignment(np.zeros((2, 3)), np.zeros((2, 3)), True)
+    with pytest.raises(ValueError, match="same shape"):
+        g.umeyama_alignment(np.zeros((4, 3)), np.zeros((5, 3)), True)
