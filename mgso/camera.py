@@ -864,11 +864,11 @@ class Calibration:
         ``[H_out, W_out, 3]`` in [0, 1]. No photometric correction: colours are what the camera recorded (the
         vignette division can exceed the [0, 1] range); gray input is replicated into three channels."""
         scale = np.float32(1.0 / 65535.0) if raw.dtype == np.uint16 else np.float32(1.0 / 255.0)
-        if raw.ndim == 2:
-            g = self.undistorter.apply(raw).astype(np.float32) * scale
-            return np.repeat(g[:, :, None], 3, axis=2)
-        rgb = cv2.cvtColor(raw[:, :, :3], cv2.COLOR_BGR2RGB)
-        return self.undistorter.apply(rgb).astype(np.float32) * scale
+        code = cv2.COLOR_GRAY2RGB if raw.ndim == 2 else cv2.COLOR_BGR2RGB
+        rgb = cv2.cvtColor(self.undistorter.apply(raw if raw.ndim == 2 else raw[:, :, :3]), code)
+        out = rgb.astype(np.float32)
+        out *= scale  # in place: one pass fewer over a large image
+        return out
 
     def describe(self) -> dict:
         return {"input": self.input.describe(), "output": self.output.describe(), "output_mode": self.output_mode,
@@ -878,8 +878,8 @@ class Calibration:
 
 # ============================================================================================ calibration files
 # TUM RGB-D colour cameras: fx fy cx cy and OpenCV distortion d0..d4 = k1 k2 p1 p2 k3, from the table "Intrinsic
-# Camera Calibration of the Kinect" on https://vision.in.tum.de/data/datasets/rgbd-dataset/file_formats (the
-# calibration of the *raw* colour images; freiburg3 images were already undistorted by the recording driver).
+# Camera Calibration of the Kinect" on https://vision.in.tum.de/data/datasets/rgbd-dataset/file_formats (reproduced
+# verbatim in many repositories' comments); freiburg3 lists no distortion.
 TUM_RGBD_FREIBURG = {
     1: (517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
     2: (520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
@@ -948,8 +948,9 @@ def _is_dso_camera_txt(lines: list[str]) -> bool:
 def read_dso_camera_txt(path: str | Path) -> CameraSpec:
     """DSO's ``camera.txt``.
 
-    Line 1: ``Pinhole fx fy cx cy 0`` | ``RadTan fx fy cx cy k1 k2 p1 p2`` | ``EquiDistant fx fy cx cy k1 k2 k3 k4``
-    | ``KannalaBrandt fx fy cx cy k1 k2 k3 k4`` | ``FOV fx fy cx cy omega``, or without a name the legacy forms
+    Line 1: ``Pinhole fx fy cx cy 0`` | ``RadTan fx fy cx cy k1 k2 p1 p2 [k3]`` (k3: our extension) |
+    ``EquiDistant fx fy cx cy k1 k2 k3 k4`` | ``KannalaBrandt fx fy cx cy k1 k2 k3 k4`` |
+    ``FOV fx fy cx cy omega``, or without a name the legacy forms
     (5 numbers: ATAN/FOV, a pinhole when omega is 0; 8 numbers: RadTan). Intrinsics relative to the image size when
     ``cx < 1 and cy < 1`` (converted with the 0.5-pixel shift), else pixels.
     Line 2: input ``width height``. Line 3: ``crop`` | ``full`` | ``none`` | ``fx fy cx cy 0`` (relative when
@@ -979,7 +980,9 @@ def read_dso_camera_txt(path: str | Path) -> CameraSpec:
                                    f"numbers, got {len(vals)}")
     elif name == "pinhole" and len(vals) == 4:
         vals = vals + [0.0]
-    if len(vals) != _DSO_MODELS[name]:
+    if name == "radtan" and len(vals) == 9 and parts[0].lower() == "radtan":
+        pass  # our extension: RadTan fx fy cx cy k1 k2 p1 p2 k3 (OpenCV's 5-coefficient model)
+    elif len(vals) != _DSO_MODELS[name]:
         raise CalibrationError(f"{path}:1: {parts[0]} takes {_DSO_MODELS[name]} numbers, got {len(vals)}")
     size = _numbers(lines[1])
     if size is None or len(size) != 2 or not all(s > 0 and float(s).is_integer() for s in size):
@@ -994,7 +997,7 @@ def read_dso_camera_txt(path: str | Path) -> CameraSpec:
         elif name == "fov":
             model = FOVCamera(p[0], p[1], p[2], p[3], w, h, omega=p[4])
         elif name == "radtan":
-            model = RadTanCamera(p[0], p[1], p[2], p[3], w, h, p[4], p[5], p[6], p[7])
+            model = RadTanCamera(p[0], p[1], p[2], p[3], w, h, *p[4:])
         else:
             model = EquidistantCamera(p[0], p[1], p[2], p[3], w, h, p[4], p[5], p[6], p[7])
     except CalibrationError as exc:

@@ -246,6 +246,7 @@ def test_camera_txt_models(tmp_path):
         "KannalaBrandt 190.9 190.9 254.9 256.9 0.0034 0.0007 -0.002 0.0002\n512 512\ncrop\n512 512\n":
             EquidistantCamera,
         "FOV 0.35 0.44 0.49 0.5 0.93\n1280 1024\nnone\n1280 1024\n": FOVCamera,
+        "RadTan 517.3 516.5 318.6 255.3 0.2624 -0.9531 -0.0054 0.0026 1.1633\n640 480\ncrop\n640 480\n": RadTanCamera,
     }
     for i, (text, cls) in enumerate(cases.items()):
         spec = read_dso_camera_txt(write(tmp_path, f"c{i}.txt", text))
@@ -254,6 +255,8 @@ def test_camera_txt_models(tmp_path):
     assert spec.model.fx == pytest.approx(0.35 * 1280) and spec.model.cx == pytest.approx(0.49 * 1280 - 0.5)
     assert spec.model.omega == pytest.approx(0.93)
     assert spec.output == OutputSpec(mode="crop", size=(640, 480))
+    k3 = read_dso_camera_txt(tmp_path / f"c{len(cases) - 1}.txt").model
+    assert k3.k3 == 1.1633 and k3.k1 == 0.2624
 
 
 def test_camera_txt_output_modes(tmp_path):
@@ -348,7 +351,7 @@ def test_kitti_calib(tmp_path):
     p = write(tmp_path, "calib.txt", "P0: 7.188560e+02 0 6.071928e+02 0 0 7.188560e+02 1.852157e+02 0 0 0 1 0\n"
                                      "P2: 7.188560e+02 0 6.071928e+02 4.538225e+01 0 7.188560e+02 1.852157e+02 "
                                      "-1.130887e-01 0 0 1 3.779761e-03\n")
-    spec, P = read_kitti_calib(p, (1241, 376))
+    spec, _ = read_kitti_calib(p, (1241, 376))
     assert spec.model == PinholeCamera(718.856, 718.856, 607.1928, 185.2157, 1241, 376)
     assert read_kitti_calib(p, (1241, 376), camera=2)[1][0, 3] == pytest.approx(45.38225)
     assert read_camera_file(p, (1241, 376)).model == spec.model

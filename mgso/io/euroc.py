@@ -117,7 +117,7 @@ class EurocSequence(Sequence):
             gt_src = f"{body_tum} (body) @ T_BS"
         super().__init__(root, calibration=calibration, timestamps=ts, config=config, groundtruth=gt,
                          groundtruth_source=gt_src, color=first.ndim == 3, name=root.resolve().name,
-                         nominal_fps=20.0)
+                         nominal_fps=None)  # measured: EuRoC-format recordings of other rigs differ
 
     def _read(self, k: int) -> np.ndarray:
         return read_image(self._files[k])

@@ -90,7 +90,7 @@ class ImageFolderSequence(Sequence):
         gt, gt_src = _groundtruth(groundtruth, folder, ts, config.gt_max_dt)
         super().__init__(folder, calibration=calibration, timestamps=ts, config=config, exposures_ms=exposures,
                          groundtruth=gt, groundtruth_source=gt_src, color=first.ndim == 3,
-                         name=folder.resolve().name, nominal_fps=config.fps)
+                         name=folder.resolve().name, nominal_fps=None if times.is_file() else config.fps)
 
     def _read(self, k: int) -> np.ndarray:
         return read_image(self._files[k])

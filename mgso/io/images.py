@@ -11,7 +11,7 @@ import numpy as np
 from .errors import DatasetError
 
 __all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "read_image", "list_images", "natural_key",
-           "read_table", "check_increasing"]
+           "read_table", "parse_float", "check_increasing"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")

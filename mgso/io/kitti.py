@@ -20,8 +20,8 @@ from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtru
     resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
 from .images import check_increasing, list_images, parse_float, read_image, read_table
-
 from .sequence import Sequence
+from .trajectory import read_kitti
 
 __all__ = ["KittiSequence", "kitti_camera_dir"]
 
@@ -116,7 +116,6 @@ class KittiSequence(Sequence):
             first = next((ln for ln in fh if ln.strip() and not ln.startswith("#")), "")
         if len(first.replace(",", " ").split()) != 12:
             return load_groundtruth(path, ts, max_dt)
-        from .trajectory import read_kitti
         with as_dataset_errors():
             traj = read_kitti(path)
         ids = self._frame_ids(None)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import abc
 import logging
-import math
 import queue
 import threading
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 from ..camera import Calibration
 from ..config import InputConfig
 from .errors import DatasetError
+from .images import check_increasing
 from .trajectory import Trajectory, matching_time_indices
 
 __all__ = ["Frame", "Sequence", "poses_at_times"]
@@ -109,6 +109,9 @@ class Sequence(abc.ABC):
         n = len(self._ts_all)
         if n == 0:
             raise DatasetError(f"{self.path}: no frames")
+        if not np.all(np.isfinite(self._ts_all)):
+            raise DatasetError(f"{self.path}: non-finite timestamp")
+        check_increasing(self._ts_all, str(self.path))
         self._exp_all = None if exposures_ms is None else np.asarray(exposures_ms, dtype=np.float64).reshape(-1)
         if self._exp_all is not None and len(self._exp_all) != n:
             raise DatasetError(f"{self.path}: {len(self._exp_all)} exposure times for {n} frames")
@@ -192,11 +195,20 @@ class Sequence(abc.ABC):
 
     @property
     def fps(self) -> float:
-        """Frame rate of the selection: 1 / median frame interval (the layout's nominal rate for one frame)."""
+        """Nominal frame rate of the selection: the layout's rate (KITTI 10, EuRoC 20, TUM RGB-D and 7-Scenes 30, a
+        video's container rate, ``input.fps`` where timestamps are made up) divided by the stride; where the layout
+        has no nominal rate (timestamps from a file), :attr:`measured_fps`."""
+        if self._nominal_fps:
+            return float(self._nominal_fps) / self.config.stride
+        return self.measured_fps
+
+    @property
+    def measured_fps(self) -> float:
+        """1 / median interval of the selected timestamps (``input.fps`` / stride for a single frame)."""
         ts = self.timestamps
         if len(ts) >= 2:
             return float(1.0 / np.median(np.diff(ts)))
-        return float(self._nominal_fps or self.config.fps) / self.config.stride
+        return float(self.config.fps) / self.config.stride
 
     def load_raw(self, i: int) -> np.ndarray:
         """The raw decoded image of frame ``i`` (input geometry, as stored), with its size checked."""
@@ -213,7 +225,12 @@ class Sequence(abc.ABC):
         raw = self.load_raw(i)
         k = self._k(i)
         gray_raw = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
-        gray = self.calibration.gray_from_raw(gray_raw, photometric=self.config.photometric)
+        try:
+            gray = self.calibration.gray_from_raw(gray_raw, photometric=self.config.photometric)
+        except DatasetError:
+            raise
+        except ValueError as exc:  # e.g. a 16-bit raw value beyond an 8-bit response curve
+            raise DatasetError(f"{self._source(k)}: {exc}") from None
         calib = self.calibration
         exp = None if self._exp_all is None else float(self._exp_all[k])
         return Frame(i if i >= 0 else i + len(self), float(self._ts_all[k]), gray, exp, self._source(k),
@@ -331,7 +348,8 @@ class Sequence(abc.ABC):
             "depth": self.has_depth,
             "time_span": [float(ts[0]), float(ts[-1])],
             "duration_s": float(ts[-1] - ts[0]),
-            "fps": self.fps if math.isfinite(self.fps) else None,
+            "fps": self.fps,
+            "fps_measured": self.measured_fps,
         }
 
     def __repr__(self) -> str:

@@ -90,7 +90,7 @@ class TumRgbdSequence(Sequence):
         super().__init__(folder, calibration=calibration, timestamps=ts, config=config, groundtruth=gt,
                          groundtruth_source=gt_src, color=first.ndim == 3,
                          has_depth=any(d is not None for d in self._depth_files), name=folder.resolve().name,
-                         nominal_fps=30.0)
+                         nominal_fps=None)  # measured from the timestamps (TUM: about 30 Hz)
 
     @staticmethod
     def _associate_depth(folder: Path, ts: np.ndarray, files: list[Path], max_dt: float) -> list[Path | None]:

@@ -14,11 +14,6 @@ from mgso.config import InputConfig
 from mgso.io import DatasetError, ImageFolderSequence, VideoSequence, open_sequence
 
 
-def first_line_file(path, pattern):
-    """The first file in ``path`` whose name matches ``pattern``."""
-    return sorted(p for p in path.rglob("*") if re.fullmatch(pattern, p.name))[0]
-
-
 def edit(path, old, new, count=1):
     text = path.read_text()
     assert old in text, (path, old)
@@ -54,9 +49,9 @@ CASES = {
         "open"),
     "tum_rgbd/short line": ("tum_rgbd", lambda d: edit(d / "rgb.txt", " rgb/", "_rgb/"),
                             r"rgb\.txt:4: expected at least 2 fields", "open"),
-    "tum_rgbd/times out of order": ("tum_rgbd", lambda d: swap_lines(d / "rgb.txt", 1, 2),
-                                    r"rgb\.txt:6: timestamps out of order \(1305031102\.2086\d+ after 1305031102\.2419\d+\)",
-                                    "open"),
+    "tum_rgbd/times out of order": (
+        "tum_rgbd", lambda d: swap_lines(d / "rgb.txt", 1, 2),
+        r"rgb\.txt:6: timestamps out of order \(1305031102\.2086\d+ after 1305031102\.2419\d+\)", "open"),
     "tum_rgbd/bad timestamp": ("tum_rgbd", lambda d: edit(d / "rgb.txt", "\n1305", "\nabc"),
                                r"rgb\.txt:4: timestamp is not a number", "open"),
     "tum_rgbd/empty listing": ("tum_rgbd", lambda d: (d / "rgb.txt").write_text("# nothing\n"),
