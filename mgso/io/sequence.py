@@ -317,6 +317,15 @@ class Sequence(abc.ABC):
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 
+    def close(self) -> None:
+        """Release open files (a video capture, a zip archive); loading again reopens them where possible."""
+
+    def __enter__(self) -> "Sequence":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def describe(self) -> dict:
         """What ``mgso info`` prints: layout, sizes, intrinsics, calibration, ground truth, time span."""
         cal = self.calibration

@@ -220,6 +220,8 @@ class TumMonoSequence(Sequence):
         if self._zip is not None:
             try:
                 with self._lock:
+                    if self._zip.fp is None:  # closed: reopen
+                        self._zip = zipfile.ZipFile(self._base)
                     data = self._zip.read(name)
             except (zipfile.BadZipFile, OSError, KeyError) as exc:
                 raise DatasetError(f"{self._base}:{name}: cannot read from the zip archive: {exc}") from None
@@ -229,3 +231,8 @@ class TumMonoSequence(Sequence):
     def _source(self, k: int) -> str:
         sep = ":" if self._zip is not None else "/"
         return f"{self._base}{sep}{self._names[k]}"
+
+    def close(self) -> None:
+        with self._lock:
+            if self._zip is not None:
+                self._zip.close()

@@ -109,6 +109,9 @@ def test_tum_mono_zip_reads_members_in_place(fakes):
     raw = seq.load_raw(2)
     np.testing.assert_array_equal(raw, textured(2))
     assert not (d / "images").exists()
+    with seq:
+        pass
+    np.testing.assert_array_equal(seq.load_raw(3), textured(3))  # reopened after close
 
 
 def test_euroc_csv_groundtruth_with_T_BS(fakes):
@@ -226,6 +229,8 @@ def test_video(fakes):
     # random access backwards gives the same frame as sequential access
     np.testing.assert_array_equal(seq.load(1).gray, open_sequence(p).load(1).gray)
     np.testing.assert_array_equal(seq.load(4).gray, seq.load(4).gray)
+    seq.close()
+    np.testing.assert_array_equal(seq.load(2).gray, open_sequence(p).load(2).gray)
 
 
 def test_selection_start_end_stride(fakes):
