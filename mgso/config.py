@@ -51,12 +51,24 @@ class RuntimeConfig:
 
 @dataclass(frozen=True)
 class InputConfig:
+    """Reading frames (mgso.io): which frames, which camera, how to undistort (docs/datasets.md)."""
+
     start: int = opt(0, "first frame index used from the sequence")
     end: int = opt(0, "one past the last frame index used; 0 = to the end")
     stride: int = opt(1, "use every n-th frame (1 = every frame)")
     width: int = opt(0, "output (undistorted) image width; 0 = the calibration's output size")
     height: int = opt(0, "output (undistorted) image height; 0 = the calibration's output size")
     photometric: bool = opt(True, "apply photometric calibration (response, vignette, exposure) when present")
+    rectify: str = opt("", "undistortion output: crop (no black border), full (whole input visible), none (input "
+                           "intrinsics); empty = what the calibration file says (crop for a distorted lens if silent)")
+    camera: str = opt("", "camera of a multi-camera layout (EuRoC cam0/cam1, KITTI image_0/image_2); empty = the "
+                          "layout's first camera")
+    fps: float = opt(30.0, "frame rate for timestamps when a layout has none (image folders without times.txt, "
+                           "Replica)")
+    prefetch: int = opt(2, "frames decoded ahead by a background thread while iterating (PNG decoding is a large "
+                           "share of a frame's time); 0 = decode in the caller")
+    gt_max_dt: float = opt(0.02, "largest time difference (s) when matching ground-truth poses to frames (TUM "
+                                 "RGB-D, EuRoC, TUM monoVO: nearest pose within this)")
 
 
 @dataclass(frozen=True)

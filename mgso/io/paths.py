@@ -13,7 +13,8 @@ def shared_data_dir() -> Path | None:
     env = os.environ.get("MGSO_DATA")
     candidates = [Path(env).expanduser()] if env else []
     repo = Path(__file__).resolve().parents[2]
-    candidates += [repo.parent / "shared" / "data", Path.cwd().parent / "shared" / "data"]
+    candidates += [repo.parent / "shared" / "data", Path.cwd().parent / "shared" / "data",
+                   repo.parent.parent / "shared" / "data"]  # a git worktree one level deeper (wt/<name>)
     for c in candidates:
         if c.is_dir():
             return c.resolve()

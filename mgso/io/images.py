@@ -1,0 +1,101 @@
+"""Image decoding with clear errors, image listings, small text-table readers shared by the dataset readers."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import DatasetError
+
+__all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "read_image", "list_images", "natural_key",
+           "read_table", "parse_float", "check_increasing"]
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
+
+
+def decode_image(data: bytes | np.ndarray, source: str) -> np.ndarray:
+    """Decode encoded image bytes as stored (8/16 bit, gray or BGR; an alpha channel is dropped)."""
+    buf = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data
+    if buf.size == 0:
+        raise DatasetError(f"{source}: empty image file")
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(f"{source}: not a readable image (corrupt or unsupported format)")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = img[:, :, :3]
+        elif img.shape[2] == 1:
+            img = img[:, :, 0]
+    if img.dtype not in (np.uint8, np.uint16):
+        raise DatasetError(f"{source}: unsupported pixel type {img.dtype} (expected 8- or 16-bit images)")
+    return img
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image file (see :func:`decode_image`); a missing or corrupt file is a :class:`DatasetError`."""
+    path = Path(path)
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read image file: {exc}") from None
+    return decode_image(data, str(path))
+
+
+def natural_key(name: str):
+    """Sort key that orders ``frame2`` before ``frame10``."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def list_images(folder: Path, pattern: str | None = None) -> list[Path]:
+    """Image files directly in ``folder`` (optionally matching a regex on the name), in natural order."""
+    rx = re.compile(pattern) if pattern else None
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+             and (rx is None or rx.fullmatch(p.name))]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def read_table(path: Path, min_cols: int, what: str, comment: str = "#") -> list[tuple[int, list[str]]]:
+    """Rows of a whitespace/comma separated text file as ``(line number, fields)``; comment and empty lines skipped.
+
+    Every row must have at least ``min_cols`` fields."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: {what} not found")
+    rows = []
+    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+        for n, line in enumerate(fh, start=1):
+            s = line.strip()
+            if not s or s.startswith(comment):
+                continue
+            parts = s.replace(",", " ").split()
+            if len(parts) < min_cols:
+                raise DatasetError(f"{path}:{n}: expected at least {min_cols} fields in {what}, got {s[:80]!r}")
+            rows.append((n, parts))
+    if not rows:
+        raise DatasetError(f"{path}: {what} has no entries")
+    return rows
+
+
+def parse_float(value: str, path: Path, line: int, what: str) -> float:
+    try:
+        v = float(value)
+    except ValueError:
+        raise DatasetError(f"{path}:{line}: {what} is not a number: {value!r}") from None
+    if not np.isfinite(v):
+        raise DatasetError(f"{path}:{line}: {what} is not finite: {value!r}")
+    return v
+
+
+def check_increasing(timestamps: np.ndarray, source: str, lines: list[int] | None = None) -> None:
+    """Timestamps must be strictly increasing; the error names the source and the first offending entry."""
+    bad = np.nonzero(np.diff(timestamps) <= 0)[0]
+    if len(bad):
+        i = int(bad[0]) + 1
+        where = f"{source}:{lines[i]}" if lines is not None else f"{source} (entry {i})"
+        raise DatasetError(f"{where}: timestamps out of order ({float(timestamps[i])!r} after "
+                           f"{float(timestamps[i - 1])!r})")

@@ -1,0 +1,117 @@
+"""Replica as NICE-SLAM renders it.
+
+``results/frame000000.jpg ...``, ``results/depth000000.png ...`` (16 bit, ``scale`` units per metre, 6553.5 by
+default), ``traj.txt`` (one 4x4 camera-to-world a row, 16 numbers, OpenCV camera axes: NICE-SLAM's reader flips the
+y and z columns to reach its own OpenGL-style axes). Intrinsics: ``calib=``, else ``cam_params.json`` in the scene
+folder or its parent (as in the release), else NICE-SLAM's Replica defaults (1200x680, fx = fy = 600, cx = 599.5,
+cy = 339.5; configs/Replica/replica.yaml of github cvg/nice-slam). No timestamps: frame index / ``InputConfig.fps``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import REPLICA_NICE_SLAM, CameraSpec, OutputSpec, PinholeCamera, read_replica_cam_params
+from ..config import InputConfig
+from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
+                     resolve_camera_spec)
+from .errors import DatasetError, as_dataset_errors
+from .images import list_images, read_image
+from .sequence import Sequence
+
+__all__ = ["ReplicaSequence", "read_replica_traj"]
+
+
+def read_replica_traj(path: str | Path) -> np.ndarray:
+    """``traj.txt``: ``(N, 4, 4)`` camera-to-world, one row of 16 numbers a pose."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: trajectory not found")
+    poses = []
+    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+        for n, line in enumerate(fh, start=1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.split()
+            if len(parts) != 16:
+                raise DatasetError(f"{path}:{n}: expected 16 numbers (a 4x4 camera-to-world), got {len(parts)}")
+            try:
+                T = np.array([float(p) for p in parts]).reshape(4, 4)
+            except ValueError:
+                raise DatasetError(f"{path}:{n}: not a number in {s[:80]!r}") from None
+            if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+                raise DatasetError(f"{path}:{n}: not a rigid transform (non-finite or last row not 0 0 0 1)")
+            poses.append(T)
+    if not poses:
+        raise DatasetError(f"{path}: no poses")
+    return np.asarray(poses)
+
+
+class ReplicaSequence(Sequence):
+    """A NICE-SLAM Replica scene folder (``results/`` and ``traj.txt``)."""
+
+    layout = "replica"
+
+    def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
+                 groundtruth: str | Path | None = None):
+        folder = Path(path)
+        config = config or InputConfig()
+        results = folder / "results"
+        self._files = list_images(results, r"frame.*\.(jpg|jpeg|png)") if results.is_dir() else []
+        if not self._files:
+            raise DatasetError(f"{results}: no frame*.jpg images (a NICE-SLAM Replica scene has results/"
+                               "frame000000.jpg ...)")
+        n = len(self._files)
+        self._depth_files = list_images(results, r"depth.*\.png")
+        if self._depth_files and len(self._depth_files) != n:
+            raise DatasetError(f"{results}: {len(self._depth_files)} depth images for {n} colour images")
+        first = read_image(self._files[0])
+        size = (first.shape[1], first.shape[0])
+        self.depth_scale = REPLICA_NICE_SLAM["scale"]
+        params = next((p for p in (folder / "cam_params.json", folder.resolve().parent / "cam_params.json")
+                       if p.is_file()), None)
+        if calib is not None:
+            spec = resolve_camera_spec(calib, size)
+        elif params is not None:
+            with as_dataset_errors():
+                spec, self.depth_scale = read_replica_cam_params(params)
+        else:
+            d = REPLICA_NICE_SLAM
+            if size != (d["w"], d["h"]):
+                raise DatasetError(f"{folder}: images are {size[0]}x{size[1]}, not NICE-SLAM's {d['w']}x{d['h']}, "
+                                   f"and there is no cam_params.json; {HOW_TO_CALIBRATE}")
+            spec = CameraSpec(PinholeCamera(d["fx"], d["fy"], d["cx"], d["cy"], d["w"], d["h"]),
+                              OutputSpec(mode="none"), "NICE-SLAM Replica default intrinsics")
+        calibration = make_calibration(spec, config, find_photometric(folder, size))
+
+        ts = np.arange(n, dtype=np.float64) / config.fps
+        gt, gt_src = None, ""
+        traj = folder / "traj.txt"
+        if groundtruth is not None:
+            gt, gt_src = load_groundtruth(Path(groundtruth), ts, config.gt_max_dt), str(groundtruth)
+        elif traj.is_file():
+            poses = read_replica_traj(traj)
+            if len(poses) < n:
+                raise DatasetError(f"{traj}: {len(poses)} poses for {n} frames")
+            gt, gt_src = poses[:n], str(traj)
+        super().__init__(folder, calibration=calibration, timestamps=ts, config=config, groundtruth=gt,
+                         groundtruth_source=gt_src, color=first.ndim == 3, has_depth=bool(self._depth_files),
+                         name=folder.resolve().name, nominal_fps=config.fps)
+
+    def _read(self, k: int) -> np.ndarray:
+        return read_image(self._files[k])
+
+    def _source(self, k: int) -> str:
+        return str(self._files[k])
+
+    def _read_depth(self, k: int) -> np.ndarray | None:
+        if not self._depth_files:
+            return None
+        f = self._depth_files[k]
+        d = read_image(f)
+        if d.ndim != 2:
+            raise DatasetError(f"{f}: depth must be a single-channel image")
+        return d.astype(np.float32) / np.float32(self.depth_scale)
