@@ -127,3 +127,21 @@ def test_twin_gradient_matches_finite_differences(rng):
         em[k] -= eps
         fd = (f(x, tuple(ep)) - f(x, tuple(em))) / (2 * eps)
         assert np.isclose(ref["v_exposure"][k], fd, rtol=1e-5, atol=1e-9)
+
+
+def test_split_launches_are_bitwise_equal_to_one_thread(wp_device, rng):
+    """Per-block float64 partials, no atomics: the result does not depend on how the launches are split."""
+    from mgso_kernels import runtime
+    h, w = 64, 160
+    rendered, target = _pair(rng, h, w)
+    fn = wl.L1SSIMLoss(h, w, wp_device)
+    old = runtime._threads
+    try:
+        out = []
+        for threads in (1, 3):
+            runtime.set_cpu_threads(threads)
+            r = fn(rendered, target, exposure=(0.1, 0.02))
+            out.append((r.loss, r.v_exposure, r.v_rendered.numpy().copy()))
+    finally:
+        runtime.set_cpu_threads(old)
+    assert out[0][0] == out[1][0] and out[0][1] == out[1][1] and np.array_equal(out[0][2], out[1][2])
