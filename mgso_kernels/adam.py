@@ -43,7 +43,7 @@ wp.set_module_options({"enable_backward": False})
 
 __all__ = [
     "BIAS_NONE", "BIAS_GLOBAL", "BIAS_PER_GAUSSIAN", "GaussianParams", "AdamHyper", "DensifyStats", "AdamRates",
-    "adam_step", "adam_step_array", "gather", "accumulate_stats", "make_hyper",
+    "adam_step", "adam_step_array", "gather", "accumulate_stats", "make_hyper", "float_view",
 ]
 
 BIAS_NONE = 0           # no bias correction (gsplat's fused adam kernel)
@@ -240,10 +240,10 @@ del _t
 
 @wp.kernel
 def accumulate_densify_stats(offset: int, v_means2d: wp.array(dtype=wp.vec2), v_means2d_abs: wp.array(dtype=wp.vec2),
-                             use_abs: int, radii: wp.array(dtype=float), ndc_scale: wp.vec2, stats: DensifyStats):
+                             use_abs: int, radii: wp.array(dtype=Any), ndc_scale: wp.vec2, stats: DensifyStats):
     """Add one view: for every visible Gaussian (radius > 0) the NDC gradient norm, count and max radius."""
     i = offset + wp.tid()
-    r = radii[i]
+    r = float(radii[i])
     if r <= 0.0:
         return
     g = v_means2d[i]
@@ -254,6 +254,28 @@ def accumulate_densify_stats(offset: int, v_means2d: wp.array(dtype=wp.vec2), v_
     stats.vis_count[i] = stats.vis_count[i] + 1
     stats.views_seen[i] = stats.views_seen[i] + 1
     stats.max_radius_px[i] = wp.max(stats.max_radius_px[i], r)
+
+
+for _t in (wp.float32, wp.int32):
+    wp.overload(accumulate_densify_stats, {"offset": int, "v_means2d": wp.array(dtype=wp.vec2),
+                                           "v_means2d_abs": wp.array(dtype=wp.vec2), "use_abs": int,
+                                           "radii": wp.array(dtype=_t), "ndc_scale": wp.vec2, "stats": DensifyStats})
+del _t
+
+
+def float_view(a: wp.array) -> wp.array:
+    """Zero-copy float32 view of a contiguous vector array: vec2/3/4 [N] -> (N, 2/3/4), vec3 [N, K] -> (N, K, 3);
+    float32 arrays are returned as they are. For kernels (e.g. the rasteriser's) that take ``array2d(float)`` rows."""
+    if a.dtype == wp.float32:
+        return a
+    length = getattr(a.dtype, "_length_", None)
+    if length is None or a.dtype._wp_scalar_type_ != wp.float32:
+        raise ValueError(f"float_view: expected a float32 vector array, got {a.dtype}")
+    if not a.is_contiguous:
+        raise ValueError("float_view: the array must be contiguous")
+    v = wp.array(ptr=a.ptr, dtype=wp.float32, shape=tuple(a.shape) + (length,), device=a.device)
+    v._ref = a   # keep the owner alive
+    return v
 
 
 # ----------------------------------------------------------------------------------------------- launchers
@@ -377,7 +399,7 @@ def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, 
 
     ``v_means2d``: [N] vec2, dL/d(projected mean) in **pixels** (what the rasteriser's backward produces);
     ``v_means2d_abs``: [N] vec2, AbsGS's sum over pixels of |per-pixel gradient|, pixels (optional);
-    ``radii``: [N] float32 screen radius in pixels, 0 for Gaussians not drawn in this view;
+    ``radii``: [N] float32 or int32 screen radius in pixels, 0 for Gaussians not drawn in this view;
     ``width``, ``height``: the image size, pixels (for the pixel -> NDC conversion, x W/2 and x H/2).
     """
     device = device or runtime.default_device()
@@ -385,9 +407,9 @@ def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, 
     if v_means2d.dtype != wp.vec2 or v_means2d.shape[0] != n:
         raise ValueError(f"accumulate_stats: v_means2d must be {n} vec2 (pixels), got {v_means2d.dtype.__name__} "
                          f"{v_means2d.shape}")
-    if radii.dtype != wp.float32 or radii.shape[0] != n:
-        raise ValueError(f"accumulate_stats: radii must be {n} float32 (pixels), got {radii.dtype.__name__} "
-                         f"{radii.shape}")
+    if radii.dtype not in (wp.float32, wp.int32) or radii.shape[0] != n:
+        raise ValueError(f"accumulate_stats: radii must be {n} float32 or int32 (pixels), got "
+                         f"{radii.dtype.__name__} {radii.shape}")
     use_abs = v_means2d_abs is not None
     if use_abs and (v_means2d_abs.dtype != wp.vec2 or v_means2d_abs.shape[0] != n):
         raise ValueError(f"accumulate_stats: v_means2d_abs must be {n} vec2")

@@ -305,6 +305,16 @@ class LossResult:
     v_exposure: tuple[float, float]   # (dL/da, dL/db); (0, 0) when compute_grad=False
 
     @property
+    def v_rendered_hw3(self) -> wp.array | None:
+        """``v_rendered`` as a zero-copy float32 (H, W, 3) Warp view."""
+        if self.v_rendered is None:
+            return None
+        v = wp.array(ptr=self.v_rendered.ptr, dtype=wp.float32, shape=tuple(self.v_rendered.shape) + (3,),
+                     device=self.v_rendered.device)
+        v._ref = self.v_rendered
+        return v
+
+    @property
     def dssim(self) -> float:
         """1 - SSIM, the D-SSIM term as 3DGS logs it."""
         return 1.0 - self.ssim

@@ -52,7 +52,7 @@ from mgso_kernels import adam as kadam
 from mgso_kernels import runtime
 
 __all__ = [
-    "SH_C0", "MapFullError", "GaussianArrays", "ActivatedGaussians", "GaussianMap", "num_sh_coeffs",
+    "SH_C0", "MapFullError", "GaussianArrays", "ActivatedGaussians", "FloatParams", "GaussianMap", "num_sh_coeffs",
     "sh_degree_from_coeffs", "means_learning_rate", "exposure_learning_rate", "scene_extent_from_cameras",
     "quat_wxyz_to_rotmat", "rgb_to_sh_dc",
 ]
@@ -196,6 +196,17 @@ class ActivatedGaussians:
     rgb: np.ndarray        # (N, 3) degree-0 colour max(0, 0.5 + SH_C0 * dc); higher bands are view-dependent
 
 
+@dataclass(frozen=True)
+class FloatParams:
+    """Zero-copy float32 views of a parameter set, for kernels that take plain float rows (``array2d(float)``)."""
+
+    means: wp.array            # (n, 3) float32
+    log_scales: wp.array       # (n, 3)
+    quats: wp.array            # (n, 4) w x y z
+    opacity_logits: wp.array   # (n,)
+    sh: wp.array               # (n, K, 3)
+
+
 # ------------------------------------------------------------------------------------------------- the map
 def _alloc_params(capacity: int, k: int, device: str) -> kadam.GaussianParams:
     s = kadam.GaussianParams()
@@ -324,6 +335,14 @@ class GaussianMap:
     def grads(self) -> kadam.GaussianParams:
         """Gradient buffers of the live rows: the rasteriser's backward writes dL/d(parameter) here."""
         return _slice_struct(self.grads_, _PARAM_FIELDS, self._n, kadam.GaussianParams)
+
+    def float_params(self) -> FloatParams:
+        """The live parameters as float32 (n, 3) / (n, 4) / (n,) / (n, K, 3) views (same memory as :attr:`params`)."""
+        return FloatParams(**{f: kadam.float_view(getattr(self.params_, f)[: self._n]) for f in _PARAM_FIELDS})
+
+    def float_grads(self) -> FloatParams:
+        """The live gradient buffers as float32 views (same memory as :attr:`grads`), for the rasteriser's backward."""
+        return FloatParams(**{f: kadam.float_view(getattr(self.grads_, f)[: self._n]) for f in _PARAM_FIELDS})
 
     @property
     def exp_avg(self) -> kadam.GaussianParams:
@@ -545,7 +564,8 @@ class GaussianMap:
     def accumulate_stats(self, v_means2d: wp.array, radii: wp.array, width: int, height: int,
                          v_means2d_abs: wp.array | None = None) -> None:
         """Add one training view's statistics: ``v_means2d`` [n] vec2 dL/d(projected mean) in pixels, ``radii``
-        [n] float32 screen radius in pixels (0 = not drawn), optional AbsGS ``v_means2d_abs`` [n] vec2 pixels."""
+        [n] float32 or int32 screen radius in pixels (0 = not drawn), optional AbsGS ``v_means2d_abs`` [n] vec2
+        pixels. Converts to NDC units (x W/2, H/2) as 3DGS measures its threshold."""
         kadam.accumulate_stats(self.stats, v_means2d, radii, width, height, v_means2d_abs, device=self.device)
 
     def learning_rates(self, step: int) -> kadam.AdamRates:

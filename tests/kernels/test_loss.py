@@ -145,3 +145,10 @@ def test_split_launches_are_bitwise_equal_to_one_thread(wp_device, rng):
     finally:
         runtime.set_cpu_threads(old)
     assert out[0][0] == out[1][0] and out[0][1] == out[1][1] and np.array_equal(out[0][2], out[1][2])
+
+
+def test_gradient_float_view(wp_device, rng):
+    rendered, target = _pair(rng, 12, 16)
+    res = wl.L1SSIMLoss(12, 16, wp_device)(rendered, target)
+    assert res.v_rendered_hw3.shape == (12, 16, 3)
+    assert np.array_equal(res.v_rendered_hw3.numpy(), res.v_rendered.numpy())

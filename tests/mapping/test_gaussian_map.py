@@ -223,3 +223,20 @@ def test_scene_extent_is_the_3dgs_rule():
     c = np.array([[0, 0, 0], [2, 0, 0], [1, 1, 0]], float)
     centroid = c.mean(0)
     assert math.isclose(scene_extent_from_cameras(c), 1.1 * np.linalg.norm(c - centroid, axis=1).max())
+
+
+def test_float_views_share_memory_and_int_radii(wp_device, rng):
+    a = _arrays(rng, 5, k=4)
+    gm = GaussianMap.from_arrays(a, device=wp_device)
+    fp = gm.float_params()
+    assert fp.means.shape == (5, 3) and fp.quats.shape == (5, 4) and fp.sh.shape == (5, 4, 3)
+    assert fp.opacity_logits.shape == (5,)
+    np.testing.assert_array_equal(fp.sh.numpy(), a.sh)
+    fg = gm.float_grads()
+    fg.quats.assign(np.ones((5, 4), np.float32))          # a rasteriser writing float rows ...
+    assert np.all(gm.grads.quats.numpy() == 1.0)           # ... lands in the map's gradient buffers
+    radii = wp.array(np.array([3, 0, 1, 0, 7], np.int32), device=wp_device)
+    v = wp.array(np.ones((5, 2), np.float32), dtype=wp.vec2, device=wp_device)
+    gm.accumulate_stats(v, radii, 8, 6)
+    assert list(gm.stats.vis_count.numpy()) == [1, 0, 1, 0, 1]
+    np.testing.assert_allclose(gm.stats.grad2d_sum.numpy()[0], 5.0)   # |(1 * 4, 1 * 3)|
