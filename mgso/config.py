@@ -17,12 +17,13 @@ import dataclasses
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 import yaml
 
 __all__ = [
-    "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OutputConfig",
+    "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
+    "DensifyConfig", "OutputConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles",
 ]
@@ -86,10 +87,75 @@ class WindowConfig:
 
 
 @dataclass(frozen=True)
+class OptimConfig:
+    """Adam on the Gaussian parameters (docs/mapping.md; rates from graphdeco 3DGS ``arguments/__init__.py``)."""
+
+    lr_means_init: float = opt(1.6e-4, "means learning rate at step 0, times scene extent (3DGS position_lr_init)")
+    lr_means_final: float = opt(1.6e-6, "means learning rate at lr_means_max_steps, times extent (3DGS final)")
+    lr_means_max_steps: int = opt(30_000, "steps of the log-linear means decay, constant after (3DGS max_steps)")
+    lr_means_delay_steps: int = opt(0, "warm-up steps scaled by lr_means_delay_mult (3DGS default 0 = none)")
+    lr_means_delay_mult: float = opt(0.01, "means lr factor at step 0 of the warm-up (3DGS position_lr_delay_mult)")
+    lr_log_scales: float = opt(0.005, "log-scale learning rate (3DGS scaling_lr)")
+    lr_quats: float = opt(0.001, "raw quaternion learning rate (3DGS rotation_lr)")
+    lr_opacity: float = opt(0.025, "opacity-logit learning rate (3DGS opacity_lr; 0.05 before the 2024 update)")
+    lr_sh_dc: float = opt(0.0025, "SH DC (base colour) learning rate (3DGS feature_lr)")
+    lr_sh_rest: float = opt(0.0025 / 20.0, "higher SH bands learning rate (3DGS: feature_lr / 20)")
+    beta1: float = opt(0.9, "Adam first-moment decay (3DGS/torch default)")
+    beta2: float = opt(0.999, "Adam second-moment decay (3DGS/torch default)")
+    eps: float = opt(1e-15, "Adam epsilon (3DGS uses 1e-15 so tiny colour/opacity gradients still move)")
+    bias_correction: Literal["per_gaussian", "global", "none"] = opt(
+        "per_gaussian", "per_gaussian: a Gaussian added late starts Adam at t=1 (MGSO adds seeds every keyframe); "
+                        "global: one step count (3DGS); none: no correction (gsplat fused adam)")
+    sparse: bool = opt(False, "update only Gaussians visible in this view (3DGS sparse_adam, gsplat visible_adam); "
+                              "false = dense torch.optim.Adam as 3DGS by default")
+    lr_exposure_init: float = opt(0.01, "per-keyframe exposure (a, b) learning rate at step 0 (3DGS exposure_lr_init)")
+    lr_exposure_final: float = opt(0.001, "exposure learning rate at lr_means_max_steps (3DGS exposure_lr_final)")
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Densification and pruning (3DGS adaptive density control; gsplat ``DefaultStrategy`` names in brackets)."""
+
+    refine_start_step: int = opt(500, "no clone/split/prune before this step: stats need a few views (3DGS 500)")
+    refine_stop_step: int = opt(15_000, "no clone/split/prune/reset from this step on (3DGS 15000); 0 = never stop "
+                                        "(continuous SLAM mapping)")
+    refine_every: int = opt(100, "steps between refinements (3DGS densification_interval)")
+    reset_every: int = opt(3000, "steps between opacity resets; 0 = never (3DGS opacity_reset_interval)")
+    reset_opacity_value: float = opt(0.01, "opacity clamp at a reset, so floaters must earn opacity back (3DGS 0.01)")
+    pause_refine_after_reset: int = opt(0, "skip refinements this many steps after a reset (gsplat; 0 = off)")
+    grad_mode: Literal["grad", "absgrad", "absgs"] = opt(
+        "grad", "grad: 3DGS mean gradient; absgrad: gsplat's AbsGS variant (abs grad for clone and split); "
+                "absgs: AbsGS paper (clone by grad, split by abs grad)")
+    grow_grad2d: float = opt(0.0002, "clone/split above this mean |dL/d mean2d| in NDC units (3DGS "
+                                     "densify_grad_threshold); NDC = pixels x W/2, H/2")
+    grow_grad2d_abs: float = opt(0.0008, "abs-gradient threshold, NDC units, in grad_mode absgrad (gsplat docs "
+                                         "recommend 0.0008)")
+    absgs_split_grad2d: float = opt(0.0004, "abs-gradient split threshold in grad_mode absgs (AbsGS "
+                                            "densify_grad_abs_threshold)")
+    percent_dense: float = opt(0.01, "clone if max scale <= this x scene extent, else split (3DGS percent_dense, "
+                                     "gsplat grow_scale3d)")
+    split_children: int = opt(2, "Gaussians a split makes from one (3DGS N = 2)")
+    split_scale_factor: float = opt(0.8, "children scales = parent / (factor x children) (3DGS 0.8 -> / 1.6)")
+    grow_min_views: int = opt(1, "a Gaussian must be visible in this many views since the last refine to grow")
+    prune_opacity: float = opt(0.005, "prune below this opacity (3DGS min_opacity, gsplat prune_opa)")
+    prune_scale3d: float = opt(0.1, "after the first reset, prune max scale above this x scene extent (3DGS, gsplat)")
+    prune_screen_px: float = opt(0.0, "after the first reset, prune screen radius above this many pixels; 0 = off "
+                                      "(3DGS's 20 px never fires, graphdeco issue #123; gsplat defaults it off)")
+    prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
     enabled: bool = opt(True, "build the Gaussian map (false = odometry only)")
+    capacity: int = opt(500_000, "most Gaussians the map holds (buffers preallocated; ~130 MB at SH degree 0)")
+    sh_degree: int = opt(0, "spherical-harmonics degree of colour; 0 = view-independent RGB (MGSO; 3DGS uses 3)")
+    lambda_dssim: float = opt(0.2, "weight of D-SSIM in the loss, L = (1-l) L1 + l (1-SSIM) (3DGS lambda_dssim)")
+    scene_extent_margin: float = opt(1.1, "scene extent = this x max camera distance from their centroid (3DGS)")
+    optim: OptimConfig = field(default_factory=OptimConfig, metadata={"reason": "Adam settings of the map"})
+    densify: DensifyConfig = field(default_factory=DensifyConfig,
+                                   metadata={"reason": "densification and pruning rules"})
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,467 @@
+"""Photometric training loss of the Gaussian map: L1 + D-SSIM, fused forward and backward Warp kernels.
+
+    L = (1 - lambda) * L1 + lambda * (1 - SSIM),     lambda = 0.2 (3DGS, graphdeco ``lambda_dssim``)
+
+on the exposure-corrected rendering ``I' = exp(a) * I + b`` (MGSO: the map stores radiance; the keyframe's affine
+brightness (a, b) comes from DSO and may be refined with the gradients returned here).
+
+Conventions (the 3DGS training convention, graphdeco ``utils/loss_utils.py``):
+
+- SSIM uses the standard 11x11 Gaussian window (sigma 1.5, normalised to sum 1), C1 = 0.01^2, C2 = 0.03^2 (images in
+  [0, 1]), a **zero-padded 'same'** filter (``conv2d(..., padding=5)``: pixels near the border see zeros outside the
+  image), and the SSIM map is **averaged over pixels and channels**. L1 is the mean absolute difference over pixels
+  and channels.
+- An optional per-pixel weight ``mask`` (H, W) >= 0 turns both means into weighted means,
+  ``L1 = sum_p w_p sum_c |I'_pc - T_pc| / (3 sum_p w_p)`` and likewise for the SSIM map. The 11x11 windows are not
+  masked: a valid pixel next to an invalid border still sees its neighbours (what masked 3DGS trainers do). A mask of
+  all zeros gives loss 0 and a zero gradient (``LossResult.weight_sum == 0`` says so).
+
+Algorithm (five pixel-parallel passes, each split over the CPU cores with :func:`runtime.launch_split`):
+
+1. ``filter_moments_rows``: horizontal 1-D window over the five moment maps x, y, x^2, y^2, xy (per channel).
+2. ``ssim_forward_cols``: vertical window -> mu_x, mu_y, E[x^2], E[y^2], E[xy]; per-pixel SSIM and L1, and the
+   per-pixel partial derivatives of w_p * SSIM_p with respect to the three filtered maps that depend on the rendering
+   (mu_x, E[x^2], E[xy]).
+3. ``sum_blocks`` + ``sum_partials``: per-block float64 partial sums (blocks of :data:`REDUCE_BLOCK` pixels), then
+   one thread adds the partials. No cross-thread atomics (on the CPU ``wp.atomic_add`` is not atomic across split
+   launches), and the result is bitwise reproducible on any device.
+4. ``filter_adjoint_rows`` + ``ssim_backward_cols``: the adjoint of a zero-padded 'same' correlation with a symmetric
+   kernel is the same correlation, so the backward filters the three derivative maps with the same window and applies
+   the chain rule ``dSSIM/dx'(q) = G*A (q) + 2 x'(q) G*B (q) + y(q) G*C (q)``; adds the L1 term, multiplies by
+   exp(a) for dL/dI, and reduces dL/da, dL/db as in 3.
+
+The NumPy twin is :mod:`mgso_kernels.reference.loss` (scipy.ndimage forward, non-separable analytic adjoint).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import runtime
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = [
+    "LAMBDA_DSSIM", "SSIM_WINDOW", "SSIM_SIGMA", "SSIM_C1", "SSIM_C2", "REDUCE_BLOCK",
+    "gaussian_window", "LossResult", "L1SSIMLoss", "l1_dssim_loss",
+]
+
+LAMBDA_DSSIM = 0.2          # 3DGS lambda_dssim
+SSIM_WINDOW = 11            # window side, pixels (Wang et al. 2004; 3DGS)
+SSIM_SIGMA = 1.5            # window standard deviation, pixels
+SSIM_C1 = 0.01 ** 2         # (K1 * L)^2 with K1 = 0.01, dynamic range L = 1
+SSIM_C2 = 0.03 ** 2         # (K2 * L)^2 with K2 = 0.03
+REDUCE_BLOCK = 256          # pixels per float64 partial sum
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.ndarray:
+    """The normalised 1-D Gaussian window (float32, sums to 1); the 2-D window is its outer product."""
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"SSIM window size must be odd and positive, got {size}")
+    x = np.arange(size, dtype=np.float64) - size // 2
+    g = np.exp(-(x * x) / (2.0 * sigma * sigma))
+    return (g / g.sum()).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ structs
+@wp.struct
+class ImagePair:
+    rendered: wp.array2d(dtype=wp.vec3)   # [H, W] RGB radiance from the rasteriser, before exposure
+    target: wp.array2d(dtype=wp.vec3)     # [H, W] RGB in [0, 1]
+    weight: wp.array2d(dtype=float)       # [H, W] per-pixel weight >= 0 (read only when use_weight == 1)
+    use_weight: int                       # 0: every pixel weighs 1
+    gain: float                           # exp(a)
+    bias: float                           # b
+
+
+@wp.struct
+class MomentMaps:
+    mu_x: wp.array2d(dtype=wp.vec3)       # [H, W] filtered x' (per channel)
+    mu_y: wp.array2d(dtype=wp.vec3)       # [H, W] filtered y
+    xx: wp.array2d(dtype=wp.vec3)         # [H, W] filtered x'^2
+    yy: wp.array2d(dtype=wp.vec3)         # [H, W] filtered y^2
+    xy: wp.array2d(dtype=wp.vec3)         # [H, W] filtered x' y
+
+
+@wp.struct
+class AdjointMaps:
+    d_mu_x: wp.array2d(dtype=wp.vec3)     # [H, W] w_p dSSIM_p / d mu_x(p)
+    d_xx: wp.array2d(dtype=wp.vec3)       # [H, W] w_p dSSIM_p / d E[x^2](p)
+    d_xy: wp.array2d(dtype=wp.vec3)       # [H, W] w_p dSSIM_p / d E[xy](p)
+
+
+# -------------------------------------------------------------------------------------------------- funcs
+@wp.func
+def exposed(img: ImagePair, y: int, x: int):
+    return img.rendered[y, x] * img.gain + wp.vec3(img.bias)
+
+
+@wp.func
+def pixel_weight(img: ImagePair, y: int, x: int):
+    w = float(1.0)
+    if img.use_weight != 0:
+        w = img.weight[y, x]
+    return w
+
+
+@wp.func
+def ssim_and_partials(mx: float, my: float, exx: float, eyy: float, exy: float, c1: float, c2: float):
+    """SSIM of one pixel and channel from the filtered moments, and dSSIM/d(mu_x, E[x^2], E[xy])."""
+    sxx = exx - mx * mx
+    syy = eyy - my * my
+    sxy = exy - mx * my
+    n1 = 2.0 * mx * my + c1
+    n2 = 2.0 * sxy + c2
+    d1 = mx * mx + my * my + c1
+    d2 = sxx + syy + c2
+    inv = 1.0 / (d1 * d2)
+    s = n1 * n2 * inv
+    d_mx = 2.0 * my * (n2 - n1) * inv + 2.0 * mx * s * (1.0 / d2 - 1.0 / d1)
+    d_xx = -s / d2
+    d_xy = 2.0 * n1 * inv
+    return wp.vec4(s, d_mx, d_xx, d_xy)
+
+
+@wp.func
+def sign3(v: wp.vec3):
+    return wp.vec3(wp.sign(v[0]) * wp.where(v[0] == 0.0, 0.0, 1.0),
+                   wp.sign(v[1]) * wp.where(v[1] == 0.0, 0.0, 1.0),
+                   wp.sign(v[2]) * wp.where(v[2] == 0.0, 0.0, 1.0))
+
+
+# ------------------------------------------------------------------------------------------------ kernels
+@wp.kernel
+def filter_moments_rows(offset: int, img: ImagePair, window: wp.array(dtype=float), out: MomentMaps):
+    """Horizontal zero-padded 'same' window over x', y, x'^2, y^2, x'y; one thread per pixel."""
+    i = offset + wp.tid()
+    w = img.rendered.shape[1]
+    y = i // w
+    x = i - y * w
+    r = window.shape[0] // 2
+    mx = wp.vec3()
+    my = wp.vec3()
+    xx = wp.vec3()
+    yy = wp.vec3()
+    xy = wp.vec3()
+    for k in range(-r, r + 1):
+        xs = x + k
+        if xs >= 0 and xs < w:
+            g = window[k + r]
+            a = exposed(img, y, xs)
+            b = img.target[y, xs]
+            mx += g * a
+            my += g * b
+            xx += g * wp.cw_mul(a, a)
+            yy += g * wp.cw_mul(b, b)
+            xy += g * wp.cw_mul(a, b)
+    out.mu_x[y, x] = mx
+    out.mu_y[y, x] = my
+    out.xx[y, x] = xx
+    out.yy[y, x] = yy
+    out.xy[y, x] = xy
+
+
+@wp.kernel
+def ssim_forward_cols(offset: int, img: ImagePair, window: wp.array(dtype=float), rows: MomentMaps,
+                      c1: float, c2: float, adj: AdjointMaps, pixel_sums: wp.array(dtype=wp.vec3)):
+    """Vertical window, SSIM and L1 per pixel; writes w_p dSSIM_p/d(filtered maps) and (w, w*L1, w*SSIM)."""
+    i = offset + wp.tid()
+    h = img.rendered.shape[0]
+    w = img.rendered.shape[1]
+    y = i // w
+    x = i - y * w
+    r = window.shape[0] // 2
+    mx = wp.vec3()
+    my = wp.vec3()
+    xx = wp.vec3()
+    yy = wp.vec3()
+    xy = wp.vec3()
+    for k in range(-r, r + 1):
+        ys = y + k
+        if ys >= 0 and ys < h:
+            g = window[k + r]
+            mx += g * rows.mu_x[ys, x]
+            my += g * rows.mu_y[ys, x]
+            xx += g * rows.xx[ys, x]
+            yy += g * rows.yy[ys, x]
+            xy += g * rows.xy[ys, x]
+    wt = pixel_weight(img, y, x)
+    s_sum = float(0.0)
+    d_mu = wp.vec3()
+    d_xx = wp.vec3()
+    d_xy = wp.vec3()
+    for c in range(3):
+        q = ssim_and_partials(mx[c], my[c], xx[c], yy[c], xy[c], c1, c2)
+        s_sum += q[0]
+        d_mu[c] = wt * q[1]
+        d_xx[c] = wt * q[2]
+        d_xy[c] = wt * q[3]
+    adj.d_mu_x[y, x] = d_mu
+    adj.d_xx[y, x] = d_xx
+    adj.d_xy[y, x] = d_xy
+    diff = exposed(img, y, x) - img.target[y, x]
+    l1 = wp.abs(diff[0]) + wp.abs(diff[1]) + wp.abs(diff[2])
+    pixel_sums[i] = wp.vec3(wt, wt * l1, wt * s_sum)
+
+
+@wp.kernel
+def filter_adjoint_rows(offset: int, adj: AdjointMaps, window: wp.array(dtype=float), out: AdjointMaps):
+    """Horizontal window over the three derivative maps (the adjoint of the forward's vertical pass)."""
+    i = offset + wp.tid()
+    w = adj.d_mu_x.shape[1]
+    y = i // w
+    x = i - y * w
+    r = window.shape[0] // 2
+    a = wp.vec3()
+    b = wp.vec3()
+    c = wp.vec3()
+    for k in range(-r, r + 1):
+        xs = x + k
+        if xs >= 0 and xs < w:
+            g = window[k + r]
+            a += g * adj.d_mu_x[y, xs]
+            b += g * adj.d_xx[y, xs]
+            c += g * adj.d_xy[y, xs]
+    out.d_mu_x[y, x] = a
+    out.d_xx[y, x] = b
+    out.d_xy[y, x] = c
+
+
+@wp.kernel
+def ssim_backward_cols(offset: int, img: ImagePair, window: wp.array(dtype=float), rows: AdjointMaps,
+                       totals: wp.array(dtype=wp.vec3d), lambda_dssim: float,
+                       v_rendered: wp.array2d(dtype=wp.vec3), pixel_sums: wp.array(dtype=wp.vec3)):
+    """Vertical window and chain rule: dL/dI per pixel, and per-pixel (dL/da, dL/db, 0) terms."""
+    i = offset + wp.tid()
+    h = img.rendered.shape[0]
+    w = img.rendered.shape[1]
+    y = i // w
+    x = i - y * w
+    r = window.shape[0] // 2
+    ga = wp.vec3()
+    gb = wp.vec3()
+    gc = wp.vec3()
+    for k in range(-r, r + 1):
+        ys = y + k
+        if ys >= 0 and ys < h:
+            g = window[k + r]
+            ga += g * rows.d_mu_x[ys, x]
+            gb += g * rows.d_xx[ys, x]
+            gc += g * rows.d_xy[ys, x]
+    weight_sum = float(totals[0][0])
+    norm = float(0.0)
+    if weight_sum > 0.0:
+        norm = 1.0 / (3.0 * weight_sum)
+    xp = exposed(img, y, x)
+    yt = img.target[y, x]
+    d_ssim = ga + 2.0 * wp.cw_mul(xp, gb) + wp.cw_mul(yt, gc)
+    d_l1 = pixel_weight(img, y, x) * sign3(xp - yt)
+    v_x = norm * ((1.0 - lambda_dssim) * d_l1 - lambda_dssim * d_ssim)   # dL/dI'
+    v_rendered[y, x] = v_x * img.gain
+    unexposed = xp - wp.vec3(img.bias)                                    # dI'/da = exp(a) I
+    pixel_sums[i] = wp.vec3(wp.dot(v_x, unexposed), v_x[0] + v_x[1] + v_x[2], 0.0)
+
+
+@wp.kernel
+def sum_blocks(offset: int, values: wp.array(dtype=wp.vec3), block: int, partials: wp.array(dtype=wp.vec3d)):
+    """One thread per block of ``block`` values: float64 partial sum (no atomics)."""
+    b = offset + wp.tid()
+    lo = b * block
+    hi = wp.min(lo + block, values.shape[0])
+    acc = wp.vec3d()
+    for j in range(lo, hi):
+        v = values[j]
+        acc += wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+    partials[b] = acc
+
+
+@wp.kernel
+def sum_partials(partials: wp.array(dtype=wp.vec3d), count: int, totals: wp.array(dtype=wp.vec3d), slot: int):
+    """A single thread adds the block partials in order (deterministic on every device)."""
+    acc = wp.vec3d()
+    for b in range(count):
+        acc += partials[b]
+    totals[slot] = acc
+
+
+# ----------------------------------------------------------------------------------------------- launcher
+@dataclass(frozen=True)
+class LossResult:
+    """What :class:`L1SSIMLoss` computed for one image pair.
+
+    ``v_rendered`` is dL/d(rendered image) (before exposure), a Warp array ``[H, W]`` of ``vec3`` owned by the loss
+    object: the next call overwrites it (copy it if you keep it). ``v_exposure`` is (dL/da, dL/db).
+    """
+
+    loss: float                       # (1 - lambda) * l1 + lambda * (1 - ssim)
+    l1: float                         # weighted mean |I' - T| over pixels and channels
+    ssim: float                       # weighted mean SSIM over pixels and channels
+    weight_sum: float                 # sum of the pixel weights (H * W without a mask); 0 -> loss 0
+    v_rendered: wp.array | None       # [H, W] vec3 dL/dI, None when compute_grad=False
+    v_exposure: tuple[float, float]   # (dL/da, dL/db); (0, 0) when compute_grad=False
+
+    @property
+    def v_rendered_hw3(self) -> wp.array | None:
+        """``v_rendered`` as a zero-copy float32 (H, W, 3) Warp view."""
+        if self.v_rendered is None:
+            return None
+        v = wp.array(ptr=self.v_rendered.ptr, dtype=wp.float32, shape=tuple(self.v_rendered.shape) + (3,),
+                     device=self.v_rendered.device)
+        v._ref = self.v_rendered
+        return v
+
+    @property
+    def dssim(self) -> float:
+        """1 - SSIM, the D-SSIM term as 3DGS logs it."""
+        return 1.0 - self.ssim
+
+
+def _as_image(x, name: str, height: int, width: int, device: str) -> wp.array:
+    """A ``[H, W]`` vec3 Warp view of an (H, W, 3) float32 image (NumPy or Warp), copying only when needed."""
+    if isinstance(x, wp.array):
+        if x.device != wp.get_device(device):
+            raise ValueError(f"{name}: on device {x.device}, the loss runs on {device}")
+        if x.dtype == wp.vec3 and x.ndim == 2:
+            arr = x
+        elif x.dtype == wp.float32 and x.ndim == 3 and x.shape[2] == 3:
+            if not x.is_contiguous:
+                raise ValueError(f"{name}: a (H, W, 3) float32 Warp array must be contiguous")
+            arr = wp.array(ptr=x.ptr, dtype=wp.vec3, shape=(x.shape[0], x.shape[1]), device=x.device)
+            arr._ref = x  # keep the owner alive
+        else:
+            raise ValueError(f"{name}: expected a Warp array [H, W] of vec3 or (H, W, 3) float32, got dtype "
+                             f"{x.dtype} with shape {x.shape}")
+    else:
+        a = np.asarray(x)
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"{name}: expected an (H, W, 3) RGB image, got shape {a.shape}")
+        if not np.issubdtype(a.dtype, np.floating):
+            raise ValueError(f"{name}: expected float RGB in [0, 1], got dtype {a.dtype} (divide uint8 by 255)")
+        a = np.ascontiguousarray(a, dtype=np.float32)
+        arr = wp.array(a, dtype=wp.vec3, device=device, copy=not wp.get_device(device).is_cpu)
+    if tuple(arr.shape) != (height, width):
+        raise ValueError(f"{name}: image is {arr.shape[1]}x{arr.shape[0]} (WxH), the loss was built for "
+                         f"{width}x{height}")
+    return arr
+
+
+def _as_weight(mask, height: int, width: int, device: str) -> wp.array:
+    if isinstance(mask, wp.array):
+        if mask.dtype != wp.float32 or tuple(mask.shape) != (height, width):
+            raise ValueError(f"mask: expected a float32 Warp array of shape ({height}, {width}), got dtype "
+                             f"{mask.dtype} shape {mask.shape}")
+        return mask
+    m = np.asarray(mask)
+    if m.shape != (height, width):
+        raise ValueError(f"mask: expected shape ({height}, {width}), got {m.shape}")
+    m = np.ascontiguousarray(m, dtype=np.float32)
+    if not np.all(np.isfinite(m)) or np.any(m < 0):
+        raise ValueError("mask: weights must be finite and >= 0")
+    return wp.array(m, dtype=wp.float32, device=device, copy=not wp.get_device(device).is_cpu)
+
+
+class L1SSIMLoss:
+    """L1 + D-SSIM loss of one image size, with its scratch buffers allocated once.
+
+    Usage::
+
+        loss_fn = L1SSIMLoss(height=480, width=640, device="cpu")
+        res = loss_fn(rendered, target, mask=valid, exposure=(a, b))
+        res.loss, res.v_rendered  # dL/dI as [H, W] vec3, overwritten by the next call
+
+    ``rendered`` / ``target``: (H, W, 3) float32 (NumPy, or a Warp array of vec3 [H, W] or float32 (H, W, 3)).
+    ``mask``: optional (H, W) float weights >= 0 (0 = ignore the pixel), e.g. undistortion borders.
+    ``exposure``: optional (a, b): the loss compares ``exp(a) * rendered + b`` with the target.
+    """
+
+    def __init__(self, height: int, width: int, device: str | None = None, *,
+                 lambda_dssim: float = LAMBDA_DSSIM, window_size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA,
+                 c1: float = SSIM_C1, c2: float = SSIM_C2):
+        if height < 1 or width < 1:
+            raise ValueError(f"image size must be positive, got {width}x{height}")
+        if not 0.0 <= lambda_dssim <= 1.0:
+            raise ValueError(f"lambda_dssim must be in [0, 1], got {lambda_dssim}")
+        self.device = runtime.resolve_device(device or runtime.default_device())
+        self.height, self.width = int(height), int(width)
+        self.lambda_dssim = float(lambda_dssim)
+        self.c1, self.c2 = float(c1), float(c2)
+        d = self.device
+        shape = (self.height, self.width)
+        self.window = wp.array(gaussian_window(window_size, sigma), dtype=wp.float32, device=d)
+        self._rows = MomentMaps()
+        for f in ("mu_x", "mu_y", "xx", "yy", "xy"):
+            setattr(self._rows, f, wp.zeros(shape, dtype=wp.vec3, device=d))
+        self._adj = AdjointMaps()
+        self._adj_rows = AdjointMaps()
+        for s in (self._adj, self._adj_rows):
+            for f in ("d_mu_x", "d_xx", "d_xy"):
+                setattr(s, f, wp.zeros(shape, dtype=wp.vec3, device=d))
+        npix = self.height * self.width
+        self._pixel_sums = wp.zeros(npix, dtype=wp.vec3, device=d)
+        self._nblocks = -(-npix // REDUCE_BLOCK)
+        self._partials = wp.zeros(self._nblocks, dtype=wp.vec3d, device=d)
+        self._totals = wp.zeros(2, dtype=wp.vec3d, device=d)   # [0]: (w, w*l1, w*ssim); [1]: (dL/da, dL/db, 0)
+        self.v_rendered = wp.zeros(shape, dtype=wp.vec3, device=d)   # [H, W] dL/dI, overwritten each call
+        self._dummy_weight = wp.zeros((1, 1), dtype=wp.float32, device=d)
+
+    def _reduce(self, slot: int) -> None:
+        runtime.launch_split(sum_blocks, self._nblocks, [self._pixel_sums, REDUCE_BLOCK, self._partials],
+                             self.device, min_chunk=256)
+        wp.launch(sum_partials, dim=1, inputs=[self._partials, self._nblocks, self._totals, slot], device=self.device)
+
+    def __call__(self, rendered, target, mask=None, exposure: tuple[float, float] | None = None,
+                 compute_grad: bool = True) -> LossResult:
+        H, W, d = self.height, self.width, self.device
+        img = ImagePair()
+        img.rendered = _as_image(rendered, "rendered", H, W, d)
+        img.target = _as_image(target, "target", H, W, d)
+        if mask is None:
+            img.weight = self._dummy_weight
+            img.use_weight = 0
+        else:
+            img.weight = _as_weight(mask, H, W, d)
+            img.use_weight = 1
+        a, b = (0.0, 0.0) if exposure is None else (float(exposure[0]), float(exposure[1]))
+        if not (math.isfinite(a) and math.isfinite(b)):
+            raise ValueError(f"exposure (a, b) must be finite, got {exposure}")
+        img.gain = math.exp(a)
+        img.bias = b
+        npix = H * W
+        runtime.launch_split(filter_moments_rows, npix, [img, self.window, self._rows], d)
+        runtime.launch_split(ssim_forward_cols, npix,
+                             [img, self.window, self._rows, self.c1, self.c2, self._adj, self._pixel_sums], d)
+        self._reduce(0)
+        v_rendered = None
+        if compute_grad:
+            runtime.launch_split(filter_adjoint_rows, npix, [self._adj, self.window, self._adj_rows], d)
+            runtime.launch_split(ssim_backward_cols, npix,
+                                 [img, self.window, self._adj_rows, self._totals, self.lambda_dssim,
+                                  self.v_rendered, self._pixel_sums], d)
+            self._reduce(1)
+            v_rendered = self.v_rendered
+        totals = self._totals.numpy()
+        wsum, l1_sum, s_sum = (float(v) for v in totals[0])
+        if wsum > 0.0:
+            l1 = l1_sum / (3.0 * wsum)
+            ssim = s_sum / (3.0 * wsum)
+            loss = (1.0 - self.lambda_dssim) * l1 + self.lambda_dssim * (1.0 - ssim)
+        else:
+            l1, ssim, loss = 0.0, 1.0, 0.0
+        v_exp = (float(totals[1][0]), float(totals[1][1])) if compute_grad else (0.0, 0.0)
+        return LossResult(loss=loss, l1=l1, ssim=ssim, weight_sum=wsum, v_rendered=v_rendered, v_exposure=v_exp)
+
+
+def l1_dssim_loss(rendered, target, mask=None, exposure: tuple[float, float] | None = None,
+                  lambda_dssim: float = LAMBDA_DSSIM, device: str | None = None,
+                  compute_grad: bool = True) -> LossResult:
+    """One-off convenience: builds an :class:`L1SSIMLoss` for this image size and calls it.
+
+    Allocates scratch buffers on every call; a training loop should keep one :class:`L1SSIMLoss` per image size.
+    """
+    shape = rendered.shape
+    return L1SSIMLoss(shape[0], shape[1], device, lambda_dssim=lambda_dssim)(
+        rendered, target, mask=mask, exposure=exposure, compute_grad=compute_grad)

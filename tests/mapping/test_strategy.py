@@ -1,0 +1,151 @@
+"""Densification strategy on hand-made statistics: it clones, splits and prunes exactly what the 3DGS rules say."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from mgso.config import DensifyConfig
+from mgso.mapping.gaussian_map import GaussianMap
+from mgso.mapping.strategy import DefaultStrategy
+
+EXTENT = 2.0
+SMALL = math.log(0.005)    # max scale 0.005 <= 0.01 * 2.0 -> clone candidate
+LARGE = math.log(0.05)     # 0.05 > 0.02 -> split candidate, < 0.1 * 2.0 -> not too big
+HUGE = math.log(0.5)       # > 0.1 * 2.0 -> too big in the world after the first reset
+
+
+def _map(wp_device, rows, capacity=64):
+    """rows: list of (log_scale, opacity, grad_ndc, absgrad_ndc, vis_count)."""
+    n = len(rows)
+    gm = GaussianMap(capacity=capacity, sh_degree=0, device=wp_device, scene_extent=EXTENT)
+    means = np.zeros((n, 3), np.float32)
+    means[:, 0] = np.arange(n)
+    op = np.array([r[1] for r in rows])
+    gm.add(means, np.array([[r[0]] * 3 for r in rows]), np.tile([1, 0, 0, 0], (n, 1)), np.log(op / (1 - op)),
+           np.zeros((n, 3)), step=0)
+    count = np.array([r[4] for r in rows], np.int32)
+    st = gm.stats
+    st.grad2d_sum.assign(np.array([r[2] for r in rows], np.float32) * count)   # sums: mean x count
+    st.absgrad2d_sum.assign(np.array([r[3] for r in rows], np.float32) * count)
+    st.vis_count.assign(count)
+    return gm
+
+
+ROWS = [  # log_scale, opacity, mean grad (NDC), mean abs grad (NDC), views
+    (SMALL, 0.5, 3e-4, 0.0, 4),    # 0 clone
+    (LARGE, 0.5, 3e-4, 0.0, 4),    # 1 split
+    (SMALL, 0.5, 1e-4, 0.0, 4),    # 2 nothing (low grad)
+    (LARGE, 0.5, 1e-4, 9e-4, 4),   # 3 nothing in grad mode; split by abs grad in absgrad mode
+    (SMALL, 0.003, 1e-4, 0.0, 4),  # 4 pruned: opacity
+    (HUGE, 0.5, 1e-4, 0.0, 4),     # 5 pruned: too big (after the first reset interval)
+    (SMALL, 0.5, 0.0, 0.0, 0),     # 6 never seen: nothing
+]
+
+
+def _ids(gm):
+    return list(gm.means.numpy()[:, 0].astype(int))
+
+
+def test_refine_clones_splits_prunes(wp_device):
+    gm = _map(wp_device, ROWS)
+    strat = DefaultStrategy(DensifyConfig())
+    st = strat.initialize_state(seed=1)
+    res = strat.step_post_backward(gm, st, 3100)   # > 500, % 100 == 0, after the first reset (3000)
+    assert res.refined and not res.opacity_reset
+    assert (res.cloned, res.split, res.pruned_opacity, res.pruned_world, res.pruned_screen) == (1, 1, 1, 1, 0)
+    assert res.n_before == 7 and res.n_after == gm.n == 7 + 1 + 1 - 2
+    # survivors in order (1 was replaced by its children), then the clone of 0, then the two children of 1
+    assert _ids(gm)[:4] == [0, 2, 3, 6]
+    assert _ids(gm)[4] == 0
+    ls = gm.log_scales.numpy()
+    np.testing.assert_allclose(ls[5:], LARGE - math.log(1.6), atol=1e-6)
+    assert np.all(gm.created_step.numpy()[4:] == 3100) and np.all(gm.created_step.numpy()[:4] == 0)
+    assert not np.any(gm.stats.grad2d_sum.numpy()) and not np.any(gm.stats.vis_count.numpy())   # stats reset
+
+
+def test_no_size_pruning_before_first_reset_and_no_refine_off_schedule(wp_device):
+    strat = DefaultStrategy(DensifyConfig())
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 1000)
+    assert res.refined and res.pruned_world == 0 and res.pruned_opacity == 1
+    for step in (400, 500, 1050, 15_000, 15_100):   # before start, at start (strict), off the interval, after stop
+        gm = _map(wp_device, ROWS)
+        res = strat.step_post_backward(gm, strat.initialize_state(), step)
+        assert not res.refined and gm.n == 7 and res.cloned == res.split == res.pruned == 0, step
+
+
+def test_opacity_reset(wp_device):
+    strat = DefaultStrategy(DensifyConfig())
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 6000)
+    assert res.opacity_reset and res.refined
+    op = 1 / (1 + np.exp(-gm.opacity_logits.numpy()))
+    assert np.all(op <= 0.01 + 1e-6)
+    gm = _map(wp_device, ROWS)
+    assert not strat.step_post_backward(gm, strat.initialize_state(), 6001).opacity_reset
+    paused = DefaultStrategy(DensifyConfig(pause_refine_after_reset=200))
+    assert not paused.step_post_backward(_map(wp_device, ROWS), paused.initialize_state(), 6100).refined
+    assert paused.step_post_backward(_map(wp_device, ROWS), paused.initialize_state(), 6200).refined
+
+
+def test_absgrad_modes(wp_device):
+    strat = DefaultStrategy(DensifyConfig(grad_mode="absgrad"))     # abs grad decides both, threshold 0.0008
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
+    assert (res.cloned, res.split) == (0, 1) and 3 not in _ids(gm)[:4]
+    strat = DefaultStrategy(DensifyConfig(grad_mode="absgs"))       # clone by grad, split by abs grad > 0.0004
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
+    assert (res.cloned, res.split) == (1, 1) and _ids(gm)[:4] == [0, 1, 2, 6]
+
+
+def test_capacity_bounds_growth_by_priority(wp_device):
+    rows = [(SMALL, 0.5, g, 0.0, 2) for g in (3e-4, 9e-4, 5e-4, 1e-4)]
+    gm = _map(wp_device, rows, capacity=6)
+    strat = DefaultStrategy(DensifyConfig())
+    res = strat.step_post_backward(gm, strat.initialize_state(), 600)
+    assert res.cloned == 2 and res.skipped_capacity == 1 and gm.n == 6
+    assert _ids(gm)[4:] == [1, 2]      # the two largest gradients grew
+
+
+def test_min_views_and_min_age(wp_device):
+    strat = DefaultStrategy(DensifyConfig(grow_min_views=5))
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
+    assert res.cloned == 0 and res.split == 0
+    strat = DefaultStrategy(DensifyConfig(prune_min_age=5000))
+    gm = _map(wp_device, ROWS)
+    res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
+    assert res.pruned == 0
+
+
+def test_screen_size_pruning(wp_device):
+    strat = DefaultStrategy(DensifyConfig(prune_screen_px=20.0))
+    gm = _map(wp_device, ROWS)
+    gm.stats.max_radius_px.assign(np.array([25, 0, 0, 0, 0, 0, 30], np.float32))
+    res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
+    # rows 0 and 6 were drawn larger than 20 px; row 0's clone (made in this refine, no radius yet) stays
+    assert res.pruned_screen == 2 and _ids(gm) == [2, 3, 0, 1, 1]
+
+
+def test_pixel_gradients_are_converted_to_ndc(wp_device):
+    """The 0.0002 threshold is in NDC units: a pixel gradient g counts as |(gx W/2, gy H/2)|."""
+    W, H = 640, 480
+    gm = _map(wp_device, [(SMALL, 0.5, 0.0, 0.0, 0)] * 2)
+    v = np.array([[0.00025 / (W / 2), 0.0], [0.0, 0.00015 / (H / 2)]], np.float32)
+    for _ in range(3):
+        gm.accumulate_stats(wp.array(v, dtype=wp.vec2, device=wp_device),
+                            wp.array(np.ones(2, np.float32), device=wp_device), W, H)
+    strat = DefaultStrategy(DensifyConfig())
+    res = strat.step_post_backward(gm, strat.initialize_state(), 600)
+    assert res.cloned == 1 and _ids(gm) == [0, 1, 0]
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(ValueError, match="refine_every"):
+        DefaultStrategy(DensifyConfig(refine_every=0))
+    with pytest.raises(ValueError, match="grad_mode"):
+        DefaultStrategy(dataclasses.replace(DensifyConfig(), grad_mode="nope"))
