@@ -184,65 +184,84 @@ def _random_colour(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.75)
     return rgb.astype(np.float32)
 
 
-def _blend_mask(tex: np.ndarray, mask_u8: np.ndarray, colour: np.ndarray, opacity: float = 1.0) -> None:
-    """``tex <- tex + a (colour - tex)`` with ``a = opacity * mask / 255``, in place, within the mask's extent."""
-    x, y, w, h = cv2.boundingRect(mask_u8)
-    if w == 0 or h == 0:
+def _blend_roi(tex: np.ndarray, x0: int, y0: int, mask_u8: np.ndarray, colour: np.ndarray, opacity: float) -> None:
+    """``tex <- tex + a (colour - tex)`` with ``a = opacity * mask / 255`` for the mask placed at (x0, y0) (clipped to
+    the texture), in place."""
+    h, w = tex.shape[:2]
+    mh, mw = mask_u8.shape
+    xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x0 + mw, w), min(y0 + mh, h)
+    if xb <= xa or yb <= ya:
         return
-    roi = tex[y:y + h, x:x + w]
-    a = mask_u8[y:y + h, x:x + w].astype(np.float32) * np.float32(opacity / 255.0)
+    m = mask_u8[ya - y0:yb - y0, xa - x0:xb - x0]
+    roi = tex[ya:yb, xa:xb]
+    a = m.astype(np.float32) * np.float32(opacity / 255.0)
     diff = colour.astype(np.float32) - roi
     diff *= a[..., None]
     roi += diff
 
 
 def _make_texture(rng: np.random.Generator, h: int, w: int, rho: float, smooth_bias: float = 0.0) -> np.ndarray:
-    """A procedural colour texture of ``h x w`` texels at ``rho`` texels per metre, values in [0.04, 0.86]."""
+    """A procedural colour texture of ``h x w`` texels at ``rho`` texels per metre, values in [0.04, 0.86]:
+    two colours mixed by 1.3 m noise; where a 1 m noise mask is on, five octaves of coloured noise (35 cm down to
+    ~2 cm) and a fine grain; a patch of stripes; ellipse blobs (some blurred); text-like marks. Elsewhere the
+    texture is smooth (low gradient)."""
     h, w = max(int(h), 2), max(int(w), 2)
     a, b = _random_colour(rng), _random_colour(rng)
     low = _fractal(rng, h, w, 1.3 * rho, 2)
-    tex = a + (b - a) * (0.5 + 0.5 * low)[..., None]
-    # Detail (several octaves, 35 cm down to ~2 cm), only where the detail mask is on: the rest stays smooth
-    # (low-gradient areas, where MGSO's Delaunay seeding has to fill in).
+    mix = 0.5 + 0.5 * low
     detail_mask = _smoothstep(-0.15 + smooth_bias, 0.2 + smooth_bias, _fractal(rng, h, w, 1.0 * rho, 2))
     detail = _fractal(rng, h, w, 0.35 * rho, 5)
+    detail *= detail_mask
     direction = (0.6 + 0.4 * rng.uniform(-1, 1, 3)).astype(np.float32)
-    tex += (0.4 * detail * detail_mask)[..., None] * direction
     grain = _value_noise(rng, h, w, max(2.0, 0.012 * rho))
-    tex += (0.05 * grain * detail_mask)[..., None]
-    # Stripes in a patch.
+    grain *= detail_mask
     stripe_mask = _smoothstep(0.3, 0.45, _fractal(rng, h, w, 0.9 * rho, 2))
     period = rng.uniform(0.05, 0.14) * rho
     ang = rng.uniform(0, np.pi)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    stripes = np.sin((xx * np.cos(ang) + yy * np.sin(ang)) * (2 * np.pi / period))
-    tex += (0.14 * stripes * stripe_mask)[..., None] * _random_colour(rng, 0.5, 1.0)
-    # Blobs (ellipses, some blurred), in a few colour groups.
+    yy, xx = np.ogrid[0:h, 0:w]
+    phase = (xx.astype(np.float32) * np.float32(np.cos(ang) * 2 * np.pi / period)
+             + yy.astype(np.float32) * np.float32(np.sin(ang) * 2 * np.pi / period))
+    stripes = np.sin(phase, dtype=np.float32)
+    stripes *= stripe_mask
+    stripe_colour = _random_colour(rng, 0.5, 1.0)
+    channels = []
+    for c in range(3):
+        ch = mix * np.float32(b[c] - a[c])
+        ch += np.float32(a[c])
+        ch += detail * np.float32(0.4 * direction[c])
+        ch += grain * np.float32(0.05)
+        ch += stripes * np.float32(0.14 * stripe_colour[c])
+        channels.append(ch)
+    tex = np.ascontiguousarray(np.stack(channels, axis=-1), dtype=np.float32)
     area = (h / rho) * (w / rho)
-    for _ in range(3):
-        mask = np.zeros((h, w), np.uint8)
-        for _ in range(int(rng.integers(1, 3 + int(2.0 * area)))):
-            c = (int(rng.integers(0, w)), int(rng.integers(0, h)))
-            ax = (int(max(1, rng.uniform(0.03, 0.22) * rho)), int(max(1, rng.uniform(0.03, 0.22) * rho)))
-            cv2.ellipse(mask, c, ax, float(rng.uniform(0, 180)), 0, 360, 255, -1, cv2.LINE_AA)
-        if rng.uniform() < 0.5:
-            k = int(max(1, 0.015 * rho)) * 2 + 1
-            mask = cv2.GaussianBlur(mask, (k, k), 0)
-        _blend_mask(tex, mask, _random_colour(rng, 0.1, 0.85), opacity=float(rng.uniform(0.6, 0.95)))
-    # Text-like marks.
-    for dark in (True, False):
-        mask = np.zeros((h, w), np.uint8)
-        for _ in range(int(rng.integers(1, 2 + int(1.2 * area)))):
-            n = int(rng.integers(3, 9))
-            text = "".join(rng.choice(list(string.ascii_uppercase + string.digits), n))
-            height_px = rng.uniform(0.025, 0.09) * rho
-            scale = max(height_px / 22.0, 0.1)
-            thick = int(max(1, round(scale * rng.uniform(1.2, 2.6))))
-            org = (int(rng.integers(0, max(1, w - 10))), int(rng.integers(int(height_px) + 1, h + 1)))
-            cv2.putText(mask, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, 255, thick, cv2.LINE_AA)
-        colour = np.full(3, 0.08 if dark else 0.8, np.float32)
-        _blend_mask(tex, mask, colour, opacity=0.85)
-    return np.clip(tex, 0.04, 0.86).astype(np.float32)
+    # Blobs: ellipses, some blurred, each drawn and blended in its own small window.
+    for _ in range(int(rng.integers(3, 6 + int(5.0 * area)))):
+        axes = (int(max(1, rng.uniform(0.03, 0.22) * rho)), int(max(1, rng.uniform(0.03, 0.22) * rho)))
+        angle = float(rng.uniform(0, 180))
+        blur = int(max(1, 0.015 * rho)) * 2 + 1 if rng.uniform() < 0.5 else 0
+        r = max(axes) + 2 + blur
+        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+        mask = np.zeros((2 * r + 1, 2 * r + 1), np.uint8)
+        cv2.ellipse(mask, (r, r), axes, angle, 0, 360, 255, -1, cv2.LINE_AA)
+        if blur:
+            mask = cv2.GaussianBlur(mask, (blur, blur), 0)
+        _blend_roi(tex, cx - r, cy - r, mask, _random_colour(rng, 0.1, 0.85), float(rng.uniform(0.6, 0.95)))
+    # Text-like marks: random capitals and digits, dark or light.
+    for _ in range(int(rng.integers(2, 4 + int(2.4 * area)))):
+        n = int(rng.integers(3, 9))
+        text = "".join(rng.choice(list(string.ascii_uppercase + string.digits), n))
+        height_px = rng.uniform(0.025, 0.09) * rho
+        scale = max(height_px / 22.0, 0.1)
+        thick = int(max(1, round(scale * rng.uniform(1.2, 2.6))))
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+        pad = thick + 2
+        mask = np.zeros((th + base + 2 * pad, tw + 2 * pad), np.uint8)
+        cv2.putText(mask, text, (pad, pad + th), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, thick, cv2.LINE_AA)
+        x0, y0 = int(rng.integers(-pad, max(1, w - tw))), int(rng.integers(-pad, max(1, h - th)))
+        colour = np.full(3, 0.08 if rng.uniform() < 0.5 else 0.8, np.float32)
+        _blend_roi(tex, x0, y0, mask, colour, 0.85)
+    np.clip(tex, 0.04, 0.86, out=tex)
+    return tex
 
 
 def _mip_pyramid(tex: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -32,7 +32,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..geometry import Alignment, rotation_angle, se3_inverse, umeyama_alignment
+from ..geometry import Alignment, se3_inverse, umeyama_alignment
 from ..io.trajectory import Trajectory, associate, read_trajectory
 
 __all__ = [
@@ -133,10 +133,18 @@ def _apply(alignment: Alignment, est: Trajectory) -> Trajectory:
     return Trajectory(est.timestamps.copy(), alignment.apply_poses(est.cam_to_world))
 
 
+def _angle_deg(R: np.ndarray) -> np.ndarray:
+    """Rotation angles in degrees of (N, 3, 3) rotations, accurate near 0 (``atan2(sin, cos)``; ``arccos`` of the
+    trace alone loses ~1e-6 degree there)."""
+    sin = 0.5 * np.linalg.norm(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
+                                        axis=1), axis=1)
+    cos = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
+    return np.degrees(np.arctan2(sin, cos))
+
+
 def _rotation_angles_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Angles (degrees) of ``A_k^T B_k`` for rotation stacks (N, 3, 3)."""
-    rel = np.einsum("nji,njk->nik", A, B)
-    return np.degrees(rotation_angle(rel))
+    return _angle_deg(np.einsum("nji,njk->nik", A, B))
 
 
 # -------------------------------------------------------------------------------------------------------- ATE
@@ -358,7 +366,7 @@ def compute_rpe(estimate: Trajectory, reference: Trajectory, *, delta: float = 1
     P_rel = se3_inverse(P[i]) @ P[j]
     E = se3_inverse(Q_rel) @ P_rel
     t_err = np.linalg.norm(E[:, :3, 3], axis=1)
-    r_err = np.degrees(rotation_angle(E[:, :3, :3]))
+    r_err = _angle_deg(E[:, :3, :3])
     return RpeResult(translation=ErrorStats.from_errors(t_err), rotation=ErrorStats.from_errors(r_err),
                      translation_errors=t_err, rotation_errors_deg=r_err, id_pairs=pairs, delta=float(delta),
                      delta_unit=delta_unit, all_pairs=all_pairs, num_pairs=len(est), align=align,

@@ -81,7 +81,7 @@ def plot_trajectory(path: str | Path, ate: AteResult, *, reference: Trajectory |
         ax.add_collection(lc)
         cb = fig.colorbar(lc, ax=ax, fraction=0.046, pad=0.04)
         cb.set_label("ATE per pose (m)")
-        ax.plot([], [], color="tab:green", lw=2, label="estimate (aligned)")
+        ax.plot([], [], color="#21918c", lw=2, label="estimate (aligned, colour = ATE)")
     ax.plot(ep[0, a], ep[0, b], "o", color="tab:green", ms=8, mfc="none", label="start", zorder=3)
     ax.plot(ep[-1, a], ep[-1, b], "s", color="tab:red", ms=7, mfc="none", label="end", zorder=3)
     if keyframe_timestamps is not None and len(keyframe_timestamps):
