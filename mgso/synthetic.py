@@ -52,7 +52,7 @@ __all__ = [
     "SYNTHETIC_VERSION", "Intrinsics", "Surface", "Box", "Scene", "SequenceSpec", "SyntheticFrame",
     "SyntheticSequence", "make_scene", "render", "camera_path", "vignette_factor", "exposure_schedule",
     "apply_photometric", "iter_frames", "make_sequence", "write_tum_rgbd", "cached_sequence_folder",
-    "default_cache_dir", "TUM_DEPTH_FACTOR",
+    "default_cache_dir", "TUM_DEPTH_FACTOR", "depth_to_points",
 ]
 
 #: Bumped whenever the rendered output of the same parameters changes (part of the cache key).
@@ -118,7 +118,7 @@ class Box:
     half_size: np.ndarray
     yaw: float
 
-    @property
+    @functools.cached_property
     def rotation(self) -> np.ndarray:
         """Local-to-world rotation (columns are the box's axes in the world)."""
         return so3_exp(np.array([0.0, self.yaw, 0.0]))
@@ -143,11 +143,73 @@ class Scene:
     surfaces: tuple[Surface, ...]
     texels_per_metre: float
     photo: bool = False  # whether a photograph (matplotlib's sample image) hangs on the far wall
+    atlas: _Atlas | None = field(default=None, repr=False)  # packed textures for the renderer (built on creation)
+
+    def __post_init__(self):
+        if self.atlas is None:
+            object.__setattr__(self, "atlas", _Atlas.build(self.surfaces))
 
     def describe(self) -> str:
         lo, hi = self.room_min, self.room_max
         return (f"synthetic room {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, "
                 f"{len(self.boxes)} boxes, {len(self.surfaces)} textured faces, seed {self.seed}")
+
+
+@dataclass(frozen=True, eq=False)
+class _Atlas:
+    """All mip levels of all surfaces in one texel array, with per-level and per-surface tables, so that shading
+    is a handful of vectorised operations over all rays (no loop over surfaces or levels)."""
+
+    texels: np.ndarray  # [T, 3] float32: every level of every surface, each row-major, concatenated
+    level_base: np.ndarray  # [L] int32: first texel of each (surface, level)
+    level_w: np.ndarray  # [L] int32 texels
+    level_sx: np.ndarray  # [L] float32 texels per metre along u
+    level_sy: np.ndarray  # [L] float32 texels per metre along v
+    level_xmax: np.ndarray  # [L] float32 w - 1
+    level_ymax: np.ndarray  # [L] float32 h - 1
+    level_x0max: np.ndarray  # [L] int32 max(w - 2, 0): the last left corner of a bilinear cell
+    level_y0max: np.ndarray  # [L] int32 max(h - 2, 0)
+    level_step: np.ndarray  # [L] int32 texels to the next row (0 for a one-row level)
+    first_level: np.ndarray  # [S] int32: index of the surface's level 0 in the level tables
+    num_levels: np.ndarray  # [S] int32
+    origin: np.ndarray  # [S, 3]
+    u_axis: np.ndarray  # [S, 3]
+    v_axis: np.ndarray  # [S, 3]
+    normal: np.ndarray  # [S, 3]
+    shade: np.ndarray  # [S] float32
+
+    @classmethod
+    def build(cls, surfaces) -> "_Atlas":
+        chunks, base, ws, hs, sx, sy, first, counts = [], [], [], [], [], [], [], []
+        n = 0
+        for s in surfaces:
+            first.append(len(base))
+            counts.append(len(s.mips))
+            for lv in s.mips:
+                h, w = lv.shape[:2]
+                base.append(n)
+                ws.append(w)
+                hs.append(h)
+                sx.append(w / s.size[0])
+                sy.append(h / s.size[1])
+                chunks.append(lv.reshape(-1, 3))
+                n += h * w
+        if n >= 2 ** 31:
+            raise ValueError("textures too large for the renderer (2^31 texels); lower texels_per_metre")
+        i32 = lambda x: np.asarray(x, dtype=np.int32)  # noqa: E731
+        f32 = lambda x: np.asarray(x, dtype=np.float32)  # noqa: E731
+        ws, hs = np.array(ws), np.array(hs)
+        arrs = dict(texels=np.ascontiguousarray(np.concatenate(chunks), dtype=np.float32), level_base=i32(base),
+                    level_w=i32(ws), level_sx=f32(sx), level_sy=f32(sy), level_xmax=f32(ws - 1),
+                    level_ymax=f32(hs - 1), level_x0max=i32(np.maximum(ws - 2, 0)),
+                    level_y0max=i32(np.maximum(hs - 2, 0)), level_step=i32(np.where(hs > 1, ws, 0)),
+                    first_level=i32(first), num_levels=i32(counts),
+                    origin=np.stack([s.origin for s in surfaces]), u_axis=np.stack([s.u_axis for s in surfaces]),
+                    v_axis=np.stack([s.v_axis for s in surfaces]), normal=np.stack([s.normal for s in surfaces]),
+                    shade=np.array([s.shade for s in surfaces], dtype=np.float32))
+        for a in arrs.values():
+            a.setflags(write=False)
+        return cls(**arrs)
 
 
 def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
@@ -475,78 +537,65 @@ def _cast(scene: Scene, o: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarr
     return t, sid
 
 
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Sample ``img`` [h, w, 3] at continuous texel coordinates (texel centres at integers), clamped to the edge."""
-    h, w = img.shape[:2]
-    x = np.clip(x, 0.0, w - 1.0)
-    y = np.clip(y, 0.0, h - 1.0)
-    x0 = np.minimum(x.astype(np.int32), max(w - 2, 0))
-    y0 = np.minimum(y.astype(np.int32), max(h - 2, 0))
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    x1 = np.minimum(x0 + 1, w - 1)
-    i00 = y0 * w + x0
-    i01 = i00 + (x1 - x0)
-    step = w if h > 1 else 0
-    flat = img.reshape(-1, 3)
-    top = flat[i00]
-    top += (flat[i01] - top) * fx
-    bot = flat[i00 + step]
-    bot += (flat[i01 + step] - bot) * fx
+def _sample_level(A: _Atlas, li: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear lookup [n, 3] in atlas level ``li`` [n] at surface coordinates (u, v) [n] metres (texel centres at
+    integer texel coordinates; clamped to the level's edge)."""
+    x = u * A.level_sx[li]
+    x -= np.float32(0.5)
+    y = v * A.level_sy[li]
+    y -= np.float32(0.5)
+    np.clip(x, np.float32(0.0), A.level_xmax[li], out=x)
+    np.clip(y, np.float32(0.0), A.level_ymax[li], out=y)
+    x0 = np.minimum(x.astype(np.int32), A.level_x0max[li])
+    y0 = np.minimum(y.astype(np.int32), A.level_y0max[li])
+    x -= x0
+    y -= y0
+    fx, fy = x[:, None], y[:, None]
+    w = A.level_w[li]
+    i00 = y0 * w
+    i00 += x0
+    i00 += A.level_base[li]
+    i01 = i00 + (x0 + 1 < w)
+    step = A.level_step[li]
+    # np.take along axis 0 is several times faster than texels[idx] for rows of 3 floats
+    top = np.take(A.texels, i00, axis=0)
+    top += (np.take(A.texels, i01, axis=0) - top) * fx
+    i00 += step
+    i01 += step
+    bot = np.take(A.texels, i00, axis=0)
+    bot += (np.take(A.texels, i01, axis=0) - bot) * fx
     top += (bot - top) * fy
     return top
 
 
-def _sample_surface(s: Surface, u: np.ndarray, v: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Trilinear (mip-mapped) texture lookup at surface coordinates (metres, float32) and fractional mip level."""
-    n = len(s.mips)
-    level = np.clip(level, 0.0, n - 1.0)
-    l0 = level.astype(np.int32)
-    out = np.empty((len(u), 3), np.float32)
-    for k in np.unique(l0):
-        sel = np.nonzero(l0 == k)[0] if l0[0] != l0[-1] or len(np.unique(l0)) > 1 else slice(None)
-        uk, vk = u[sel], v[sel]
-
-        def at(lv):
-            img = s.mips[lv]
-            h, w = img.shape[:2]
-            return _bilinear(img, uk * np.float32(w / s.size[0]) - np.float32(0.5),
-                             vk * np.float32(h / s.size[1]) - np.float32(0.5))
-
-        c = at(k)
-        if k + 1 < n:
-            f = (level[sel] - np.float32(k))[:, None]
-            c += (at(k + 1) - c) * f
-        out[sel] = c
-    return out
-
-
 def _shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, sid: np.ndarray,
            texel_scale: float) -> np.ndarray:
-    """Radiance [n, 3] float32 of the hits: each surface's texture, mip level from the footprint of a ray
-    (``texel_scale`` = radians per ray * texels per metre), times the face's shade."""
-    colour = np.empty((len(d), 3), np.float32)
-    order = np.argsort(sid, kind="stable")
-    counts = np.bincount(sid, minlength=len(scene.surfaces))
-    start = 0
-    for s_idx, cnt in enumerate(counts):
-        if cnt == 0:
-            continue
-        sel = order[start:start + cnt]
-        start += cnt
-        s = scene.surfaces[s_idx]
-        ds, ts = d[sel], t[sel]
-        q = (o - s.origin) + ts[:, None] * ds
-        u = (q @ s.u_axis).astype(np.float32)
-        v = (q @ s.v_axis).astype(np.float32)
-        dn = np.sqrt(np.einsum("ij,ij->i", ds, ds))
-        cos = np.abs(ds @ s.normal) / dn
-        footprint = (ts * dn) * texel_scale / np.maximum(cos, 0.15)  # texels under one ray
-        level = np.log2(np.maximum(footprint, 1.0)).astype(np.float32)
-        c = _sample_surface(s, u, v, level)
-        c *= np.float32(s.shade)
-        colour[sel] = c
-    return colour
+    """Radiance [n, 3] float32 of the hits: each surface's texture sampled trilinearly (mip level from the ray's
+    footprint, ``texel_scale`` = radians per ray * texels per metre), times the face's shade."""
+    A = scene.atlas
+    q = t[:, None] * d
+    q += o
+    q -= np.take(A.origin, sid, axis=0)
+    u = np.einsum("ij,ij->i", q, np.take(A.u_axis, sid, axis=0)).astype(np.float32)
+    v = np.einsum("ij,ij->i", q, np.take(A.v_axis, sid, axis=0)).astype(np.float32)
+    dn = np.sqrt(np.einsum("ij,ij->i", d, d))
+    cos = np.abs(np.einsum("ij,ij->i", d, np.take(A.normal, sid, axis=0))) / dn
+    footprint = (t * dn) * texel_scale / np.maximum(cos, 0.15)  # texels under one ray
+    top = A.num_levels[sid] - 1
+    level = np.minimum(np.log2(np.maximum(footprint, 1.0)), top).astype(np.float32)
+    l0 = level.astype(np.int32)
+    level -= l0
+    first = A.first_level[sid]
+    c = _sample_level(A, first + l0, u, v)
+    blend = np.nonzero(level > 0)[0]
+    if len(blend) == len(level):
+        c1 = _sample_level(A, first + np.minimum(l0 + 1, top), u, v)
+        c += (c1 - c) * level[:, None]
+    elif len(blend):
+        c1 = _sample_level(A, first[blend] + np.minimum(l0[blend] + 1, top[blend]), u[blend], v[blend])
+        c[blend] += (c1 - c[blend]) * level[blend, None]
+    c *= A.shade[sid][:, None]
+    return c
 
 
 def _edge_pixels(sid_image: np.ndarray) -> np.ndarray:
@@ -610,6 +659,26 @@ def render(scene: Scene, camera: Intrinsics, cam_to_world, *, supersample: int =
             cs = _shade(scene, o, ds, ts, sids, scale).reshape(len(rows), ss * ss, 3)
             rgb[rows, cols] = cs.mean(axis=1)
     return np.clip(rgb, 0.0, 1.0), depth
+
+
+def depth_to_points(depth: np.ndarray, camera: Intrinsics, cam_to_world, image: np.ndarray | None = None,
+                    stride: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+    """Back-project a z-depth map to world points: ``X_w = R (depth * K^-1 [u, v, 1]) + t`` for every
+    ``stride``-th pixel with finite, positive depth. Returns points ``[N, 3]`` (float64) and, when ``image`` is
+    given, their colours ``[N, C]`` (e.g. to seed a Gaussian map in a test)."""
+    depth = np.asarray(depth)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth_to_points: depth {depth.shape} does not match the camera "
+                         f"{camera.height}x{camera.width}")
+    v, u = np.mgrid[0:camera.height:stride, 0:camera.width:stride]
+    z = depth[v, u].astype(np.float64)
+    ok = np.isfinite(z) & (z > 0)
+    u, v, z = u[ok], v[ok], z[ok]
+    Xc = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], axis=1)
+    T = np.asarray(cam_to_world, dtype=np.float64)
+    pts = Xc @ T[:3, :3].T + T[:3, 3]
+    cols = None if image is None else np.asarray(image)[v, u]
+    return pts, cols
 
 
 # --------------------------------------------------------------------------------------------- camera path

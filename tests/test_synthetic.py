@@ -109,6 +109,20 @@ def test_reprojection_colour_and_depth_consistency(seq):
     assert np.median(depth_res_shift) > 10 * np.median(depth_res)
 
 
+def test_depth_to_points_lands_on_the_surfaces(seq):
+    pts, cols = S.depth_to_points(seq.depths[0], seq.intrinsics, seq.cam_to_world[0], seq.radiance[0], stride=4)
+    assert pts.shape == (30 * 40, 3) and cols.shape == (30 * 40, 3)
+    scene = seq.scene
+    # every point lies on the room's boundary or on a box face
+    on_room = np.min(np.abs(np.concatenate([pts - scene.room_min, pts - scene.room_max], axis=1)), axis=1) < 1e-4
+    on_box = np.zeros(len(pts), bool)
+    for box in scene.boxes:
+        q = np.abs((pts - box.centre) @ box.rotation) - box.half_size
+        on_box |= (np.abs(q).min(axis=1) < 1e-4) & (q.max(axis=1) < 1e-4)
+    assert np.all(on_room | on_box)
+    assert on_box.any() and on_room.any()
+
+
 def test_camera_path_and_motion_scale():
     slow = S.camera_path(40, motion_scale=1.0, fps=30.0)
     fast = S.camera_path(40, motion_scale=3.0, fps=30.0)
