@@ -2,11 +2,13 @@
 
 A closed room (floor, ceiling, four walls) with a few boxes standing on the floor, every surface a procedural colour
 texture (multi-octave value noise, stripes, blobs, text-like marks, and smooth low-gradient areas), rendered
-analytically by ray casting in NumPy: per ray an exact ray-plane / ray-box intersection, the texture sampled
-trilinearly from a mip pyramid (so far and grazing surfaces do not alias), and ``supersample x supersample`` rays
-per pixel averaged (anti-aliased edges). Shading is a constant factor per face, so the scene obeys brightness
-constancy exactly: a surface point has the same radiance in every view (up to the exposure, vignetting and noise
-applied on top, all known and recorded).
+analytically by ray casting in NumPy: per pixel an exact ray-plane / ray-box intersection (so depth is exact), the
+texture sampled trilinearly from a mip pyramid with the level set by the pixel's footprint (so far and grazing
+surfaces do not alias), and every pixel on a geometric edge (its 3x3 neighbourhood sees more than one face)
+supersampled with ``supersample x supersample`` rays (anti-aliased silhouettes and creases). Shading is a constant
+factor per face, so the scene obeys brightness constancy: a surface point has the same radiance in every view (up
+to the exposure, vignetting and noise applied on top, all known and recorded, and to the view-dependent texture
+filtering every anti-aliased renderer has).
 
 Conventions (the project's):
 
@@ -682,7 +684,7 @@ def depth_to_points(depth: np.ndarray, camera: Intrinsics, cam_to_world, image: 
 
 
 # --------------------------------------------------------------------------------------------- camera path
-BASE_STEP = 0.02  # path parameter advance per frame at motion_scale 1 (about 1.5 cm and 0.4 degree per frame)
+BASE_STEP = 0.02  # path parameter advance per frame at motion_scale 1 (about 1.3 cm and 0.7 degree per frame)
 
 
 def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
@@ -700,10 +702,12 @@ def camera_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0
                 phase: float = 0.0) -> Trajectory:
     """A smooth figure-eight in front of the boxes, looking into the room (+z), with varying yaw, pitch and roll.
 
-    Frame i is at path parameter ``s = phase + motion_scale * 0.02 * i`` (radians; one full figure-eight is
-    ``s`` in [0, 2 pi), 314 frames at ``motion_scale`` 1). At ``motion_scale`` 1 the camera moves about 1.5 cm and
-    turns about 0.3-0.5 degree per frame; inter-frame motion scales linearly with ``motion_scale``. Camera centres
-    stay within x in [-0.8, 0.8], y in [-0.3, 0.2], z in [-1.4, -0.6] m.
+    Frame i is at path parameter ``s = phase + motion_scale * 0.02 * i`` (radians). The path is periodic: ``s`` in
+    [0, 2 pi) is one full figure-eight (314 frames at ``motion_scale`` 1) that returns exactly to its start pose.
+    At ``motion_scale`` 1 the camera moves 0.9-1.9 cm (mean 1.3 cm) and turns 0.02-1.3 degrees (mean 0.7) per frame,
+    yaw within about +-30 degrees and roll +-6 degrees; inter-frame motion scales linearly with ``motion_scale``
+    (the same curve, traversed faster). Camera centres stay within x in [-0.8, 0.8], y in [-0.27, 0.17],
+    z in [-1.35, -0.65] m; depths seen are about 1.4-6 m.
     """
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
@@ -713,8 +717,8 @@ def camera_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0
     poses = np.empty((num_frames, 4, 4))
     for i, si in enumerate(s):
         pos = np.array([0.8 * np.sin(si), -0.05 + 0.22 * np.sin(2 * si), -1.0 + 0.35 * np.sin(si + 0.7)])
-        target = np.array([1.3 * np.sin(0.8 * si + 0.4), 0.55 + 0.25 * np.sin(1.1 * si + 1.0), 3.5])
-        roll = np.radians(4.0) * np.sin(0.9 * si + 0.3)
+        target = np.array([2.0 * np.sin(2.0 * si + 0.4), 0.55 + 0.4 * np.sin(3.0 * si + 1.0), 3.5])
+        roll = np.radians(6.0) * np.sin(2.0 * si + 0.3)
         poses[i] = make_pose(_look_at(pos, target, roll), pos)
     return Trajectory(start_time + np.arange(num_frames) / fps, poses)
 
@@ -924,7 +928,7 @@ def _readme(spec: SequenceSpec, scene: Scene, k: Intrinsics, files: list[str]) -
     return f"""mgso synthetic sequence (TUM RGB-D layout)
 
 A rendered sequence of a procedurally textured room with boxes, with exact camera poses and depth, made by
-mgso.synthetic (version {SYNTHETIC_VERSION}). {scene.describe()}. Seed {spec.seed}.
+mgso.synthetic (version {SYNTHETIC_VERSION}): {scene.describe()}.
 Regenerate it byte for byte with: mgso.synthetic.write_tum_rgbd(folder, **params) with the parameters below.
 
 Parameters:
@@ -940,8 +944,9 @@ Files:
 {''.join(f'  {f}' + chr(10) for f in files)}
 Conventions: camera x right, y down, z forward; pixel centres at integer coordinates (pixel (0,0) is centred at
 (0,0)), so K = [[{k.fx:.6f}, 0, {k.cx:.6f}], [0, {k.fy:.6f}, {k.cy:.6f}], [0, 0, 1]]. World y points down.
-Photometric model: I = clip(g_i * V(x) * L(x) + noise, 0, 1), linear response, g_i = exposure_ms / {spec.base_exposure_ms:g}
-ms, V(x) = 1 - {spec.vignette_strength:g} * (r / r_corner)^2, noise std {spec.noise_sigma:g} (in [0, 1] units).
+Photometric model: I = clip(g_i * V(x) * L(x) + noise, 0, 1), linear response,
+g_i = exposure_ms / {spec.base_exposure_ms:g} ms, V(x) = 1 - {spec.vignette_strength:g} * (r / r_corner)^2 (r: distance
+to the principal point), noise std {spec.noise_sigma:g} (in [0, 1] units). Depth is z-depth, not ray length.
 """
 
 
@@ -1001,14 +1006,14 @@ def write_tum_rgbd(folder: str | os.PathLike, source: "SyntheticSequence | Seque
     if spec.exposure_variation > 0:
         with open(folder / "exposures.txt", "w", encoding="utf-8", newline="\n") as fh:
             fh.writelines(f"{n} {e:.6f}\n" for n, e in zip(names, exposures))
-        extra.append("exposures.txt         'timestamp exposure_ms' per line (gain = exposure_ms / base)")
+        extra.append(f"{'exposures.txt':<23}'timestamp exposure_ms' per line (gain = exposure_ms / base)")
     if spec.vignette_strength > 0:
         v16 = np.round(spec.vignette() * 65535.0).astype(np.uint16)
         cv2.imwrite(str(folder / "vignette.png"), v16, _PNG)
         with open(folder / "pcalib.txt", "w", encoding="utf-8", newline="\n") as fh:
             fh.write(" ".join(str(i) for i in range(256)) + "\n")
-        extra.append("vignette.png          16-bit vignette V(x) * 65535 (TUM monoVO style)")
-        extra.append("pcalib.txt            linear camera response (TUM monoVO: 256 values for 0..255)")
+        extra.append(f"{'vignette.png':<23}16-bit vignette V(x) * 65535 (TUM monoVO style)")
+        extra.append(f"{'pcalib.txt':<23}linear camera response (TUM monoVO: 256 values for 0..255)")
     with open(folder / "synthetic.json", "w", encoding="utf-8", newline="\n") as fh:
         json.dump({"version": SYNTHETIC_VERSION, **spec.to_dict()}, fh, indent=2, sort_keys=True)
         fh.write("\n")

@@ -277,3 +277,14 @@ def test_bad_requests_are_refused():
         S.vignette_factor(10, 10, 1.5)
     with pytest.raises(ValueError, match="num_frames"):
         S.SequenceSpec(num_frames=0)
+
+
+def test_optional_photograph_on_the_far_wall():
+    pytest.importorskip("matplotlib")
+    with_photo = S.make_scene(0, texels_per_metre=32.0, photo=True)
+    plain = S.make_scene(0, texels_per_metre=32.0)
+    assert with_photo.photo and not plain.photo
+    far_a, far_b = with_photo.surfaces[5].texture, plain.surfaces[5].texture
+    changed = np.any(far_a != far_b, axis=-1)
+    assert 0.01 < changed.mean() < 0.3  # a poster-sized patch, the rest of the wall as before
+    np.testing.assert_array_equal(with_photo.surfaces[3].texture, plain.surfaces[3].texture)

@@ -10,7 +10,7 @@ Optionally over a mask of elements.
 normalised 1-D kernel ``exp(-(x - 5)^2 / 4.5)``, x = 0..10), ``C1 = (0.01 L)^2``, ``C2 = (0.03 L)^2`` with
 ``L = data_range``, local statistics ``mu = w * x``, ``sigma^2 = w * x^2 - mu^2``, ``sigma_xy = w * xy - mu_x mu_y``
 (no sample-covariance correction), computed per channel in float64, then averaged. Two border conventions exist and
-give different numbers (by ~0.005-0.02 on 3DGS renders), so every figure names its ``border``:
+give different numbers (by 0.001-0.02 on 320x240-640x480 images), so every figure names its ``border``:
 
 - ``"same-zero"`` -- 'same'-size convolution with zero padding, the SSIM map averaged over **all** pixels and
   channels. This is the 3DGS training code's ``ssim`` (``F.conv2d(..., padding=window_size // 2)``), which MonoGS's

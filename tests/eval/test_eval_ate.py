@@ -7,9 +7,9 @@ import pytest
 
 from mgso import geometry as g
 from mgso.eval.ate import EvaluationError, compute_ate, compute_ate_files, compute_rpe, compute_rpe_files
-from mgso.io.trajectory import Trajectory, read_tum
+from mgso.io.trajectory import Trajectory
 
-from eval_traj_helpers import noisy_estimate, random_traj
+from eval_traj_helpers import random_traj
 
 STATS = ("rmse", "mean", "median", "std", "min", "max", "sse")
 

@@ -76,7 +76,8 @@ def test_ssim_constant_shift_closed_form():
     W = np.outer(wr, wc)
     mx, my = a * W, (a + c) * W
     v = W * (1 - W)
-    expected = ((2 * mx * my + C1) * (2 * a * (a + c) * v + C2)) / ((mx ** 2 + my ** 2 + C1) * ((a * a + (a + c) ** 2) * v + C2))
+    expected = (((2 * mx * my + C1) * (2 * a * (a + c) * v + C2))
+                / ((mx ** 2 + my ** 2 + C1) * ((a * a + (a + c) ** 2) * v + C2)))
     np.testing.assert_allclose(m[..., 0], expected, atol=1e-12)
     assert ssim(x, y) == pytest.approx(expected.mean(), abs=1e-12)
     assert ssim(x, y) < ssim(x, y, border="valid")  # the zero-padded border lowers the mean
