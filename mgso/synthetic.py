@@ -792,8 +792,16 @@ class SequenceSpec:
             raise ValueError(f"num_frames must be >= 1, got {self.num_frames}")
         if self.width < 16 or self.height < 16:
             raise ValueError(f"image size must be at least 16x16, got {self.width}x{self.height}")
-        if self.noise_sigma < 0:
-            raise ValueError(f"noise_sigma must be >= 0, got {self.noise_sigma}")
+        checks = [(self.noise_sigma >= 0, "noise_sigma must be >= 0"),
+                  (0 <= self.vignette_strength < 1, "vignette_strength must be in [0, 1)"),
+                  (self.exposure_variation >= 0, "exposure_variation must be >= 0"),
+                  (self.exposure_period_frames > 0 and self.base_exposure_ms > 0,
+                   "exposure_period_frames and base_exposure_ms must be > 0"),
+                  (self.motion_scale >= 0 and self.fps > 0, "motion_scale must be >= 0 and fps > 0"),
+                  (self.supersample >= 1, "supersample must be >= 1")]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"synthetic sequence: {msg} ({self})")
 
     @classmethod
     def from_params(cls, **params) -> "SequenceSpec":
@@ -950,8 +958,12 @@ to the principal point), noise std {spec.noise_sigma:g} (in [0, 1] units). Depth
 """
 
 
-def write_tum_rgbd(folder: str | os.PathLike, source: "SyntheticSequence | SequenceSpec | None" = None,
-                   **params) -> Path:
+_OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt", "exposures.txt", "vignette.png",
+            "pcalib.txt", "synthetic.json", "README.txt")
+
+
+def write_tum_rgbd(folder: str | os.PathLike, source: "SyntheticSequence | SequenceSpec | None" = None, *,
+                   overwrite: bool = False, **params) -> Path:
     """Write a TUM RGB-D style folder that the project's dataset reader opens; returns its path.
 
     ``source``: a :class:`SyntheticSequence` already in memory, a :class:`SequenceSpec`, or nothing and the spec's
@@ -963,6 +975,9 @@ def write_tum_rgbd(folder: str | os.PathLike, source: "SyntheticSequence | Seque
 
     ``<t>`` is the timestamp formatted ``%.6f``. Depth PNGs hold z-depth * 5000 (TUM). ``camera.txt`` is DSO's:
     ``Pinhole fx fy cx cy 0`` / ``W H`` / ``none`` / ``W H``. Same parameters give byte-identical files.
+
+    A folder that is not empty is refused (``FileExistsError``) unless ``overwrite=True``, which first removes this
+    function's outputs from it (so no stale frame or ``exposures.txt`` of an earlier run remains).
     """
     if isinstance(source, SyntheticSequence):
         if params:
@@ -975,6 +990,16 @@ def write_tum_rgbd(folder: str | os.PathLike, source: "SyntheticSequence | Seque
         spec = source if source is not None else SequenceSpec.from_params(**params)
         frames = iter_frames(spec)
     folder = Path(folder)
+    if folder.exists() and any(folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"write_tum_rgbd: {folder} is not empty (pass overwrite=True to replace a "
+                                  f"synthetic sequence written there)")
+        for name in _OUTPUTS:
+            p = folder / name
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(parents=True, exist_ok=True)
     k = spec.intrinsics

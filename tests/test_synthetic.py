@@ -245,6 +245,11 @@ def test_tum_folder_is_deterministic_and_parses(tmp_path):
     vig = cv2.imread(str(a / "vignette.png"), cv2.IMREAD_UNCHANGED)
     assert vig.dtype == np.uint16
     np.testing.assert_allclose(vig / 65535.0, seq.vignette, atol=1e-5)
+    with pytest.raises(FileExistsError, match="not empty"):
+        S.write_tum_rgbd(a, **params)
+    S.write_tum_rgbd(a, overwrite=True, **{**params, "exposure_variation": 0.0, "num_frames": 3})
+    assert not (a / "exposures.txt").exists() and len(list((a / "rgb").iterdir())) == 3
+    a = S.write_tum_rgbd(a, overwrite=True, **params)
     readme = (a / "README.txt").read_text()
     assert "seed = 0" in readme and "z-depth" in readme
     assert json.loads((a / "synthetic.json").read_text())["seed"] == 0
@@ -277,6 +282,8 @@ def test_bad_requests_are_refused():
         S.vignette_factor(10, 10, 1.5)
     with pytest.raises(ValueError, match="num_frames"):
         S.SequenceSpec(num_frames=0)
+    with pytest.raises(ValueError, match="vignette_strength"):
+        S.SequenceSpec(vignette_strength=1.0)
 
 
 def test_optional_photograph_on_the_far_wall():
