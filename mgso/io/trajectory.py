@@ -178,7 +178,7 @@ def associate(est: Trajectory, ref: Trajectory, max_diff: float = 0.01,
               offset: float = 0.0) -> tuple[Trajectory, Trajectory]:
     """Pairs of poses of ``est`` and ``ref`` at matching times (nearest within ``max_diff`` s), as evo associates:
     the shorter trajectory is matched against the longer one. ``offset`` is added to ``ref``'s timestamps."""
-    if len(ref) > len(est):
+    if len(ref) >= len(est):  # evo: the estimate is the short side unless it has more poses
         i_est, i_ref = matching_time_indices(est.timestamps, ref.timestamps, max_diff, offset)
     else:
         i_ref, i_est = matching_time_indices(ref.timestamps, est.timestamps, max_diff, -offset)

@@ -1,0 +1,261 @@
+"""Rendering quality: PSNR and SSIM, and the two evaluation protocols 3DGS-SLAM papers report with.
+
+Images are float arrays in [0, 1], ``[H, W]`` or ``[H, W, C]`` (C = 3 for RGB); both images of a pair have the same
+shape. Integer images are refused (divide by 255 yourself: the metrics must not guess the range).
+
+**PSNR** ``= 10 log10(data_range^2 / MSE)``, the MSE over all pixels and channels (``inf`` for identical images).
+Optionally over a mask of elements.
+
+**SSIM** (Wang et al. 2004) with the standard constants: an 11x11 Gaussian window of sigma 1.5 (the separable
+normalised 1-D kernel ``exp(-(x - 5)^2 / 4.5)``, x = 0..10), ``C1 = (0.01 L)^2``, ``C2 = (0.03 L)^2`` with
+``L = data_range``, local statistics ``mu = w * x``, ``sigma^2 = w * x^2 - mu^2``, ``sigma_xy = w * xy - mu_x mu_y``
+(no sample-covariance correction), computed per channel in float64, then averaged. Two border conventions exist and
+give different numbers (by 0.001-0.02 on 320x240-640x480 images), so every figure names its ``border``:
+
+- ``"same-zero"`` -- 'same'-size convolution with zero padding, the SSIM map averaged over **all** pixels and
+  channels. This is the 3DGS training code's ``ssim`` (``F.conv2d(..., padding=window_size // 2)``), which MonoGS's
+  ``utils/eval_utils.py::eval_rendering`` imports from its ``gaussian_splatting/utils/loss_utils.py`` to report its
+  figures. Our default.
+- ``"valid"`` -- only the pixels whose whole window lies inside the image (a 5-pixel border is dropped). This is
+  ``pytorch_msssim.ssim`` (``F.conv2d(..., padding=0)``), which Photo-SLAM's evaluation script
+  (``HuajianUP/Photo-SLAM-eval`` ``run.py``: ``ssim(..., data_range=1)``) reports with, and equals scikit-image's
+  ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)``, which
+  filters with reflection and then crops the same border.
+
+**Protocols** (:data:`MONOGS`, :data:`PHOTO_SLAM`): which frames are evaluated and how the metrics are taken, so
+that a figure can be compared with a paper's table. The caller renders the frames that :func:`select_frames` picks
+and passes the pairs to :func:`evaluate_renders`; the result carries the protocol's name.
+
+- MonoGS (``eval_rendering``): frames ``0, 5, 10, ...`` by position in the sequence, stopping before the last frame
+  (``range(0, len(frames) - 1, 5)``), keyframes skipped; the render clamped to [0, 1]; PSNR over the elements whose
+  reference value is > 0 (``mask = gt_image > 0``); SSIM ``same-zero``.
+- Photo-SLAM (``Photo-SLAM-eval/run.py``): every frame that has an estimated pose; PSNR over all elements of the
+  unclamped render; SSIM ``valid`` (pytorch_msssim).
+
+LPIPS is not provided (it needs downloaded network weights).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+__all__ = [
+    "SSIM_BORDERS", "SSIM_WINDOW_SIZE", "SSIM_SIGMA", "gaussian_window_1d", "psnr", "ssim", "ssim_map",
+    "RenderProtocol", "MONOGS", "PHOTO_SLAM", "PROTOCOLS", "get_protocol", "select_frames",
+    "select_monogs_frames", "select_photo_slam_frames", "RenderMetrics", "evaluate_renders",
+]
+
+SSIM_BORDERS: tuple[str, ...] = ("same-zero", "valid")
+SSIM_WINDOW_SIZE = 11
+SSIM_SIGMA = 1.5
+_K1, _K2 = 0.01, 0.03
+
+
+def gaussian_window_1d(size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA) -> np.ndarray:
+    """The normalised 1-D Gaussian of SSIM: ``exp(-(x - size//2)^2 / (2 sigma^2))``, x = 0..size-1, summing to 1."""
+    x = np.arange(size, dtype=np.float64) - size // 2
+    g = np.exp(-(x * x) / (2.0 * sigma * sigma))
+    return g / g.sum()
+
+
+def _as_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:
+    a, b = np.asarray(a), np.asarray(b)
+    for name, x in (("rendered", a), ("reference", b)):
+        if not np.issubdtype(x.dtype, np.floating):
+            raise ValueError(f"{what}: the {name} image has dtype {x.dtype}; pass float images in [0, 1] "
+                             f"(e.g. img.astype(np.float32) / 255)")
+        if x.ndim not in (2, 3):
+            raise ValueError(f"{what}: the {name} image must be [H, W] or [H, W, C], got shape {x.shape}")
+    if a.shape != b.shape:
+        raise ValueError(f"{what}: rendered image {a.shape} and reference {b.shape} differ in shape")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError(f"{what}: non-finite pixel values (NaN or inf)")
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    if a64.ndim == 2:
+        a64, b64 = a64[..., None], b64[..., None]
+    return a64, b64
+
+
+def psnr(rendered, reference, *, data_range: float = 1.0, mask=None) -> float:
+    """Peak signal-to-noise ratio in dB: ``10 log10(data_range^2 / MSE)``; ``inf`` when the images are equal.
+
+    ``mask``: optional boolean array of the image's shape (or ``[H, W]`` for all channels) selecting the elements
+    the MSE is taken over.
+    """
+    a, b = _as_pair(rendered, reference, "psnr")
+    d2 = (a - b) ** 2
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.ndim == 2:
+            m = np.broadcast_to(m[..., None], d2.shape)
+        elif m.shape != np.shape(rendered):
+            raise ValueError(f"psnr: mask shape {m.shape} does not match the image {np.shape(rendered)}")
+        m = m.reshape(d2.shape)
+        if not m.any():
+            raise ValueError("psnr: the mask selects no pixel")
+        mse = float(d2[m].mean())
+    else:
+        mse = float(d2.mean())
+    if mse == 0.0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range * data_range / mse))
+
+
+def ssim_map(rendered, reference, *, border: str = "same-zero", data_range: float = 1.0) -> np.ndarray:
+    """Per-pixel SSIM, ``[H, W, C]`` for ``border="same-zero"`` and ``[H - 10, W - 10, C]`` for ``"valid"``."""
+    if border not in SSIM_BORDERS:
+        raise ValueError(f"ssim: border must be one of {SSIM_BORDERS}, got {border!r}")
+    a, b = _as_pair(rendered, reference, "ssim")
+    H, W = a.shape[:2]
+    if border == "valid" and (H < SSIM_WINDOW_SIZE or W < SSIM_WINDOW_SIZE):
+        raise ValueError(f"ssim: a {H}x{W} image is smaller than the {SSIM_WINDOW_SIZE}x{SSIM_WINDOW_SIZE} window "
+                         f"(border='valid' needs at least that)")
+    g = gaussian_window_1d()
+
+    def blur(x):
+        # zero padding ('constant', 0) on both axes == F.conv2d(x, outer(g, g), padding=5); for 'valid' the interior
+        # is unaffected by the padding and is cropped below.
+        y = correlate1d(x, g, axis=0, mode="constant", cval=0.0)
+        return correlate1d(y, g, axis=1, mode="constant", cval=0.0)
+
+    mu1, mu2 = blur(a), blur(b)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    s1 = blur(a * a) - mu1_sq
+    s2 = blur(b * b) - mu2_sq
+    s12 = blur(a * b) - mu12
+    c1 = (_K1 * data_range) ** 2
+    c2 = (_K2 * data_range) ** 2
+    m = ((2.0 * mu12 + c1) * (2.0 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
+    if border == "valid":
+        r = SSIM_WINDOW_SIZE // 2
+        m = m[r:H - r, r:W - r]
+    return m
+
+
+def ssim(rendered, reference, *, border: str = "same-zero", data_range: float = 1.0) -> float:
+    """Mean SSIM over pixels and channels; ``border`` is ``"same-zero"`` (3DGS / MonoGS, default) or ``"valid"``
+    (pytorch_msssim / Photo-SLAM / scikit-image); see the module text."""
+    return float(ssim_map(rendered, reference, border=border, data_range=data_range).mean())
+
+
+# ------------------------------------------------------------------------------------------------- protocols
+@dataclass(frozen=True)
+class RenderProtocol:
+    """How a paper's rendering figures are taken. ``name`` is printed next to every figure."""
+
+    key: str  # short id: "monogs" or "photo-slam"
+    name: str  # e.g. "MonoGS protocol (every 5th frame, keyframes excluded)"
+    frame_stride: int  # evaluate every n-th frame by position in the sequence
+    exclude_keyframes: bool
+    exclude_last_frame: bool  # MonoGS iterates range(0, len(frames) - 1, 5)
+    clamp_rendered: bool  # clamp the render to [0, 1] before the metrics
+    psnr_mask_zero_reference: bool  # PSNR only over elements whose reference value is > 0
+    ssim_border: str
+
+
+MONOGS = RenderProtocol(key="monogs", name="MonoGS protocol (every 5th frame, keyframes excluded)", frame_stride=5,
+                        exclude_keyframes=True, exclude_last_frame=True, clamp_rendered=True,
+                        psnr_mask_zero_reference=True, ssim_border="same-zero")
+PHOTO_SLAM = RenderProtocol(key="photo-slam", name="Photo-SLAM protocol (all frames)", frame_stride=1,
+                            exclude_keyframes=False, exclude_last_frame=False, clamp_rendered=False,
+                            psnr_mask_zero_reference=False, ssim_border="valid")
+PROTOCOLS: dict[str, RenderProtocol] = {p.key: p for p in (MONOGS, PHOTO_SLAM)}
+
+
+def get_protocol(protocol: str | RenderProtocol) -> RenderProtocol:
+    """A protocol by key (``"monogs"``, ``"photo-slam"``; case and ``_`` / ``-`` insensitive) or as given."""
+    if isinstance(protocol, RenderProtocol):
+        return protocol
+    key = str(protocol).lower().replace("_", "-")
+    if key == "photoslam":
+        key = "photo-slam"
+    if key not in PROTOCOLS:
+        raise ValueError(f"unknown rendering protocol {protocol!r}; known: {sorted(PROTOCOLS)}")
+    return PROTOCOLS[key]
+
+
+def select_monogs_frames(frame_indices: Sequence[int], keyframe_indices: Iterable[int] = ()) -> list[int]:
+    """MonoGS's evaluation frames: positions 0, 5, 10, ... of ``frame_indices`` (the tracked frames in order),
+    before the last position (``range(0, n - 1, 5)``), minus the keyframes. Returns frame indices (values)."""
+    return select_frames(MONOGS, frame_indices, keyframe_indices)
+
+
+def select_photo_slam_frames(frame_indices: Sequence[int]) -> list[int]:
+    """Photo-SLAM's evaluation frames: every frame with a pose, keyframes included."""
+    return select_frames(PHOTO_SLAM, frame_indices, ())
+
+
+def select_frames(protocol: str | RenderProtocol, frame_indices: Sequence[int],
+                  keyframe_indices: Iterable[int] = ()) -> list[int]:
+    """The frame indices (values of ``frame_indices``) that ``protocol`` evaluates, in order."""
+    p = get_protocol(protocol)
+    frames = [int(f) for f in frame_indices]
+    if len(set(frames)) != len(frames):
+        raise ValueError("select_frames: frame_indices has duplicates")
+    kf = {int(k) for k in keyframe_indices} if p.exclude_keyframes else set()
+    end = len(frames) - 1 if p.exclude_last_frame else len(frames)
+    return [frames[pos] for pos in range(0, max(end, 0), p.frame_stride) if frames[pos] not in kf]
+
+
+@dataclass(frozen=True)
+class RenderMetrics:
+    """Per-frame and mean PSNR (dB) and SSIM under a named protocol."""
+
+    protocol: str  # the protocol's name, printed next to the figures
+    protocol_key: str
+    ssim_border: str
+    frame_indices: np.ndarray  # [F] int
+    psnr: np.ndarray  # [F] dB
+    ssim: np.ndarray  # [F]
+    mean_psnr: float
+    mean_ssim: float
+
+    @property
+    def num_frames(self) -> int:
+        return int(len(self.frame_indices))
+
+    def summary(self) -> str:
+        return (f"PSNR {self.mean_psnr:.2f} dB, SSIM {self.mean_ssim:.4f} ({self.protocol}, {self.num_frames} "
+                f"frames, SSIM border '{self.ssim_border}')")
+
+    def as_dict(self) -> dict:
+        return {"protocol": self.protocol, "protocol_key": self.protocol_key, "ssim_border": self.ssim_border,
+                "num_frames": self.num_frames, "mean_psnr_db": self.mean_psnr, "mean_ssim": self.mean_ssim,
+                "frames": [{"frame": int(f), "psnr_db": float(p), "ssim": float(s)}
+                           for f, p, s in zip(self.frame_indices, self.psnr, self.ssim)]}
+
+
+def evaluate_renders(pairs: Iterable[tuple[np.ndarray, np.ndarray]], frame_indices: Sequence[int],
+                     protocol: str | RenderProtocol = MONOGS) -> RenderMetrics:
+    """PSNR and SSIM of ``(rendered, reference)`` pairs (float [0, 1] images), one per entry of ``frame_indices``
+    (normally ``select_frames(protocol, ...)``), taken the way ``protocol`` takes them. ``pairs`` may be a generator,
+    so frames can be rendered one at a time. The mean PSNR is the mean of per-frame PSNRs (as both papers' scripts);
+    a frame equal to its reference (PSNR = inf) makes the mean inf."""
+    p = get_protocol(protocol)
+    frames = np.asarray([int(f) for f in frame_indices], dtype=np.int64)
+    ps, ss = [], []
+    for k, pair in enumerate(pairs):
+        if k >= len(frames):
+            raise ValueError(f"evaluate_renders: more image pairs than the {len(frames)} frame indices given")
+        rendered, reference = pair
+        rendered = np.asarray(rendered)
+        if p.clamp_rendered and np.issubdtype(rendered.dtype, np.floating):
+            rendered = np.clip(rendered, 0.0, 1.0)
+        try:
+            mask = (np.asarray(reference) > 0) if p.psnr_mask_zero_reference else None
+            ps.append(psnr(rendered, reference, mask=mask))
+            ss.append(ssim(rendered, reference, border=p.ssim_border))
+        except ValueError as e:
+            raise ValueError(f"frame {frames[k]}: {e}") from None
+    if len(ps) != len(frames):
+        raise ValueError(f"evaluate_renders: {len(ps)} image pairs for {len(frames)} frame indices")
+    if not ps:
+        raise ValueError(f"evaluate_renders: no frame to evaluate under the {p.name}")
+    psnr_arr, ssim_arr = np.asarray(ps), np.asarray(ss)
+    return RenderMetrics(protocol=p.name, protocol_key=p.key, ssim_border=p.ssim_border, frame_indices=frames,
+                         psnr=psnr_arr, ssim=ssim_arr, mean_psnr=float(psnr_arr.mean()),
+                         mean_ssim=float(ssim_arr.mean()))
