@@ -1,0 +1,276 @@
+"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``.
+
+The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
+Every command that writes files takes ``--out DIR`` and writes the configuration it used there (``config.yaml``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from . import __version__
+from .config import Config, ConfigError, describe_config, load_config, save_config
+
+log = logging.getLogger("mgso")
+
+EXIT_OK, EXIT_USAGE, EXIT_FAILED = 0, 2, 1
+
+
+class CliError(Exception):
+    """A user-facing failure: printed as one line, exit code 1 (no traceback)."""
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _setup_logging(quiet: bool, verbose: int) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 0 else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("mgso").setLevel(level)
+
+
+def _load_cfg(args) -> Config:
+    overrides = list(getattr(args, "set", None) or [])
+    if getattr(args, "device", None):
+        overrides.append(f"runtime.device={args.device}")
+    return load_config(getattr(args, "config", None), overrides)
+
+
+def _out_dir(path: str | None, default: Path) -> Path:
+    out = Path(path) if path else default
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _print(args, *lines: str) -> None:
+    if not getattr(args, "quiet", False):
+        for line in lines:
+            print(line)
+
+
+def _progress(args, total: int, desc: str):
+    """A tqdm bar on stderr, or a no-op one with ``--quiet``."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", disable=getattr(args, "quiet", False), dynamic_ncols=True,
+                file=sys.stderr)
+
+
+def _open(path: str, calib: str | None, cfg: Config, groundtruth: str | None = None):
+    from .io import open_sequence
+
+    return open_sequence(path, calib=calib, config=cfg.input, groundtruth=groundtruth)
+
+
+def _format_info(info: dict) -> list[str]:
+    lines = [f"layout:       {info.get('layout')}",
+             f"path:         {info.get('path')}",
+             f"frames:       {info.get('frames')}" + (f" (of {info['frames_total']})"
+                                                      if info.get("frames_total") != info.get("frames") else "")]
+    size_in, size_out = info.get("image_size_in"), info.get("image_size_out")
+    lines.append(f"image:        {size_in[0]}x{size_in[1]} {'colour' if info.get('color') else 'gray'}"
+                 + (f" -> {size_out[0]}x{size_out[1]}" if size_out != size_in else ""))
+    dist = info.get("distortion") or {}
+    lines.append(f"camera:       {info.get('camera_model')}"
+                 + (" (" + ", ".join(f"{k}={v:.6g}" for k, v in dist.items()) + ")" if dist else ""))
+    k_in, k = info.get("intrinsics_in", {}), info.get("intrinsics", {})
+    fmt = lambda d: "fx={fx:.4f} fy={fy:.4f} cx={cx:.4f} cy={cy:.4f}".format(**d)  # noqa: E731
+    lines.append(f"intrinsics:   {fmt(k_in)}  (input)")
+    if k != k_in:
+        lines.append(f"              {fmt(k)}  (output, rectify={info.get('rectify')}, {info.get('undistortion')})")
+    lines.append(f"calibration:  {info.get('calibration_source')}")
+    ph = info.get("photometric") or {}
+    parts = [n for n in ("response", "vignette", "exposure") if ph.get(n)]
+    lines.append(f"photometric:  {', '.join(parts) if parts else 'none'}")
+    gt = info.get("groundtruth") or {}
+    lines.append(f"ground truth: {str(gt.get('poses')) + ' poses from ' + str(gt.get('source')) if gt.get('present') else 'none'}")
+    span = info.get("time_span")
+    if span:
+        lines.append(f"time:         {span[0]:.3f} .. {span[1]:.3f} s ({info.get('duration_s', 0):.2f} s, "
+                     f"{info.get('fps', 0):.1f} fps nominal)")
+    return lines
+
+
+# ----------------------------------------------------------------------------------------------- commands
+def cmd_info(args) -> int:
+    cfg = _load_cfg(args)
+    if args.show_config:
+        _print(args, *describe_config(cfg))
+        if not args.path:
+            return EXIT_OK
+    if not args.path:
+        raise CliError("info: give a dataset PATH (or --show-config)")
+    seq = _open(args.path, args.calib, cfg)
+    info = seq.describe()
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        _print(args, *_format_info(info))
+    return EXIT_OK
+
+
+def cmd_eval(args) -> int:
+    from .eval import compute_ate, compute_rpe, write_metrics_json, format_report
+    from .io.trajectory import read_trajectory
+
+    est = read_trajectory(args.estimate)
+    gt_path = Path(args.gt)
+    if gt_path.is_dir():
+        cfg = _load_cfg(args)
+        seq = _open(str(gt_path), args.calib, cfg)
+        if seq.groundtruth is None:
+            raise CliError(f"{gt_path}: this dataset has no ground truth to evaluate against")
+        ref = seq.groundtruth
+    else:
+        ref = read_trajectory(gt_path)
+    ate = compute_ate(est, ref, align=args.align, max_diff=args.max_diff, label=args.label,
+                      estimate_name=Path(args.estimate).name, reference_name=gt_path.name)
+    rpe = None
+    if args.rpe:
+        rpe = compute_rpe(est, ref, align=args.align, max_diff=args.max_diff, delta=args.rpe_delta,
+                          delta_unit=args.rpe_unit, label=args.label)
+    _print(args, format_report(ate=ate, rpe=rpe))
+    if args.out:
+        out = _out_dir(args.out, Path("."))
+        write_metrics_json(out / "metrics.json", ate=ate, rpe=rpe)
+        try:
+            from .eval import plot_trajectory
+
+            plot_trajectory(out / "trajectory.png", ate, reference=ref)
+        except ImportError as exc:
+            log.warning("no plot: %s", exc)
+        _print(args, f"wrote {out / 'metrics.json'}")
+    if args.json:
+        print(json.dumps(ate.as_dict(), default=str))
+    return EXIT_OK
+
+
+def cmd_run(args) -> int:
+    from .runner import run_sequence
+
+    cfg = _load_cfg(args)
+    seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
+    out = _out_dir(args.out, Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    save_config(cfg, out / "config.yaml")
+    _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {out}")
+    summary = run_sequence(seq, cfg, out, stage=args.stage, progress=lambda total, desc: _progress(args, total, desc))
+    _print(args, *summary.lines())
+    return EXIT_OK if summary.ok else EXIT_FAILED
+
+
+def cmd_demo(args) -> int:
+    from .synthetic import cached_sequence_folder
+
+    cfg = _load_cfg(args)
+    _print(args, "making the built-in synthetic scene (cached after the first run) ...")
+    folder = cached_sequence_folder(**_demo_scene_params(args))
+    args.path, args.calib, args.groundtruth = str(folder), None, None
+    if args.out is None:
+        args.out = str(Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    del cfg
+    return cmd_run(args)
+
+
+def _demo_scene_params(args) -> dict:
+    return dict(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+
+
+# -------------------------------------------------------------------------------------------------- parser
+def _common(p: argparse.ArgumentParser, *, config: bool = True) -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars, only warnings and errors")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v: debug)")
+    if config:
+        p.add_argument("--config", metavar="PROFILE", help="config profile: a built-in name (default, fast) or a YAML "
+                                                           "file (may use inherit_from)")
+        p.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
+                       help="override one setting, e.g. --set window.max_frames=6 (repeatable)")
+        p.add_argument("--device", help="cpu, cuda, cuda:N or auto (overrides runtime.device)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .runner import DEFAULT_STAGE, STAGE_HELP, STAGES
+
+    parser = argparse.ArgumentParser(prog="mgso", description="Monocular SLAM with a Gaussian Splatting map "
+                                                              "(DSO tracking + DSO-seeded 3DGS mapping).")
+    parser.add_argument("--version", action="version", version=f"mgso {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run on a recorded sequence (dataset folder, image folder or video)")
+    p.add_argument("path", help="dataset folder, image folder or video file (layout detected)")
+    p.add_argument("--out", help="output folder (default runs/<name>-<time>)")
+    p.add_argument("--calib", help="calibration file (DSO camera.txt, or 'fx fy cx cy [k1 k2 p1 p2]') when the "
+                                   "dataset has none")
+    p.add_argument("--groundtruth", help="ground-truth trajectory file (TUM or KITTI) of camera poses")
+    p.add_argument("--stage", choices=STAGES, default=None,
+                   help=f"how far to go (default {DEFAULT_STAGE}): " + "; ".join(STAGE_HELP[s] for s in STAGES))
+    _common(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="run on the built-in synthetic scene (made once into a cache folder)")
+    p.add_argument("--out", help="output folder (default runs/demo-<time>)")
+    p.add_argument("--frames", type=int, default=120, help="frames of the synthetic sequence")
+    p.add_argument("--width", type=int, default=320, help="image width")
+    p.add_argument("--height", type=int, default=240, help="image height")
+    p.add_argument("--seed", type=int, default=0, help="scene seed")
+    p.add_argument("--stage", choices=STAGES, default=None, help="as for run")
+    _common(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("eval", help="ATE (and RPE) of a trajectory file against ground truth")
+    p.add_argument("estimate", help="estimated trajectory (TUM or KITTI format)")
+    p.add_argument("--gt", required=True, help="ground-truth trajectory file, or a dataset folder with ground truth")
+    p.add_argument("--align", choices=["sim3", "se3", "none"], default="sim3",
+                   help="alignment before the error (sim3 for monocular; evo_ape -as / -a)")
+    p.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance in seconds (evo: "
+                                                                "0.01)")
+    p.add_argument("--label", default="", help="which poses these are, printed with the figures (e.g. 'all frames')")
+    p.add_argument("--rpe", action="store_true", help="also the relative pose error")
+    p.add_argument("--rpe-delta", type=float, default=1, help="RPE delta")
+    p.add_argument("--rpe-unit", choices=["frames", "meters"], default="frames", help="RPE delta unit")
+    p.add_argument("--calib", help="calibration, when --gt is a dataset folder that needs one")
+    p.add_argument("--out", help="write metrics.json and trajectory.png there")
+    p.add_argument("--json", action="store_true", help="print the ATE figures as one JSON line")
+    _common(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("info", help="what is detected in a dataset path: layout, frames, calibration, ground truth")
+    p.add_argument("path", nargs="?", help="dataset folder, image folder or video file")
+    p.add_argument("--calib", help="calibration file, when the dataset has none")
+    p.add_argument("--json", action="store_true", help="print the description as JSON")
+    p.add_argument("--show-config", action="store_true", help="print every setting with its reason")
+    _common(p)
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return EXIT_USAGE
+    _setup_logging(args.quiet, args.verbose)
+    from .camera import CalibrationError
+    from .io import DatasetError
+    from .io.trajectory import TrajectoryError
+
+    try:
+        from .eval import EvaluationError
+    except ImportError:  # pragma: no cover
+        EvaluationError = CliError  # type: ignore
+    try:
+        return args.func(args)
+    except (CliError, ConfigError, DatasetError, CalibrationError, TrajectoryError, EvaluationError) as exc:
+        print(f"mgso {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f"mgso {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
