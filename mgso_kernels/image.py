@@ -187,8 +187,8 @@ def sample_dI(dI: wp.array2d(dtype=wp.vec3), x: float, y: float) -> wp.vec3:
     :func:`bilinear_inside` first or use :func:`sample_dI_checked`."""
     h = dI.shape[0]
     w = dI.shape[1]
-    ix = wp.clamp(int(wp.floor(x)), 0, w - 2)
-    iy = wp.clamp(int(wp.floor(y)), 0, h - 2)
+    ix = wp.clamp(int(x), 0, w - 2)
+    iy = wp.clamp(int(y), 0, h - 2)
     fx = x - float(ix)
     fy = y - float(iy)
     fxy = fx * fy
@@ -201,8 +201,8 @@ def sample_intensity(dI: wp.array2d(dtype=wp.vec3), x: float, y: float) -> float
     """Bilinear intensity only (DSO ``getInterpolatedElement31``); same clamping as :func:`sample_dI`."""
     h = dI.shape[0]
     w = dI.shape[1]
-    ix = wp.clamp(int(wp.floor(x)), 0, w - 2)
-    iy = wp.clamp(int(wp.floor(y)), 0, h - 2)
+    ix = wp.clamp(int(x), 0, w - 2)
+    iy = wp.clamp(int(y), 0, h - 2)
     fx = x - float(ix)
     fy = y - float(iy)
     fxy = fx * fy
@@ -227,8 +227,8 @@ def sample_dI_bilin_derivative(dI: wp.array2d(dtype=wp.vec3), x: float, y: float
     is the forward difference. Same clamping as :func:`sample_dI`."""
     h = dI.shape[0]
     w = dI.shape[1]
-    ix = wp.clamp(int(wp.floor(x)), 0, w - 2)
-    iy = wp.clamp(int(wp.floor(y)), 0, h - 2)
+    ix = wp.clamp(int(x), 0, w - 2)
+    iy = wp.clamp(int(y), 0, h - 2)
     tl = dI[iy, ix][0]
     tr = dI[iy, ix + 1][0]
     bl = dI[iy + 1, ix][0]

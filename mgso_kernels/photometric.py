@@ -51,7 +51,7 @@ __all__ = [
     "ProjectionStatus", "STATUS_OK", "STATUS_OOB", "STATUS_BEHIND",
     "vec6f", "vec8f", "mat82f", "Intrinsics", "FramePair", "PhotometricParams", "PixelResidual",
     "make_intrinsics", "make_frame_pair", "make_photometric_params", "affine_from_to",
-    "project_pixel", "projection_jacobians", "huber_weight", "gradient_weight", "photometric_residual",
+    "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "pose_jacobian", "huber_weight", "gradient_weight", "photometric_residual",
     "evaluate_patch_kernel", "extract_patterns_kernel", "PatchResiduals", "evaluate_patches", "HostPatterns",
     "extract_patterns",
 ]
@@ -153,6 +153,27 @@ def project_pixel(u: float, v: float, idepth: float, R: wp.mat33, t: wp.vec3, ca
 
 
 @wp.func
+def inverse_K(cam: Intrinsics) -> wp.mat33:
+    """``K^-1`` of a level's intrinsics (hoist it out of loops: it has the divisions)."""
+    ifx = 1.0 / cam.fx
+    ify = 1.0 / cam.fy
+    return wp.mat33(ifx, 0.0, -cam.cx * ifx, 0.0, ify, -cam.cy * ify, 0.0, 0.0, 1.0)
+
+
+@wp.func
+def project_RKi(u: float, v: float, idepth: float, RKi: wp.mat33, t: wp.vec3, cam_t: Intrinsics):
+    """:func:`project_pixel` with ``RKi = R K_h^-1`` precomputed (DSO ``calcRes``): ``P = RKi (u, v, 1) + t idepth``.
+
+    Returns ``(Ku_Kv: vec2, n: vec3 = (u_n, v_n, drescale))``.
+    """
+    p = RKi * wp.vec3(u, v, 1.0) + t * idepth
+    drescale = 1.0 / p[2]
+    un = p[0] * drescale
+    vn = p[1] * drescale
+    return wp.vec2(cam_t.fx * un + cam_t.cx, cam_t.fy * vn + cam_t.cy), wp.vec3(un, vn, drescale)
+
+
+@wp.func
 def projection_jacobians(n: wp.vec3, h: wp.vec2, idepth: float, R: wp.mat33, t: wp.vec3, cam: Intrinsics):
     """Geometric Jacobians of the target pixel ``(Ku, Kv)`` (DSO ``Jpdxi``, ``Jpdd``, ``Jpdc``).
 
@@ -177,6 +198,25 @@ def projection_jacobians(n: wp.vec3, h: wp.vec2, idepth: float, R: wp.mat33, t: 
     dcu = wp.vec4(un + h[0] * ax, (fx / fy) * h[1] * ay, 1.0 + ax, (fx / fy) * ay)
     dcv = wp.vec4((fy / fx) * h[0] * bx, vn + h[1] * by, (fy / fx) * bx, 1.0 + by)
     return dku, dkv, dd, dcu, dcv
+
+
+@wp.func
+def in_margins(x: float, y: float, width: int, height: int, lo: float, hi: float) -> bool:
+    """DSO's projection test: ``lo < x < width - hi`` and ``lo < y < height - hi`` (NaN -> False)."""
+    return x > lo and y > lo and x < float(width) - hi and y < float(height) - hi
+
+
+@wp.func
+def pose_jacobian(grad: wp.vec2, n: wp.vec3, idepth: float, fx: float, fy: float) -> vec6f:
+    """``dr/d(v, w)`` of a residual whose target gradient is ``grad`` at a projection with ``n = (u_n, v_n,
+    drescale)``: DSO ``calcGSSSE`` (``grad . [fx, fy] * Jpdxi``), left perturbation of target_from_host."""
+    un = n[0]
+    vn = n[1]
+    nid = idepth * n[2]
+    dx = grad[0] * fx
+    dy = grad[1] * fy
+    return vec6f(nid * dx, nid * dy, -nid * (un * dx + vn * dy), -(un * vn * dx + dy * (1.0 + vn * vn)),
+                 un * vn * dy + dx * (1.0 + un * un), un * dy - vn * dx)
 
 
 @wp.func
@@ -212,8 +252,8 @@ def photometric_residual(u: float, v: float, idepth: float, host_color: float, h
         return out
     ku = kk[0]
     kv = kk[1]
-    if not (ku > params.border_lo and kv > params.border_lo and ku < float(cam_t.width) - params.border_hi
-            and kv < float(cam_t.height) - params.border_hi and bilinear_inside(ku, kv, dI_t.shape[1], dI_t.shape[0])):
+    if not (in_margins(ku, kv, cam_t.width, cam_t.height, params.border_lo, params.border_hi)
+            and bilinear_inside(ku, kv, dI_t.shape[1], dI_t.shape[0])):
         out.status = STATUS_OOB
         return out
     s = sample_dI(dI_t, ku, kv)
@@ -240,7 +280,7 @@ def photometric_residual(u: float, v: float, idepth: float, host_color: float, h
     out.target_xy = kk
     out.new_idepth = idepth * n[2]
     out.target_grad = wp.vec2(gx, gy)
-    out.J_pose = gx * dku + gy * dkv
+    out.J_pose = pose_jacobian(wp.vec2(gx, gy), n, idepth, cam_t.fx, cam_t.fy)
     out.J_aff = wp.vec4(-pair.a_rel * hc, -1.0, pair.a_rel * hc, pair.a_rel)
     out.J_idepth = gx * dd[0] + gy * dd[1]
     out.J_calib = gx * dcu + gy * dcv
