@@ -34,7 +34,7 @@ __all__ = [
     "Pinhole", "PyramidGeometry", "pyramid_levels_for", "plan_pyramid", "level_intrinsics",
     "ImagePyramid", "pyramid_sizes", "downsample", "gradients", "build_pyramid", "sample_points",
     "bilinear_inside", "sample_dI", "sample_intensity", "sample_dI_checked", "sample_dI_bilin_derivative",
-    "downsample_image", "compute_gradients", "sample_points_kernel",
+    "downsample_image", "compute_gradients", "sample_points_kernel", "span_threads",
     "DSO_MAX_LEVELS", "DSO_MIN_COARSE_AREA",
 ]
 
@@ -243,15 +243,28 @@ def sample_dI_bilin_derivative(dI: wp.array2d(dtype=wp.vec3), x: float, y: float
 
 
 # ------------------------------------------------------------------------------------------------ kernels
+SPAN = wp.constant(32)  # pixels of one row handled by one thread of the pyramid kernels
+
+
+@wp.func
+def span_of(i: int, width: int):
+    """Thread ``i`` of a span-parallel launch -> ``(row, x_begin, x_end)``: each thread runs along ``SPAN``
+    pixels of one row (one integer division per span instead of per pixel; about 3x faster than a thread per
+    pixel on the CPU, and still ``H * ceil(W / 32)`` threads on a GPU)."""
+    nseg = (width + SPAN - 1) // SPAN
+    y = i // nseg
+    x0 = (i - y * nseg) * SPAN
+    return y, x0, wp.min(x0 + SPAN, width)
+
+
 @wp.kernel
 def downsample_image(offset: int,
                      src: wp.array2d(dtype=float),  # [2H, 2W] intensity of level l-1
                      dst: wp.array2d(dtype=float)):  # [H, W] intensity of level l
-    i = offset + wp.tid()
-    w = dst.shape[1]
-    y = i // w
-    x = i - y * w
-    dst[y, x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, 2 * x + 1] + src[2 * y + 1, 2 * x] + src[2 * y + 1, 2 * x + 1])
+    y, x0, x1 = span_of(offset + wp.tid(), dst.shape[1])
+    for x in range(x0, x1):
+        dst[y, x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, 2 * x + 1] + src[2 * y + 1, 2 * x]
+                            + src[2 * y + 1, 2 * x + 1])
 
 
 @wp.kernel
@@ -259,19 +272,24 @@ def compute_gradients(offset: int,
                       img: wp.array2d(dtype=float),  # [H, W] intensity
                       dI: wp.array2d(dtype=wp.vec3),  # [H, W] out: (I, dx, dy)
                       grad_sq: wp.array2d(dtype=float)):  # [H, W] out: dx^2 + dy^2
-    i = offset + wp.tid()
     h = img.shape[0]
     w = img.shape[1]
-    y = i // w
-    x = i - y * w
-    dx = 0.5 * (img[y, wp.min(x + 1, w - 1)] - img[y, wp.max(x - 1, 0)])
-    dy = 0.5 * (img[wp.min(y + 1, h - 1), x] - img[wp.max(y - 1, 0), x])
-    if not wp.isfinite(dx):
-        dx = 0.0
-    if not wp.isfinite(dy):
-        dy = 0.0
-    dI[y, x] = wp.vec3(img[y, x], dx, dy)
-    grad_sq[y, x] = dx * dx + dy * dy
+    y, x0, x1 = span_of(offset + wp.tid(), w)
+    ym = wp.max(y - 1, 0)
+    yp = wp.min(y + 1, h - 1)
+    for x in range(x0, x1):
+        dx = 0.5 * (img[y, wp.min(x + 1, w - 1)] - img[y, wp.max(x - 1, 0)])
+        dy = 0.5 * (img[yp, x] - img[ym, x])
+        # non-finite -> 0 (DSO); d - d == 0 is false exactly for NaN and inf, and cheaper than isfinite here
+        dx = wp.where(dx - dx == 0.0, dx, 0.0)
+        dy = wp.where(dy - dy == 0.0, dy, 0.0)
+        dI[y, x] = wp.vec3(img[y, x], dx, dy)
+        grad_sq[y, x] = dx * dx + dy * dy
+
+
+def span_threads(height: int, width: int) -> int:
+    """Launch size of the span-parallel pyramid kernels for an ``height x width`` output."""
+    return height * (-(-width // 32))
 
 
 @wp.kernel
@@ -312,7 +330,8 @@ def downsample(src: wp.array, dst: wp.array, device: str | None = None, split: b
     if dst.shape[0] < 1 or dst.shape[1] < 1:
         raise ValueError(f"src {src.shape} is too small to halve")
     device = device or str(src.device)
-    runtime.launch_split(downsample_image, dst.size, [src, dst], device, threads=None if split else 1)
+    runtime.launch_split(downsample_image, span_threads(*dst.shape), [src, dst], device, min_chunk=256,
+                         threads=None if split else 1)
 
 
 def gradients(img: wp.array, dI: wp.array, grad_sq: wp.array, device: str | None = None,
@@ -324,7 +343,8 @@ def gradients(img: wp.array, dI: wp.array, grad_sq: wp.array, device: str | None
     _check_2d("dI", dI, wp.vec3, img.shape)
     _check_2d("grad_sq", grad_sq, wp.float32, img.shape)
     device = device or str(img.device)
-    runtime.launch_split(compute_gradients, img.size, [img, dI, grad_sq], device, threads=None if split else 1)
+    runtime.launch_split(compute_gradients, span_threads(*img.shape), [img, dI, grad_sq], device, min_chunk=256,
+                         threads=None if split else 1)
 
 
 class ImagePyramid:

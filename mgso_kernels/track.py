@@ -115,27 +115,29 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
         max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
         Ki = inverse_K(cam)
         RKi = pair.R * Ki
+        # next point index that contributes to the flow indicators (no modulo per point)
+        next_flow = int(-1)
+        if params.flow_stride > 0:
+            next_flow = ((start + params.flow_stride - 1) // params.flow_stride) * params.flow_stride
         for i in range(start, end):
             c = host_uv[i]
             idp = idepth[i]
-            if params.flow_stride > 0:
-                if i % params.flow_stride == 0:
-                    hx = (c[0] - cam.cx) / cam.fx
-                    hy = (c[1] - cam.cy) / cam.fy
-                    hp = wp.vec3(hx, hy, 1.0)
-                    rh = pair.R * hp
-                    tt = pair.t * idp
-                    p1 = hp + tt
-                    p2 = hp - tt
-                    p3 = rh + tt
-                    p4 = rh - tt
-                    d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
-                    d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
-                    d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
-                    d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
-                    flow_t += wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2))
-                    flow_rt += wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
-                    flow_n += 2
+            if i == next_flow:
+                next_flow += params.flow_stride
+                hp = Ki * wp.vec3(c[0], c[1], 1.0)
+                rh = RKi * wp.vec3(c[0], c[1], 1.0)
+                tt = pair.t * idp
+                p1 = hp + tt
+                p2 = hp - tt
+                p3 = rh + tt
+                p4 = rh - tt
+                d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
+                d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
+                d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
+                d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
+                flow_t += wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2))
+                flow_rt += wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
+                flow_n += 2
             for k in range(npat):
                 # Branch-free on purpose: Warp merges every variable assigned under a condition with a select, and
                 # selecting the 8x8 float64 accumulator per residual costs more than the residual itself. Invalid

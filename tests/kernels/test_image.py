@@ -98,6 +98,11 @@ def test_pyramid_and_gradients_match_twin(wp_device):
         np.testing.assert_allclose(pyr.grad_sq[lvl].numpy(), g2, rtol=1e-5, atol=1e-3)
     # central differences in the interior, clamped one-sided halves at the border
     dI0 = pyr.dI[0].numpy()
+    nan_img = img.copy()
+    nan_img[50, 60] = np.nan
+    dI_nan = kimg.ImagePyramid(kimg.plan_pyramid(128, 96, levels=1), wp_device).build(nan_img).dI[0].numpy()
+    assert dI_nan[50, 59, 1] == 0 and dI_nan[49, 60, 2] == 0 and dI_nan[50, 61, 1] == 0  # non-finite -> 0 (DSO)
+    assert dI_nan[50, 58, 1] == pytest.approx(dI0[50, 58, 1])
     assert dI0[10, 20, 1] == pytest.approx(0.5 * (img[10, 21] - img[10, 19]), abs=1e-4)
     assert dI0[10, 0, 1] == pytest.approx(0.5 * (img[10, 1] - img[10, 0]), abs=1e-4)
     assert dI0[95, 7, 2] == pytest.approx(0.5 * (img[95, 7] - img[94, 7]), abs=1e-4)
@@ -113,8 +118,8 @@ def test_split_launch_is_identical_and_uint8_input_works(wp_device):
     old = runtime.cpu_threads()
     runtime.set_cpu_threads(2)
     try:
-        n = runtime.launch_split(kimg.compute_gradients, a.intensity[0].size,
-                                 [a.intensity[0], b.dI[0], b.grad_sq[0]], wp_device, min_chunk=1000)
+        n = runtime.launch_split(kimg.compute_gradients, kimg.span_threads(128, 160),
+                                 [a.intensity[0], b.dI[0], b.grad_sq[0]], wp_device, min_chunk=100)
         kimg.build_pyramid(img, b, split=True)
     finally:
         runtime.set_cpu_threads(old)
