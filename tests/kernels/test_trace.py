@@ -239,3 +239,23 @@ def test_hash_is_reproduced_by_twin(wp_device):
     want = [ref.hash_unit(i * 37, 5 - i, 123) for i in range(20)]
     assert np.array_equal(out.numpy(), np.array(want, np.float32))
     assert 0.3 < out.numpy().mean() < 0.7
+
+
+def test_kernel_defaults_are_the_tracking_config_defaults():
+    # the kernels carry DSO's constants as defaults; mgso.config.TrackingConfig is where users change them
+    from mgso.config import TrackingConfig
+    from mgso_kernels import track as tk
+
+    cfg = TrackingConfig()
+    p = tr.make_trace_params(640, 480)
+    assert p.huber_th == cfg.huber_th == ph.HUBER_TH
+    assert p.max_pix_search == pytest.approx(cfg.max_pix_search * (640 + 480))
+    assert p.step_size == cfg.trace_stepsize and p.gn_iterations == cfg.trace_gn_iterations
+    assert p.gn_threshold == pytest.approx(cfg.trace_gn_threshold)
+    assert p.extra_slack_on_th == pytest.approx(cfg.trace_extra_slack_on_th)
+    assert p.slack_interval == cfg.trace_slack_interval
+    assert p.min_improvement_factor == cfg.trace_min_improvement_factor
+    assert p.min_test_radius == cfg.min_trace_test_radius
+    assert p.energy_th == 8 * cfg.outlier_th * cfg.overall_energy_th_weight ** 2
+    assert cfg.outlier_th == ph.OUTLIER_TH and cfg.outlier_th_sum_component == ph.OUTLIER_TH_SUM_COMPONENT
+    assert cfg.coarse_cutoff_th == tk.COARSE_CUTOFF_TH
