@@ -51,7 +51,8 @@ __all__ = [
     "ProjectionStatus", "STATUS_OK", "STATUS_OOB", "STATUS_BEHIND",
     "vec6f", "vec8f", "mat82f", "Intrinsics", "FramePair", "PhotometricParams", "PixelResidual",
     "make_intrinsics", "make_frame_pair", "make_photometric_params", "affine_from_to",
-    "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "pose_jacobian", "huber_weight", "gradient_weight", "photometric_residual",
+    "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "pose_jacobian",
+    "huber_weight", "gradient_weight", "photometric_residual",
     "evaluate_patch_kernel", "extract_patterns_kernel", "PatchResiduals", "evaluate_patches", "HostPatterns",
     "extract_patterns",
 ]
@@ -405,7 +406,8 @@ def make_photometric_params(huber_th: float = HUBER_TH, grad_c2: float = OUTLIER
     """Defaults are the window's (DSO ``projectPoint``: ``Ku > 1.1``, ``Ku < w - 3``); the coarse tracker uses
     ``grad_c2=0, border_lo=2, border_hi=3`` (DSO ``calcRes``)."""
     p = PhotometricParams()
-    p.huber_th, p.grad_c2, p.border_lo, p.border_hi = float(huber_th), float(grad_c2), float(border_lo), float(border_hi)
+    p.huber_th, p.grad_c2 = float(huber_th), float(grad_c2)
+    p.border_lo, p.border_hi = float(border_lo), float(border_hi)
     return p
 
 

@@ -151,8 +151,8 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                 ku = kk[0]
                 kv = kk[1]
                 front = nrm[2] > 0.0
-                inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi) and bilinear_inside(
-                    ku, kv, cam.width, cam.height)
+                inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
+                inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
                 s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
                 finite = wp.isfinite(s[0])  # DSO checks the intensity only
                 ok = front and inside and finite

@@ -142,12 +142,13 @@ def main() -> None:
     from mgso.tracking.pixel_selector import PixelSelector
 
     levels = [ref_pyr.numpy(lvl) for lvl in range(3)]
+    grad_sq = [ref_pyr.grad_sq[lvl].numpy() for lvl in range(3)]
     sel = PixelSelector(W, H)
-    sel.select(levels, 2000)  # let the potential settle, as it does over a sequence
+    sel.select(levels, 2000, grad_sq=grad_sq)  # let the potential settle, as it does over a sequence
     t = []
     for _ in range(R):
         t0 = time.perf_counter()
-        s = sel.select(levels, 2000)
+        s = sel.select(levels, 2000, grad_sq=grad_sq)
         t.append(time.perf_counter() - t0)
     out["pixel_select_640x480"] = {"numpy": round(float(np.median(t)) * 1e3, 3), "points": len(s),
                                    "potential": s.potential}

@@ -24,6 +24,7 @@ thresholds of pixels right of / below the last whole 32x32 block use the nearest
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 from dataclasses import dataclass
@@ -60,6 +61,23 @@ class PixelSelection:
         return (1 << self.level.astype(np.int32)).astype(np.int32)
 
 
+@functools.lru_cache(maxsize=8)
+def _block_codes(h: int, w: int) -> np.ndarray:
+    """``block_index * 49`` per pixel of the whole 32x32 blocks; pixels outside ``1 <= x <= w-2, 1 <= y <= h-2``
+    (not counted by DSO) go to a spare bin past the last block."""
+    h32, w32 = h // BLOCK, w // BLOCK
+    hb, wb = h32 * BLOCK, w32 * BLOCK
+    code = ((np.arange(hb, dtype=np.int32) // BLOCK)[:, None] * w32
+            + (np.arange(wb, dtype=np.int32) // BLOCK)[None, :]) * (HIST_MAX + 1)
+    spare = h32 * w32 * (HIST_MAX + 1)
+    code[0, :] = spare
+    code[:, 0] = spare
+    code[h - 1:, :] = spare
+    code[:, w - 1:] = spare
+    code.setflags(write=False)
+    return code
+
+
 def block_thresholds(grad_sq0: np.ndarray, hist_cut: float = 0.5, hist_add: float = 7.0) -> np.ndarray:
     """DSO ``makeHists``: smoothed squared gradient thresholds per 32x32 block, ``[H // 32, W // 32]``."""
     h, w = grad_sq0.shape
@@ -67,18 +85,12 @@ def block_thresholds(grad_sq0: np.ndarray, hist_cut: float = 0.5, hist_add: floa
     if h32 < 1 or w32 < 1:
         raise ValueError(f"image {w}x{h} is smaller than one {BLOCK}x{BLOCK} threshold block")
     hb, wb = h32 * BLOCK, w32 * BLOCK
-    g = np.minimum(np.sqrt(np.maximum(grad_sq0[:hb, :wb], 0)), HIST_MAX).astype(np.int32)
-    code = g + ((np.arange(hb, dtype=np.int32) // BLOCK)[:, None] * w32
-                + (np.arange(wb, dtype=np.int32) // BLOCK)[None, :]) * (HIST_MAX + 1)
-    # DSO counts pixels 1 <= x <= w-2, 1 <= y <= h-2 only
-    code[0, :] = -1
-    code[:, 0] = -1
-    if hb > h - 2:
-        code[h - 1:, :] = -1
-    if wb > w - 2:
-        code[:, w - 1:] = -1
-    code = code[code >= 0]
-    hist = np.bincount(code, minlength=h32 * w32 * (HIST_MAX + 1)).reshape(h32 * w32, HIST_MAX + 1)
+    nbins = h32 * w32 * (HIST_MAX + 1)
+    g = np.sqrt(np.maximum(grad_sq0[:hb, :wb], 0))
+    np.minimum(g, HIST_MAX, out=g)
+    code = g.astype(np.int32)
+    code += _block_codes(h, w)  # block * 49, and an extra bin for the pixels DSO does not count
+    hist = np.bincount(code.ravel(), minlength=nbins + HIST_MAX + 1)[:nbins].reshape(h32 * w32, HIST_MAX + 1)
     total = hist.sum(axis=1)
     th = (total * hist_cut + 0.5).astype(np.int64)
     above = np.cumsum(hist, axis=1) > th[:, None]  # DSO computeHistQuantil: first bin where the count passes th

@@ -45,7 +45,9 @@ def track_system(host_uv, idepth, ref_color, pair: Pair, cam: Cam, sampler, cuto
         tt = idepth[idx, None] * pair.t[None, :]
 
         def shift(P):
-            return (cam.fx * P[:, 0] / P[:, 2] + cam.cx - c[:, 0]) ** 2 + (cam.fy * P[:, 1] / P[:, 2] + cam.cy - c[:, 1]) ** 2
+            dx = cam.fx * P[:, 0] / P[:, 2] + cam.cx - c[:, 0]
+            dy = cam.fy * P[:, 1] / P[:, 2] + cam.cy - c[:, 1]
+            return dx ** 2 + dy ** 2
 
         ft = float((shift(hp + tt) + shift(hp - tt)).sum())
         frt = float((shift(rh + tt) + shift(rh - tt)).sum())
