@@ -74,9 +74,73 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """DSO front end (filled in by the tracking work)."""
+    """DSO front end: pyramid, photometric residual, coarse tracking, pixel selection, epipolar search.
 
-    pyramid_levels: int = opt(0, "pyramid levels; 0 = as many as keep the coarsest level >= ~30 px (DSO: 5-6)")
+    Defaults are DSO's (``src/util/settings.cpp``); the name in parentheses is DSO's setting.
+    """
+
+    # image pyramid
+    pyramid_levels: int = opt(0, "pyramid levels; 0 = automatic: halve while the level has > pyramid_min_area "
+                                 "pixels, at most pyramid_max_levels (DSO setGlobalCalib: 640x480 -> 4, KITTI -> 5)")
+    pyramid_max_levels: int = opt(6, "upper bound on automatic pyramid levels (DSO PYR_LEVELS = 6)")
+    pyramid_min_area: int = opt(5000, "automatic levels stop once a level has <= this many pixels (DSO: 5000); "
+                                      "1200 gives 640x480 a 40x30 coarsest level")
+    pyramid_size_mode: str = opt("crop", "sizes not divisible by 2^(levels-1): 'crop' centrally or 'pad' by edge "
+                                         "replication; the principal point is shifted to match either way")
+    # photometric residual
+    huber_th: float = opt(9.0, "Huber threshold on the photometric residual, intensity units (setting_huberTH)")
+    outlier_th: float = opt(144.0, "energy threshold per pattern pixel, 12^2; a new point's trace fails above "
+                                   "8 x this (setting_outlierTH)")
+    outlier_th_sum_component: float = opt(2500.0, "c^2 of the gradient weight sqrt(c^2/(c^2+|grad I|^2)); higher = "
+                                                  "weaker down-weighting of strong gradients "
+                                                  "(setting_outlierTHSumComponent = 50^2)")
+    overall_energy_th_weight: float = opt(1.0, "scales the energy thresholds; squared "
+                                               "(setting_overallEnergyTHWeight)")
+    # coarse tracking
+    coarse_cutoff_th: float = opt(20.0, "coarse tracker: residuals above this count with a constant energy and "
+                                        "stay out of the system; doubled while > 60% saturate "
+                                        "(setting_coarseCutoffTH)")
+    coarse_flow_stride: int = opt(32, "flow indicators for the keyframe decision from every n-th reference point "
+                                      "(DSO calcRes: i % 32 at level 0)")
+    coarse_pattern: bool = opt(False, "coarse tracker uses the 8-pixel pattern per point instead of one residual "
+                                      "per depth-map pixel (DSO: one residual per pixel)")
+    # pixel selection
+    immature_density: float = opt(1500.0, "candidate points selected per new keyframe "
+                                          "(setting_desiredImmatureDensity)")
+    min_grad_hist_cut: float = opt(0.5, "block threshold = this quantile of the block's gradient histogram ... "
+                                        "(setting_minGradHistCut, the median)")
+    min_grad_hist_add: float = opt(7.0, "... plus this many gradient units (setting_minGradHistAdd)")
+    grad_downweight_per_level: float = opt(0.75, "threshold factor per coarser selection level "
+                                                 "(setting_gradDownweightPerLevel)")
+    select_direction_distribution: bool = opt(True, "pick the pixel whose gradient projects most onto a random "
+                                                    "direction per cell, spreading gradient directions "
+                                                    "(setting_selectDirectionDistribution)")
+    selector_initial_potential: int = opt(3, "starting cell size of the selector in pixels; adapts to the density "
+                                             "(PixelSelector currentPotential = 3)")
+    selector_recursions: int = opt(1, "re-selections allowed per keyframe to approach the density "
+                                      "(makeMaps recursionsLeft = 1)")
+    # epipolar search of immature points
+    max_pix_search: float = opt(0.027, "longest epipolar segment searched, as a fraction of width + height "
+                                       "(setting_maxPixSearch)")
+    min_trace_quality: float = opt(3.0, "second-best / best energy a traced point needs to be activated "
+                                        "(setting_minTraceQuality)")
+    min_trace_test_radius: int = opt(2, "steps around the best match excluded when looking for the second best "
+                                        "(setting_minTraceTestRadius)")
+    trace_stepsize: float = opt(1.0, "pixel step of the discrete epipolar search (setting_trace_stepsize)")
+    trace_gn_iterations: int = opt(3, "Gauss-Newton refinements along the line (setting_trace_GNIterations)")
+    trace_gn_threshold: float = opt(0.1, "stop refining below this step in pixels (setting_trace_GNThreshold)")
+    trace_extra_slack_on_th: float = opt(1.2, "energy outlier test is relaxed by this factor "
+                                              "(setting_trace_extraSlackOnTH)")
+    trace_slack_interval: float = opt(1.5, "skip tracing when the interval projects shorter than this, pixels "
+                                           "(setting_trace_slackInterval)")
+    trace_min_improvement_factor: float = opt(2.0, "skip tracing when the error bound would not shrink the "
+                                                   "interval by this factor (setting_trace_minImprovementFactor)")
+
+    def __post_init__(self):
+        if self.pyramid_size_mode not in ("crop", "pad"):
+            raise ConfigError(f"tracking.pyramid_size_mode must be 'crop' or 'pad', got {self.pyramid_size_mode!r}")
+        if self.pyramid_levels < 0 or self.pyramid_max_levels < 1:
+            raise ConfigError("tracking.pyramid_levels must be >= 0 and tracking.pyramid_max_levels >= 1")
 
 
 @dataclass(frozen=True)

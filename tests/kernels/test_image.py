@@ -1,0 +1,155 @@
+"""Pyramid geometry, pyramid + gradient kernels and bilinear sampling against their NumPy twin."""
+
+import cv2
+import numpy as np
+import pytest
+import warp as wp
+
+from mgso_kernels import image as kimg
+from mgso_kernels.reference import image as ref
+
+
+def texture(h, w, seed=0, sigma=2.0):
+    """Smooth random texture in 0-255 (blurred noise)."""
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), sigma)
+    t = (t - t.min()) / (t.max() - t.min())
+    return (255.0 * t).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+def test_level_count_follows_dso_rule():
+    # DSO setGlobalCalib halves while w*h > 5000: 640x480 -> levels 0 to 3, coarsest 80 x 60.
+    assert kimg.pyramid_levels_for(640, 480) == 4
+    assert kimg.pyramid_levels_for(1241, 376) == 5  # 1241x376 -> ... -> 77x23
+    assert kimg.pyramid_levels_for(752, 480) == 5  # EuRoC: 94x60 still has 5640 > 5000 px, coarsest 47x30
+    assert kimg.pyramid_levels_for(640, 480, min_area=1200) == 5  # coarsest 40x30
+    assert kimg.pyramid_levels_for(2560, 1920) == 6  # capped at PYR_LEVELS = 6
+    assert kimg.pyramid_levels_for(64, 48) == 1
+    with pytest.raises(ValueError, match="positive"):
+        kimg.pyramid_levels_for(0, 10)
+
+
+def test_plan_pyramid_crops_kitti_centrally_and_shifts_principal_point():
+    cam = kimg.Pinhole(718.856, 718.856, 607.1928, 185.2157)
+    g = kimg.plan_pyramid(1241, 376, cam)
+    assert (g.levels, g.width, g.height) == (5, 1232, 368)
+    assert (g.offset_x, g.offset_y) == (4, 4)
+    assert g.camera.cx == pytest.approx(607.1928 - 4) and g.camera.cy == pytest.approx(185.2157 - 4)
+    assert g.camera.fx == cam.fx
+    assert g.level_size(4) == (77, 23)
+    img = np.arange(376 * 1241, dtype=np.float32).reshape(376, 1241)
+    out = g.adjust(img)
+    assert out.shape == (368, 1232) and out[0, 0] == img[4, 4] and out[-1, -1] == img[371, 1235]
+    # a pixel keeps its ray: input pixel (x, y) and cropped pixel (x - 4, y - 4) see the same direction
+    x_in = 700.0
+    assert (x_in - cam.cx) / cam.fx == pytest.approx(((x_in - g.offset_x) - g.camera.cx) / g.camera.fx)
+
+    gp = kimg.plan_pyramid(1241, 376, cam, mode="pad")
+    assert (gp.width, gp.height) == (1248, 384)
+    assert gp.camera.cx == pytest.approx(607.1928 - gp.offset_x) and gp.offset_x < 0
+    padded = gp.adjust(img)
+    assert padded.shape == (384, 1248)
+    assert padded[-gp.offset_y, -gp.offset_x] == img[0, 0]
+
+    g640 = kimg.plan_pyramid(640, 480, cam)
+    assert (g640.width, g640.height, g640.offset_x, g640.offset_y) == (640, 480, 0, 0)
+    with pytest.raises(ValueError, match="too small"):
+        kimg.plan_pyramid(20, 20, levels=4)
+    with pytest.raises(ValueError, match="crop' or 'pad"):
+        kimg.plan_pyramid(640, 480, mode="stretch")
+    with pytest.raises(ValueError, match="expects 1241x376"):
+        g.adjust(np.zeros((10, 10)))
+
+
+def test_level_intrinsics_match_the_2x2_average_pyramid():
+    # On a linear ramp the averaged level-l pixel x_l holds the level-0 value at (x_l + 0.5) * 2^l - 0.5, which
+    # is exactly the mapping cx_l = (cx + 0.5) / 2^l - 0.5, fx_l = fx / 2^l encodes.
+    h, w, levels = 32, 64, 4
+    ramp = (0.25 * np.arange(w)[None, :] + 0.5 * np.arange(h)[:, None]).astype(np.float64)
+    pyr = ref.build_pyramid(ramp, levels, dtype=np.float64)
+    cam = kimg.Pinhole(100.0, 110.0, 31.3, 15.7)
+    X = np.array([0.07, -0.03, 1.0])
+    x0 = cam.fx * X[0] / X[2] + cam.cx
+    y0 = cam.fy * X[1] / X[2] + cam.cy
+    for lvl in range(1, levels):
+        c = cam.at_level(lvl)
+        xl = c.fx * X[0] / X[2] + c.cx
+        yl = c.fy * X[1] / X[2] + c.cy
+        assert xl == pytest.approx((x0 + 0.5) / 2 ** lvl - 0.5)
+        assert yl == pytest.approx((y0 + 0.5) / 2 ** lvl - 0.5)
+        I = pyr[lvl][0]
+        yy, xx = np.mgrid[0:I.shape[0], 0:I.shape[1]]
+        s = 2 ** lvl
+        assert np.allclose(I, 0.25 * ((xx + 0.5) * s - 0.5) + 0.5 * ((yy + 0.5) * s - 0.5))
+
+
+# ------------------------------------------------------------------------------------------------- kernels
+def test_pyramid_and_gradients_match_twin(wp_device):
+    img = texture(96, 128, seed=1)
+    geom = kimg.plan_pyramid(128, 96, levels=4)
+    pyr = kimg.ImagePyramid(geom, wp_device).build(img)
+    twin = ref.build_pyramid(img, 4)
+    for lvl in range(4):
+        I, dI, g2 = twin[lvl]
+        assert pyr.intensity[lvl].shape == I.shape
+        np.testing.assert_allclose(pyr.intensity[lvl].numpy(), I, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(pyr.dI[lvl].numpy(), dI, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(pyr.grad_sq[lvl].numpy(), g2, rtol=1e-5, atol=1e-3)
+    # central differences in the interior, clamped one-sided halves at the border
+    dI0 = pyr.dI[0].numpy()
+    nan_img = img.copy()
+    nan_img[50, 60] = np.nan
+    dI_nan = kimg.ImagePyramid(kimg.plan_pyramid(128, 96, levels=1), wp_device).build(nan_img).dI[0].numpy()
+    assert dI_nan[50, 59, 1] == 0 and dI_nan[49, 60, 2] == 0 and dI_nan[50, 61, 1] == 0  # non-finite -> 0 (DSO)
+    assert dI_nan[50, 58, 1] == pytest.approx(dI0[50, 58, 1])
+    assert dI0[10, 20, 1] == pytest.approx(0.5 * (img[10, 21] - img[10, 19]), abs=1e-4)
+    assert dI0[10, 0, 1] == pytest.approx(0.5 * (img[10, 1] - img[10, 0]), abs=1e-4)
+    assert dI0[95, 7, 2] == pytest.approx(0.5 * (img[95, 7] - img[94, 7]), abs=1e-4)
+
+
+def test_split_launch_is_identical_and_uint8_input_works(wp_device):
+    img = (texture(128, 160, seed=2)).astype(np.uint8)
+    geom = kimg.plan_pyramid(160, 128, levels=3)
+    a = kimg.ImagePyramid(geom, wp_device)
+    b = kimg.ImagePyramid(geom, wp_device)
+    kimg.build_pyramid(img, a, split=False)
+    from mgso_kernels import runtime
+    old = runtime.cpu_threads()
+    runtime.set_cpu_threads(2)
+    try:
+        n = runtime.launch_split(kimg.compute_gradients, kimg.span_threads(128, 160),
+                                 [a.intensity[0], b.dI[0], b.grad_sq[0]], wp_device, min_chunk=100)
+        kimg.build_pyramid(img, b, split=True)
+    finally:
+        runtime.set_cpu_threads(old)
+    if wp.get_device(wp_device).is_cpu:
+        assert n == 2
+    for lvl in range(3):
+        assert np.array_equal(a.dI[lvl].numpy(), b.dI[lvl].numpy())
+    with pytest.raises(ValueError, match="expects 160x128"):
+        a.build(np.zeros((10, 10), np.float32))
+    with pytest.raises(ValueError, match="gray"):
+        a.build(np.zeros((128, 160, 3), np.float32))
+
+
+def test_bilinear_sampling_matches_twin_and_checks_bounds(wp_device, rng):
+    img = texture(40, 50, seed=3)
+    dI, _ = ref.gradients(img)
+    dI_w = wp.array(dI, dtype=wp.vec3, device=wp_device)
+    xy = np.concatenate([rng.uniform(-2, 51, (300, 2)),
+                         [[0, 0], [49, 39], [49.0, 10.5], [49.01, 10], [-0.01, 3], [np.nan, 3], [12, 7]]]
+                        ).astype(np.float32)
+    for bilin in (False, True):
+        val, ok = kimg.sample_points(dI_w, xy, bilin_derivative=bilin)
+        ok_ref = ref.bilinear_inside(xy[:, 0], xy[:, 1], 50, 40)
+        assert np.array_equal(ok, ok_ref)
+        f = ref.sample_dI_bilin_derivative if bilin else ref.sample_dI
+        want = f(dI, xy[ok, 0], xy[ok, 1])
+        np.testing.assert_allclose(val[ok], want, rtol=1e-5, atol=1e-3)
+        assert np.all(val[~ok] == 0)
+    # at an integer pixel the sample is the pixel; the BiLin gradient there is the forward difference
+    val, _ = kimg.sample_points(dI_w, np.array([[12, 7]], np.float32))
+    assert np.allclose(val[0], dI[7, 12], atol=1e-4)
+    val, _ = kimg.sample_points(dI_w, np.array([[12, 7]], np.float32), bilin_derivative=True)
+    assert np.allclose(val[0], [img[7, 12], img[7, 13] - img[7, 12], img[8, 12] - img[7, 12]], atol=1e-3)
