@@ -31,7 +31,7 @@ import numpy as np
 __all__ = [
     "SH_C0", "SH_C1", "SH_C2", "SH_C3", "RefCamera", "tangent_limits", "quat_to_rotmat", "quat_to_rotmat_vjp",
     "sh_basis", "sh_basis_grad", "sh_to_rgb", "sh_to_rgb_vjp", "project", "project_vjp", "tile_pairs",
-    "render", "render_vjp", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "num_sh_bases",
+    "render", "render_vjp", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "num_sh_bases", "random_scene",
 ]
 
 # Real spherical-harmonic constants (the ones 3DGS and gsplat use; sqrt((2l+1)/(4 pi) (l-m)!/(l+m)!) factors).
@@ -454,3 +454,43 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
     return dict(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                 v_sh=v_sh, v_pose=v_pose, v_means2d=v_means2d, absgrad=absgrad, v_conics=v_conics,
                 v_opacities=v_opac, v_colors=out_v_col, v_depths=out_v_z, forward=fw)
+
+
+# ------------------------------------------------------------------------------------------------ test scenes
+def random_scene(rng: np.random.Generator, n: int, cam, degree: int = 0, depth_range=(1.0, 5.0),
+                 px_range=(1.0, 6.0), hard_cases: bool = True, sh_scale: float = 0.5) -> dict:
+    """A random set of N Gaussians seen by ``cam``, as float64 arrays of the parameter layout.
+
+    Most Gaussians lie in the view frustum at ``depth_range`` with standard deviations of ``px_range`` pixels.
+    ``hard_cases`` mixes in (about an eighth each) Gaussians behind the camera or inside the near plane, partly
+    off-screen, very thin (one scale 1/300 of the others), large (covering many tiles), centred exactly on tile
+    borders, and nearly transparent (opacity below 1/255).
+    """
+    z = rng.uniform(*depth_range, n)
+    u = rng.uniform(0, cam.width - 1, n)
+    v = rng.uniform(0, cam.height - 1, n)
+    # a pixel at depth z is z / f wide
+    px_scale = rng.uniform(*px_range, (n, 3)) * (z / cam.fx)[:, None]
+    logit = rng.uniform(-2.0, 4.0, n)
+    if hard_cases:
+        kind = rng.integers(0, 8, n)
+        z = np.where(kind == 1, rng.uniform(-3.0, cam.near, n), z)  # behind / inside near plane
+        off = kind == 2  # partly off-screen: centre up to 15 px outside the border
+        u = np.where(off, np.where(rng.random(n) < 0.5, -rng.uniform(0, 15, n),
+                                   cam.width - 1 + rng.uniform(0, 15, n)), u)
+        thin = kind == 3
+        px_scale[thin, rng.integers(0, 3, thin.sum())] /= 300.0
+        big = kind == 4
+        px_scale[big] *= rng.uniform(3.0, 6.0, (big.sum(), 1))
+        border = kind == 5  # centred on a tile corner (or edge)
+        u = np.where(border, 16.0 * rng.integers(1, max(2, cam.width // 16), n), u)
+        v = np.where(border & (rng.random(n) < 0.7), 16.0 * rng.integers(1, max(2, cam.height // 16), n), v)
+        logit = np.where(kind == 6, rng.uniform(-9.0, -6.0, n), logit)  # opacity < 1/255
+    zz = np.where(np.abs(z) < 1e-3, 1e-3, z)
+    pc = np.stack([(u - cam.cx) / cam.fx * zz, (v - cam.cy) / cam.fy * zz, z], -1)
+    means = (pc - cam.t) @ cam.R  # R^T (pc - t)
+    K = num_sh_bases(degree)
+    sh = rng.normal(size=(n, K, 3)) * sh_scale
+    sh[:, 0] = rng.uniform(-1.2, 1.2, (n, 3))  # colour 0.5 + C0 sh0 in about [0.16, 0.84]
+    return dict(means=means, log_scales=np.log(np.abs(px_scale) + 1e-9), quats=rng.normal(size=(n, 4)),
+                opacity_logits=logit, sh=sh)

@@ -169,15 +169,17 @@ class Rasterizer:
 
     ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
     dilation of the 2D covariance (px^2, 3DGS's 0.3; no antialiasing opacity compensation). ``threads``: CPU
-    threads for split launches (``None``: the runtime's setting). ``profile=True`` synchronises after each stage
+    threads for split launches (``None``: the runtime's setting); ``min_chunk``: fewest threads a CPU chunk gets (a
+    launch smaller than two chunks stays on one core). ``profile=True`` synchronises after each stage
     and records seconds per stage in :attr:`timings` (for ``profiles/splat_raster.py``; slows the pipeline a little).
     """
 
     def __init__(self, device: str | None = None, *, eps2d: float = 0.3, threads: int | None = None,
-                 profile: bool = False):
+                 min_chunk: int = 4096, profile: bool = False):
         self.device = runtime.resolve_device(device) if device is not None else runtime.default_device()
         self.eps2d = float(eps2d)
         self.threads = threads
+        self._split = {"threads": threads, "min_chunk": int(min_chunk)}
         self.profile = profile
         self.timings: dict[str, float] = {}
         self._generation = 0
@@ -266,7 +268,7 @@ class Rasterizer:
     # ------------------------------------------------------------------------------------- shared front end
     def _project_and_bin(self, means, log_scales, quats, opacity_logits, camera: Camera) -> int:
         """Projection + binning + sort + tile ranges; returns the number of pairs."""
-        dev, th = self.device, self.threads
+        dev, sp = self.device, self._split
         n = means.shape[0]
         for buf in (self.means2d_, self.conics_, self.depths_, self.opacities_, self.radii_, self.colors_):
             self._ensure(buf, n)
@@ -276,12 +278,12 @@ class Rasterizer:
         means2d, conics = self.means2d_.view(n), self.conics_.view(n)
         depths, opac, radii = self.depths_.view(n), self.opacities_.view(n), self.radii_.view(n)
         _project.launch_project(means, log_scales, quats, opacity_logits, camera, self.eps2d, means2d, conics,
-                                depths, opac, radii, dev, th)
+                                depths, opac, radii, dev, **sp)
         t = self._stage("project", t)
         touched = self.tiles_touched_.view(n + 1)
         offsets = self.pair_offsets_.view(n + 1)
         touched[n:].zero_()
-        _bin.launch_count_tiles(means2d, conics, opac, radii, camera, touched[:n], dev, th)
+        _bin.launch_count_tiles(means2d, conics, opac, radii, camera, touched[:n], dev, **sp)
         wp.utils.array_scan(touched, offsets, inclusive=False)
         n_pairs = int(offsets[n:].numpy()[0])
         t = self._stage("bin_count", t)
@@ -290,13 +292,13 @@ class Rasterizer:
             self._ensure(buf, max(m, 1))
         keys, slots = self.keys_.full, self.slots_.full
         _bin.launch_emit_pairs(means2d, conics, opac, depths, radii, offsets[:n], camera, keys, slots,
-                               self.pair_gauss_.full, n_pairs, dev, th)
+                               self.pair_gauss_.full, n_pairs, dev, **sp)
         t = self._stage("bin_keys", t)
         n_tiles = camera.tiles_x * camera.tiles_y
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)
         t = self._stage("sort", t)
         self._ensure(self.ranges_, n_tiles)
-        _bin.launch_tile_ranges(keys, n_pairs, self.ranges_.view(n_tiles), dev, th)
+        _bin.launch_tile_ranges(keys, n_pairs, self.ranges_.view(n_tiles), dev, **sp)
         self._stage("ranges", t)
         return n_pairs
 
@@ -323,7 +325,7 @@ class Rasterizer:
         if not 0 <= degree <= full_degree:
             raise ValueError(f"sh_degree={sh_degree}: sh has K={K} coefficients (degree {full_degree})")
         num_bases = (degree + 1) ** 2
-        dev, th = self.device, self.threads
+        dev, sp = self.device, self._split
         n = means.shape[0]
         self._generation += 1
         if self.profile:
@@ -332,17 +334,17 @@ class Rasterizer:
         t = time.perf_counter()
         radii = self.radii_.view(n)
         colors = self.colors_.view(n)
-        _sh.launch_evaluate_sh(sh, means, num_bases, camera, radii, colors, dev, th)
+        _sh.launch_evaluate_sh(sh, means, num_bases, camera, radii, colors, dev, **sp)
         t = self._stage("sh", t)
         _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.means2d_.view(n),
                                    self.conics_.view(n), self.opacities_.view(n), self.depths_.view(n), colors,
-                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, th)
+                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, **sp)
         t = self._stage("pack", t)
         H, W = camera.height, camera.width
         rgb, depth, alpha = self._image("rgb", H, W), self._image("depth", H, W), self._image("alpha", H, W)
         T_final, n_contrib = self._image("T_final", H, W), self._image("n_contrib", H, W)
         _raster.launch_rasterize_forward(camera, self.ranges_.full, self.splats_.full, self.splat_rgb_.full, bg,
-                                         rgb, depth, alpha, T_final, n_contrib, dev, th)
+                                         rgb, depth, alpha, T_final, n_contrib, dev, **sp)
         self._stage("blend", t)
         return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=radii, means2d=self.means2d_.view(n).view(
             wp.float32), depths=self.depths_.view(n), tiles_touched=self.tiles_touched_.view(n), n_pairs=n_pairs,
@@ -357,7 +359,7 @@ class Rasterizer:
         """
         self._check_camera(camera)
         means, log_scales, quats, opacity_logits, _ = self._params(means, log_scales, quats, opacity_logits, None)
-        dev, th = self.device, self.threads
+        dev, sp = self.device, self._split
         n = means.shape[0]
         self._generation += 1
         if self.profile:
@@ -366,10 +368,10 @@ class Rasterizer:
         t = time.perf_counter()
         _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.means2d_.view(n),
                                    self.conics_.view(n), self.opacities_.view(n), self.depths_.view(n), None,
-                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, th)
+                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, **sp)
         t = self._stage("pack", t)
         alpha = self._image("alpha_only", camera.height, camera.width)
-        _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, th)
+        _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp)
         self._stage("blend", t)
         return alpha
 
@@ -389,7 +391,7 @@ class Rasterizer:
                                "Rasterizer per pending frame")
         cam = out.camera
         H, W = cam.height, cam.width
-        dev, th = self.device, self.threads
+        dev, sp = self.device, self._split
         v_rgb = as_float_array(v_rgb, "v_rgb", (W, 3), dev, H)
         if v_depth is not None:
             v_depth = as_float_array(v_depth, "v_depth", (W,), dev, H)
@@ -413,14 +415,14 @@ class Rasterizer:
         self._ensure(self.v_sh_, n)
         _raster_bwd.launch_rasterize_backward(cam, self.ranges_.full, self.splats_.full, self.splat_rgb_.full,
                                               self.slots_.full, out.background, out.T_final, out.n_contrib, v_rgb,
-                                              v_depth, v_alpha, self.pair_grads_.full, m, dev, th)
+                                              v_depth, v_alpha, self.pair_grads_.full, m, dev, **sp)
         t = self._stage("backward_blend", t)
         v_means2d, v_conics = self.v_means2d_.view(n), self.v_conics_.view(n)
         v_opac, v_colors, v_depths = self.v_opacities_.view(n), self.v_colors_.view(n), self.v_depths_.view(n)
         absgrad = self.absgrad_.view(n)
         _raster_bwd.launch_gather_gaussian_grads(self.pair_offsets_.view(n), self.tiles_touched_.view(n),
                                                  self.pair_grads_.full, v_means2d, v_conics, v_opac, v_colors,
-                                                 v_depths, absgrad, dev, th)
+                                                 v_depths, absgrad, dev, **sp)
         t = self._stage("backward_gather", t)
         radii = self.radii_.view(n)
         v_means, v_log_scales = self.v_means_.view(n), self.v_log_scales_.view(n)
@@ -428,10 +430,10 @@ class Rasterizer:
         v_pose_partial, v_sh = self.v_pose_partial_.view(n), self.v_sh_.view(n)
         _project.launch_project_backward(means, log_scales, quats, self.opacities_.view(n), cam, self.eps2d, radii,
                                          v_means2d, v_conics, v_depths, v_opac, v_means, v_log_scales, v_quats,
-                                         v_logits, v_pose_partial, dev, th)
+                                         v_logits, v_pose_partial, dev, **sp)
         _sh.launch_evaluate_sh_backward(sh, means, out.num_bases, cam, radii, v_colors, v_sh, v_means,
-                                        v_pose_partial, dev, th)
-        _project.launch_reduce_pose(v_pose_partial, self.pose_blocks_.full, self.v_pose, dev, th)
+                                        v_pose_partial, dev, **sp)
+        _project.launch_reduce_pose(v_pose_partial, self.pose_blocks_.full, self.v_pose, dev, **sp)
         if stats is not None:
             scale = (0.5 * W, 0.5 * H) if stats_ndc else (1.0, 1.0)
             for name in ("grad2d_sum", "absgrad2d_sum", "count", "max_radii"):
@@ -439,7 +441,7 @@ class Rasterizer:
                 if a.shape[0] != n or str(a.device) != str(wp.get_device(dev)):
                     raise ValueError(f"stats.{name}: expected ({n},) on {dev}, got {a.shape} on {a.device}")
             _raster_bwd.launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, stats.grad2d_sum,
-                                                        stats.absgrad2d_sum, stats.count, stats.max_radii, dev, th)
+                                                        stats.absgrad2d_sum, stats.count, stats.max_radii, dev, **sp)
         self._stage("backward_project", t)
         return Gradients(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                          v_sh=v_sh, v_pose=self.v_pose, v_means2d=v_means2d.view(wp.float32),

@@ -193,7 +193,7 @@ def tile_key_bits(n_tiles: int) -> int:
 
 
 def launch_count_tiles(means2d, conics, opacities, radii, cam: Camera, tiles_touched, device: str,
-                       threads: int | None = None) -> None:
+                       threads: int | None = None, min_chunk: int = 4096) -> None:
     """``tiles_touched[g]`` = number of tiles Gaussian g is listed in (0 if culled)."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -203,11 +203,11 @@ def launch_count_tiles(means2d, conics, opacities, radii, cam: Camera, tiles_tou
                         ("opacities", opacities, wp.float32), ("radii", radii, wp.int32),
                         ("tiles_touched", tiles_touched, wp.int32)):
         check_array(a, name, dt, (n,), device)
-    launch_split(count_tiles, n, [means2d, conics, opacities, radii, cam, tiles_touched], device, threads=threads)
+    launch_split(count_tiles, n, [means2d, conics, opacities, radii, cam, tiles_touched], device, threads=threads, min_chunk=min_chunk)
 
 
 def launch_emit_pairs(means2d, conics, opacities, depths, radii, pair_offsets, cam: Camera, keys, slots, pair_gauss,
-                      n_pairs: int, device: str, threads: int | None = None) -> None:
+                      n_pairs: int, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Write the unsorted keys, slots and slot->Gaussian map; keys/slots need ``2 * n_pairs`` capacity."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -222,7 +222,7 @@ def launch_emit_pairs(means2d, conics, opacities, depths, radii, pair_offsets, c
     if keys.shape[0] < 2 * n_pairs or slots.shape[0] < 2 * n_pairs or pair_gauss.shape[0] < n_pairs:
         raise ValueError(f"emit_pairs: buffers too small for {n_pairs} pairs (keys/slots need 2x for the sort)")
     launch_split(emit_pairs, n, [means2d, conics, opacities, depths, radii, pair_offsets, cam, keys, slots,
-                                 pair_gauss], device, threads=threads)
+                                 pair_gauss], device, threads=threads, min_chunk=min_chunk)
 
 
 def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> None:
@@ -231,7 +231,7 @@ def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> None:
         wp.utils.radix_sort_pairs(keys, slots, n_pairs, begin_bit=0, end_bit=tile_key_bits(n_tiles))
 
 
-def launch_tile_ranges(keys, n_pairs: int, ranges, device: str, threads: int | None = None) -> None:
+def launch_tile_ranges(keys, n_pairs: int, ranges, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Zero ``ranges`` (tiles, 2) and fill each tile's [start, end) in the sorted keys."""
     from ..runtime import launch_split
 
@@ -239,4 +239,4 @@ def launch_tile_ranges(keys, n_pairs: int, ranges, device: str, threads: int | N
         raise TypeError("tile_ranges: ranges must be an int32 array of shape (tiles, 2)")
     ranges.zero_()
     if n_pairs > 0:
-        launch_split(tile_ranges, n_pairs, [keys, n_pairs, ranges], device, threads=threads)
+        launch_split(tile_ranges, n_pairs, [keys, n_pairs, ranges], device, threads=threads, min_chunk=min_chunk)

@@ -305,7 +305,7 @@ def finish_pose(
 
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, means2d, conics, depths,
-                   opacities, radii, device: str, threads: int | None = None) -> None:
+                   opacities, radii, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long)."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -318,12 +318,12 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
                         ("opacities", opacities, wp.float32), ("radii", radii, wp.int32)):
         check_array(a, name, dt, (n,), device)
     launch_split(project_gaussians, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d), means2d,
-                                        conics, depths, opacities, radii], device, threads=threads)
+                                        conics, depths, opacities, radii], device, threads=threads, min_chunk=min_chunk)
 
 
 def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, eps2d: float, radii, v_means2d,
                             v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats, v_opacity_logits,
-                            v_pose_partial, device: str, threads: int | None = None) -> None:
+                            v_pose_partial, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -342,10 +342,10 @@ def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, ep
         check_array(a, name, dt, shape, device)
     launch_split(project_gaussians_backward, n, [means, log_scales, quats, opacities, cam, float(eps2d), radii,
                                                  v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales,
-                                                 v_quats, v_opacity_logits, v_pose_partial], device, threads=threads)
+                                                 v_quats, v_opacity_logits, v_pose_partial], device, threads=threads, min_chunk=min_chunk)
 
 
-def launch_reduce_pose(v_pose_partial, block_sums, v_pose, device: str, threads: int | None = None) -> None:
+def launch_reduce_pose(v_pose_partial, block_sums, v_pose, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Sum the (N,) per-Gaussian pose terms into ``v_pose`` (6,) in float64 blocks of :data:`POSE_BLOCK`."""
     from ..runtime import launch_split
 

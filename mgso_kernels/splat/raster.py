@@ -180,7 +180,7 @@ def _pixel_threads(cam: Camera) -> int:
 
 
 def launch_pack_splats(slots, pair_gauss, means2d, conics, opacities, depths, colors, n_pairs: int, splats,
-                       splat_rgb, device: str, threads: int | None = None) -> None:
+                       splat_rgb, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Copy the sorted pairs' Gaussian data into contiguous arrays (``colors=None``: alpha-only)."""
     from ..runtime import launch_split
 
@@ -191,7 +191,7 @@ def launch_pack_splats(slots, pair_gauss, means2d, conics, opacities, depths, co
     with_color = 0 if colors is None else 1
     colors = colors if colors is not None else _dummy_vec3(device)
     launch_split(pack_splats, n_pairs, [slots, pair_gauss, means2d, conics, opacities, depths, colors, with_color,
-                                        splats, splat_rgb], device, threads=threads)
+                                        splats, splat_rgb], device, threads=threads, min_chunk=min_chunk)
 
 
 _dummies: dict = {}
@@ -205,7 +205,7 @@ def _dummy_vec3(device):
 
 
 def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgb, background, rgb, depth, alpha, T_final,
-                             n_contrib, device: str, threads: int | None = None) -> None:
+                             n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Blend every pixel; outputs (H, W[, 3]) are fully overwritten."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -219,14 +219,15 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgb, background,
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
     launch_split(rasterize_forward, _pixel_threads(cam), [cam, ranges, splats, splat_rgb, wp.vec3(*background),
                                                            rgb, depth, alpha, T_final, n_contrib],
-                 device, threads=threads, align=TILE_SIZE * TILE_SIZE)
+                 device, threads=threads, min_chunk=min_chunk, align=TILE_SIZE * TILE_SIZE)
 
 
-def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None) -> None:
+def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Accumulated alpha only (H, W): the cheap path for coverage tests."""
     from ..runtime import launch_split
     from ._checks import check_array
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
-    launch_split(rasterize_alpha, _pixel_threads(cam), [cam, ranges, splats, alpha], device, threads=threads,
+    launch_split(rasterize_alpha, _pixel_threads(cam), [cam, ranges, splats, alpha], device,
+                 threads=threads, min_chunk=min_chunk,
                  align=TILE_SIZE * TILE_SIZE)

@@ -162,7 +162,7 @@ def accumulate_densify_stats(
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgb, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
-                              threads: int | None = None) -> None:
+                              threads: int | None = None, min_chunk: int = 4096) -> None:
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
 
     ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output).
@@ -188,23 +188,23 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgb, slots, bac
     pair_grads[:n_pairs].zero_()
     launch_split(rasterize_backward, cam.tiles_x * cam.tiles_y * TILE_SIZE * TILE_SIZE,
                  [cam, ranges, splats, splat_rgb, slots, wp.vec3(*background), T_final, n_contrib, v_rgb, v_depth,
-                  v_alpha, use_depth, use_alpha, pair_grads], device, threads=threads, align=TILE_SIZE * TILE_SIZE)
+                  v_alpha, use_depth, use_alpha, pair_grads], device, threads=threads, min_chunk=min_chunk, align=TILE_SIZE * TILE_SIZE)
 
 
 def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,
-                                 v_depths, absgrad, device: str, threads: int | None = None) -> None:
+                                 v_depths, absgrad, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Sum each Gaussian's slot range into per-Gaussian screen-space gradients (all outputs overwritten)."""
     from ..runtime import launch_split
 
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
-                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads)
+                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads, min_chunk=min_chunk)
 
 
 def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum, absgrad2d_sum, count, max_radii,
-                                    device: str, threads: int | None = None) -> None:
+                                    device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     from ..runtime import launch_split
 
     n = v_means2d.shape[0]
     launch_split(accumulate_densify_stats, n, [v_means2d, absgrad, radii, wp.vec2(*scale), grad2d_sum,
-                                               absgrad2d_sum, count, max_radii], device, threads=threads)
+                                               absgrad2d_sum, count, max_radii], device, threads=threads, min_chunk=min_chunk)

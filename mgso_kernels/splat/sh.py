@@ -226,7 +226,7 @@ def _check_sh(sh, means, num_bases, device):
 
 
 def launch_evaluate_sh(sh, means, num_bases: int, cam: Camera, radii, colors, device: str,
-                       threads: int | None = None) -> None:
+                       threads: int | None = None, min_chunk: int = 4096) -> None:
     """Colours (N,) vec3 of the Gaussians with ``radii > 0`` (others get 0)."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -234,11 +234,11 @@ def launch_evaluate_sh(sh, means, num_bases: int, cam: Camera, radii, colors, de
     n = _check_sh(sh, means, num_bases, device)
     check_array(radii, "radii", wp.int32, (n,), device)
     check_array(colors, "colors", wp.vec3, (n,), device)
-    launch_split(evaluate_sh, n, [sh, means, int(num_bases), cam, radii, colors], device, threads=threads)
+    launch_split(evaluate_sh, n, [sh, means, int(num_bases), cam, radii, colors], device, threads=threads, min_chunk=min_chunk)
 
 
 def launch_evaluate_sh_backward(sh, means, num_bases: int, cam: Camera, radii, v_colors, v_sh, v_means,
-                                v_pose_partial, device: str, threads: int | None = None) -> None:
+                                v_pose_partial, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Writes ``v_sh`` (N, K, 3); adds the view-direction terms to ``v_means`` and ``v_pose_partial``."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -250,4 +250,4 @@ def launch_evaluate_sh_backward(sh, means, num_bases: int, cam: Camera, radii, v
     check_array(v_means, "v_means", wp.float32, (n, 3), device)
     check_array(v_pose_partial, "v_pose_partial", vec6, (n,), device)
     launch_split(evaluate_sh_backward, n, [sh, means, int(num_bases), cam, radii, v_colors, v_sh, v_means,
-                                           v_pose_partial], device, threads=threads)
+                                           v_pose_partial], device, threads=threads, min_chunk=min_chunk)
