@@ -47,6 +47,7 @@ import warp as wp
 
 from .. import runtime
 from . import bin as _bin
+from . import common as _common
 from . import project as _project
 from . import raster as _raster
 from . import raster_bwd as _raster_bwd
@@ -190,15 +191,16 @@ class Rasterizer:
         self.depths_ = _Buffer(wp.float32)
         self.opacities_ = _Buffer(wp.float32)
         self.radii_ = _Buffer(wp.int32)
-        self.colors_ = _Buffer(wp.vec3)
+        self.splat_g_ = _Buffer(_common.vec8)  # per Gaussian blending data
+        self.rgbz_g_ = _Buffer(wp.vec4)  # per Gaussian colour + depth
         self.tiles_touched_ = _Buffer(wp.int32)
         self.pair_offsets_ = _Buffer(wp.int32)
         # per (tile, Gaussian) pair (capacity M; keys and slots 2M for the radix sort)
         self.keys_ = _Buffer(wp.int64)
         self.slots_ = _Buffer(wp.int32)
         self.pair_gauss_ = _Buffer(wp.int32)
-        self.splats_ = _Buffer(_raster.vec8)
-        self.splat_rgb_ = _Buffer(wp.vec3)
+        self.splats_ = _Buffer(_common.vec8)
+        self.splat_rgbz_ = _Buffer(wp.vec4)
         self.pair_grads_ = _Buffer(_raster_bwd.vec12)
         # per tile
         self.ranges_ = _Buffer(wp.int32, (2,))
@@ -217,7 +219,7 @@ class Rasterizer:
         self.v_quats_ = _Buffer(wp.float32, (4,))
         self.v_opacity_logits_ = _Buffer(wp.float32)
         self.v_sh_: _Buffer | None = None
-        self.v_pose_partial_ = _Buffer(_sh.vec6)
+        self.v_pose_partial_ = _Buffer(_common.vec6)
         self.pose_blocks_ = _Buffer(_project.vec6d)
         self.v_pose = wp.zeros(6, dtype=wp.float32, device=self.device)
         self.reallocations = 0  # how many times a buffer grew (steady state: constant)
@@ -270,29 +272,31 @@ class Rasterizer:
         """Projection + binning + sort + tile ranges; returns the number of pairs."""
         dev, sp = self.device, self._split
         n = means.shape[0]
-        for buf in (self.means2d_, self.conics_, self.depths_, self.opacities_, self.radii_, self.colors_):
+        for buf in (self.means2d_, self.conics_, self.depths_, self.opacities_, self.radii_, self.splat_g_,
+                    self.rgbz_g_):
             self._ensure(buf, n)
         self._ensure(self.tiles_touched_, n + 1)
         self._ensure(self.pair_offsets_, n + 1)
         t = time.perf_counter()
         means2d, conics = self.means2d_.view(n), self.conics_.view(n)
         depths, opac, radii = self.depths_.view(n), self.opacities_.view(n), self.radii_.view(n)
+        splat_g = self.splat_g_.view(n)
         _project.launch_project(means, log_scales, quats, opacity_logits, camera, self.eps2d, means2d, conics,
-                                depths, opac, radii, dev, **sp)
+                                depths, opac, radii, splat_g, dev, **sp)
         t = self._stage("project", t)
         touched = self.tiles_touched_.view(n + 1)
         offsets = self.pair_offsets_.view(n + 1)
         touched[n:].zero_()
-        _bin.launch_count_tiles(means2d, conics, opac, radii, camera, touched[:n], dev, **sp)
+        _bin.launch_count_tiles(splat_g, radii, camera, touched[:n], dev, **sp)
         wp.utils.array_scan(touched, offsets, inclusive=False)
         n_pairs = int(offsets[n:].numpy()[0])
         t = self._stage("bin_count", t)
         for buf, m in ((self.keys_, 2 * n_pairs), (self.slots_, 2 * n_pairs), (self.pair_gauss_, n_pairs),
-                       (self.splats_, n_pairs), (self.splat_rgb_, n_pairs)):
+                       (self.splats_, n_pairs), (self.splat_rgbz_, n_pairs)):
             self._ensure(buf, max(m, 1))
         keys, slots = self.keys_.full, self.slots_.full
-        _bin.launch_emit_pairs(means2d, conics, opac, depths, radii, offsets[:n], camera, keys, slots,
-                               self.pair_gauss_.full, n_pairs, dev, **sp)
+        _bin.launch_emit_pairs(splat_g, depths, radii, offsets[:n], camera, keys, slots, self.pair_gauss_.full,
+                               n_pairs, dev, **sp)
         t = self._stage("bin_keys", t)
         n_tiles = camera.tiles_x * camera.tiles_y
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)
@@ -333,17 +337,16 @@ class Rasterizer:
         n_pairs = self._project_and_bin(means, log_scales, quats, opacity_logits, camera)
         t = time.perf_counter()
         radii = self.radii_.view(n)
-        colors = self.colors_.view(n)
-        _sh.launch_evaluate_sh(sh, means, num_bases, camera, radii, colors, dev, **sp)
+        rgbz_g = self.rgbz_g_.view(n)
+        _sh.launch_evaluate_sh(sh, means, num_bases, camera, radii, self.depths_.view(n), rgbz_g, dev, **sp)
         t = self._stage("sh", t)
-        _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.means2d_.view(n),
-                                   self.conics_.view(n), self.opacities_.view(n), self.depths_.view(n), colors,
-                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, **sp)
+        _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.splat_g_.view(n), rgbz_g, n_pairs,
+                                   self.splats_.full, self.splat_rgbz_.full, dev, **sp)
         t = self._stage("pack", t)
         H, W = camera.height, camera.width
         rgb, depth, alpha = self._image("rgb", H, W), self._image("depth", H, W), self._image("alpha", H, W)
         T_final, n_contrib = self._image("T_final", H, W), self._image("n_contrib", H, W)
-        _raster.launch_rasterize_forward(camera, self.ranges_.full, self.splats_.full, self.splat_rgb_.full, bg,
+        _raster.launch_rasterize_forward(camera, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full, bg,
                                          rgb, depth, alpha, T_final, n_contrib, dev, **sp)
         self._stage("blend", t)
         return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=radii, means2d=self.means2d_.view(n).view(
@@ -366,9 +369,8 @@ class Rasterizer:
             self.timings = {}
         n_pairs = self._project_and_bin(means, log_scales, quats, opacity_logits, camera)
         t = time.perf_counter()
-        _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.means2d_.view(n),
-                                   self.conics_.view(n), self.opacities_.view(n), self.depths_.view(n), None,
-                                   n_pairs, self.splats_.full, self.splat_rgb_.full, dev, **sp)
+        _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.splat_g_.view(n), None, n_pairs,
+                                   self.splats_.full, self.splat_rgbz_.full, dev, **sp)
         t = self._stage("pack", t)
         alpha = self._image("alpha_only", camera.height, camera.width)
         _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp)
@@ -413,7 +415,7 @@ class Rasterizer:
         if self.v_sh_ is None or self.v_sh_.tail != (K, 3):
             self.v_sh_ = _Buffer(wp.float32, (K, 3))
         self._ensure(self.v_sh_, n)
-        _raster_bwd.launch_rasterize_backward(cam, self.ranges_.full, self.splats_.full, self.splat_rgb_.full,
+        _raster_bwd.launch_rasterize_backward(cam, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full,
                                               self.slots_.full, out.background, out.T_final, out.n_contrib, v_rgb,
                                               v_depth, v_alpha, self.pair_grads_.full, m, dev, **sp)
         t = self._stage("backward_blend", t)

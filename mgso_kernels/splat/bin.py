@@ -10,7 +10,7 @@ row's horizontal slab, the x-extent of that convex slice is computed in closed f
 leftmost/rightmost point, if it lies in the slab, or the boundary at the slab's edges), and the tiles whose columns
 meet that extent are listed. This is the tightest possible list (an ellipse-rectangle intersection test, like
 gsplat's/StopThePop's tile-ellipse tests but exact), at O(rows) work per Gaussian. ``r2`` is inflated by a
-relative 1e-4 (+1e-3) so float32 rounding can never drop a tile a pixel of which the blend would accept; the
+relative 1e-3 (+1e-2, :func:`mgso_kernels.splat.common.cutoff_r2`) so float32 rounding can never drop a tile a pixel of which the blend would accept; the
 blend applies the exact 1/255 rule itself.
 
 **Keys.** One int64 key per (tile, Gaussian) pair: tile index (row-major, ``ty * tiles_x + tx``) in the high 32
@@ -32,21 +32,13 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
+from .common import vec8
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["count_tiles", "emit_pairs", "tile_ranges", "ellipse_row_span", "R2_REL_MARGIN", "R2_ABS_MARGIN"]
+__all__ = ["count_tiles", "emit_pairs", "tile_ranges", "ellipse_row_span"]
 
-R2_REL_MARGIN = wp.constant(1.0e-4)
-R2_ABS_MARGIN = wp.constant(1.0e-3)
 TS = wp.constant(TILE_SIZE)
-
-
-@wp.func
-def cutoff_r2(op: float) -> float:
-    """Squared Mahalanobis radius where opacity * exp(power) = 1/255, inflated slightly (see module doc)."""
-    r2 = 2.0 * wp.log(255.0 * op)
-    return r2 * (1.0 + R2_REL_MARGIN) + R2_ABS_MARGIN
 
 
 @wp.func
@@ -113,9 +105,7 @@ def col_range(m: wp.vec2, conic: wp.vec3, r2: float, ty: int, cam: Camera) -> wp
 @wp.kernel
 def count_tiles(
     offset: int,
-    means2d: wp.array(dtype=wp.vec2),  # [N] pixels
-    conics: wp.array(dtype=wp.vec3),  # [N]
-    opacities: wp.array(dtype=float),  # [N]
+    splats: wp.array(dtype=vec8),  # [N] per Gaussian: mean (px), conic, opacity, exp(-a), cut-off r2
     radii: wp.array(dtype=wp.int32),  # [N] 0 = culled
     cam: Camera,
     tiles_touched: wp.array(dtype=wp.int32),  # [N] out
@@ -123,9 +113,10 @@ def count_tiles(
     g = offset + wp.tid()
     n = int(0)
     if radii[g] > 0:
-        m = means2d[g]
-        conic = conics[g]
-        r2 = cutoff_r2(opacities[g])
+        s = splats[g]
+        m = wp.vec2(s[0], s[1])
+        conic = wp.vec3(s[2], s[3], s[4])
+        r2 = s[7]
         rows = row_range(m, conic, r2, cam)
         for ty in range(rows[0], rows[1] + 1):
             cols = col_range(m, conic, r2, ty, cam)
@@ -137,9 +128,7 @@ def count_tiles(
 @wp.kernel
 def emit_pairs(
     offset: int,
-    means2d: wp.array(dtype=wp.vec2),  # [N]
-    conics: wp.array(dtype=wp.vec3),  # [N]
-    opacities: wp.array(dtype=float),  # [N]
+    splats: wp.array(dtype=vec8),  # [N] per Gaussian
     depths: wp.array(dtype=float),  # [N] camera z (> near > 0 for listed Gaussians)
     radii: wp.array(dtype=wp.int32),  # [N]
     pair_offsets: wp.array(dtype=wp.int32),  # [N] exclusive scan of tiles_touched
@@ -151,9 +140,10 @@ def emit_pairs(
     g = offset + wp.tid()
     if radii[g] == 0:
         return
-    m = means2d[g]
-    conic = conics[g]
-    r2 = cutoff_r2(opacities[g])
+    s = splats[g]
+    m = wp.vec2(s[0], s[1])
+    conic = wp.vec3(s[2], s[3], s[4])
+    r2 = s[7]
     depth_bits = wp.int64(wp.cast(depths[g], wp.int32))
     p = pair_offsets[g]
     rows = row_range(m, conic, r2, cam)
@@ -192,37 +182,35 @@ def tile_key_bits(n_tiles: int) -> int:
     return 32 + max(1, int(n_tiles - 1).bit_length())
 
 
-def launch_count_tiles(means2d, conics, opacities, radii, cam: Camera, tiles_touched, device: str,
-                       threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_count_tiles(splats, radii, cam: Camera, tiles_touched, device: str, threads: int | None = None,
+                       min_chunk: int = 4096) -> None:
     """``tiles_touched[g]`` = number of tiles Gaussian g is listed in (0 if culled)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
-    n = means2d.shape[0]
-    for name, a, dt in (("means2d", means2d, wp.vec2), ("conics", conics, wp.vec3),
-                        ("opacities", opacities, wp.float32), ("radii", radii, wp.int32),
+    n = splats.shape[0]
+    for name, a, dt in (("splats", splats, vec8), ("radii", radii, wp.int32),
                         ("tiles_touched", tiles_touched, wp.int32)):
         check_array(a, name, dt, (n,), device)
-    launch_split(count_tiles, n, [means2d, conics, opacities, radii, cam, tiles_touched], device, threads=threads, min_chunk=min_chunk)
+    launch_split(count_tiles, n, [splats, radii, cam, tiles_touched], device, threads=threads, min_chunk=min_chunk)
 
 
-def launch_emit_pairs(means2d, conics, opacities, depths, radii, pair_offsets, cam: Camera, keys, slots, pair_gauss,
-                      n_pairs: int, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_emit_pairs(splats, depths, radii, pair_offsets, cam: Camera, keys, slots, pair_gauss, n_pairs: int,
+                      device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Write the unsorted keys, slots and slot->Gaussian map; keys/slots need ``2 * n_pairs`` capacity."""
     from ..runtime import launch_split
     from ._checks import check_array
 
-    n = means2d.shape[0]
-    for name, a, dt in (("means2d", means2d, wp.vec2), ("conics", conics, wp.vec3),
-                        ("opacities", opacities, wp.float32), ("depths", depths, wp.float32),
-                        ("radii", radii, wp.int32), ("pair_offsets", pair_offsets, wp.int32)):
+    n = splats.shape[0]
+    for name, a, dt in (("splats", splats, vec8), ("depths", depths, wp.float32), ("radii", radii, wp.int32),
+                        ("pair_offsets", pair_offsets, wp.int32)):
         check_array(a, name, dt, (n,), device)
     if keys.dtype is not wp.int64 or slots.dtype is not wp.int32 or pair_gauss.dtype is not wp.int32:
         raise TypeError("emit_pairs: keys must be int64, slots and pair_gauss int32")
     if keys.shape[0] < 2 * n_pairs or slots.shape[0] < 2 * n_pairs or pair_gauss.shape[0] < n_pairs:
         raise ValueError(f"emit_pairs: buffers too small for {n_pairs} pairs (keys/slots need 2x for the sort)")
-    launch_split(emit_pairs, n, [means2d, conics, opacities, depths, radii, pair_offsets, cam, keys, slots,
-                                 pair_gauss], device, threads=threads, min_chunk=min_chunk)
+    launch_split(emit_pairs, n, [splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss], device,
+                 threads=threads, min_chunk=min_chunk)
 
 
 def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> None:

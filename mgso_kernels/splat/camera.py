@@ -13,6 +13,8 @@ Conventions (the whole of :mod:`mgso_kernels.splat` uses them):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -40,6 +42,7 @@ class Camera:
     lim_y_pos: float
     tiles_x: int  # ceil(width / 16)
     tiles_y: int  # ceil(height / 16)
+    tile_stride: int  # blending visits tile (slot * tile_stride) % tiles: spreads a CPU chunk over the image
 
 
 def make_camera(fx: float, fy: float, cx: float, cy: float, width: int, height: int, world_to_cam,
@@ -80,7 +83,17 @@ def make_camera(fx: float, fy: float, cx: float, cy: float, width: int, height: 
     cam.lim_y_pos = float((height - cy) / fy + 0.3 * thy)
     cam.tiles_x = -(-width // TILE_SIZE)
     cam.tiles_y = -(-height // TILE_SIZE)
+    cam.tile_stride = _interleave_stride(cam.tiles_x * cam.tiles_y)
     return cam
+
+
+def _interleave_stride(n: int) -> int:
+    """A stride coprime to n near n / golden ratio: slots 0, 1, 2, ... visit tiles far apart, so each contiguous
+    chunk of a split CPU launch gets tiles from all over the image (balanced work when the scene is not)."""
+    s = max(1, int(round(n * 0.6180339887)))
+    while math.gcd(s, n) != 1:
+        s += 1
+    return s % n if n > 1 else 0
 
 
 def camera_centre(cam: Camera) -> np.ndarray:

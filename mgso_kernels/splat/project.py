@@ -25,7 +25,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import Camera
-from .sh import vec6
+from .common import ALPHA_MIN, cutoff_r2, vec6, vec8
 
 wp.set_module_options({"enable_backward": False})
 
@@ -33,7 +33,6 @@ __all__ = ["project_gaussians", "project_gaussians_backward", "reduce_pose", "ve
 
 vec6d = wp.types.vector(length=6, dtype=wp.float64)
 POSE_BLOCK = 256  # Gaussians per partial sum of the pose gradient
-ALPHA_MIN = wp.constant(1.0 / 255.0)
 
 
 @wp.func
@@ -114,6 +113,7 @@ def project_gaussians(
     depths: wp.array(dtype=float),  # [N] out, camera z
     opacities: wp.array(dtype=float),  # [N] out, sigmoid(logit)
     radii: wp.array(dtype=wp.int32),  # [N] out, 3-sigma screen radius in pixels; 0 = culled
+    splats: wp.array(dtype=vec8),  # [N] out, blending data (mx, my, a, b, c, opacity, exp(-a), cut-off r2)
 ):
     g = offset + wp.tid()
     p = load_vec3(means, g)
@@ -144,14 +144,16 @@ def project_gaussians(
     inv_det = 1.0 / det
     mx = cam.fx * pc[0] / z + cam.cx
     my = cam.fy * pc[1] / z + cam.cy
-    # frustum: bounding box of the cut-off ellipse d^T conic d <= 2 log(255 opacity)
-    r2 = 2.0 * wp.log(255.0 * op)
+    # frustum: bounding box of the cut-off ellipse d^T conic d <= 2 log(255 opacity) (slightly inflated)
+    r2 = cutoff_r2(op)
     ex = wp.sqrt(r2 * cv[0])
     ey = wp.sqrt(r2 * cv[2])
     if mx + ex < 0.0 or mx - ex > float(cam.width - 1) or my + ey < 0.0 or my - ey > float(cam.height - 1):
         return
+    a = cv[2] * inv_det
     means2d[g] = wp.vec2(mx, my)
-    conics[g] = wp.vec3(cv[2] * inv_det, -cv[1] * inv_det, cv[0] * inv_det)
+    conics[g] = wp.vec3(a, -cv[1] * inv_det, cv[0] * inv_det)
+    splats[g] = vec8(mx, my, a, -cv[1] * inv_det, cv[0] * inv_det, op, wp.exp(-a), r2)
     mid = 0.5 * (cv[0] + cv[2])
     lam = mid + wp.sqrt(wp.max(0.1, mid * mid - det))
     radii[g] = wp.max(1, int(wp.ceil(3.0 * wp.sqrt(lam))))
@@ -305,7 +307,7 @@ def finish_pose(
 
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, means2d, conics, depths,
-                   opacities, radii, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+                   opacities, radii, splats, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long)."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -315,10 +317,11 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
                            ("opacity_logits", opacity_logits, (n,))):
         check_array(a, name, wp.float32, shape, device)
     for name, a, dt in (("means2d", means2d, wp.vec2), ("conics", conics, wp.vec3), ("depths", depths, wp.float32),
-                        ("opacities", opacities, wp.float32), ("radii", radii, wp.int32)):
+                        ("opacities", opacities, wp.float32), ("radii", radii, wp.int32), ("splats", splats, vec8)):
         check_array(a, name, dt, (n,), device)
     launch_split(project_gaussians, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d), means2d,
-                                        conics, depths, opacities, radii], device, threads=threads, min_chunk=min_chunk)
+                                        conics, depths, opacities, radii, splats], device, threads=threads,
+                 min_chunk=min_chunk)
 
 
 def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, eps2d: float, radii, v_means2d,

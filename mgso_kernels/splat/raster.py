@@ -1,23 +1,30 @@
 """Tile-sorted alpha blending, forward (Warp module).
 
-Pixel-parallel over a tile-major pixel order: thread ``i`` handles pixel ``i % 256`` (row-major inside the 16x16
-tile) of tile ``i // 256`` (row-major over tiles), so a contiguous chunk of threads (what
-:func:`mgso_kernels.runtime.launch_split` gives one CPU core, ``align=256``) is a set of whole tiles. Threads of
-border tiles that fall outside the image return at once.
+**Work split.** One thread per *tile row*: thread ``i`` shades the 16 pixels of row ``i % 16`` of the tile in slot
+``i // 16``, so a contiguous chunk of threads (what :func:`mgso_kernels.runtime.launch_split` gives one CPU core,
+``align=16``) is a set of whole tiles. Slots visit tiles in an interleaved order (``tile = slot * stride mod
+tiles``, stride coprime, near tiles / golden ratio), so each core gets tiles from all over the image and a scene
+that is busy in one half does not leave the other core idle. Per Gaussian of the tile's depth-sorted list the thread computes the
+exact span of the row inside the Gaussian's cut-off ellipse (``opacity exp(power) >= 1/255``, one ``sqrt``) and
+touches only the pixels in that span; along the span ``exp(power)`` follows the recurrence
+``E(x+1) = E(x) F(x)``, ``F(x+1) = F(x) exp(-a)`` (the power is quadratic in x), so a row costs three ``exp`` per
+Gaussian instead of one per pixel. On this 2-core CPU that was ~4x faster than a thread per pixel testing every
+list entry (docs/rasteriser.md has the measurements). The backward pass uses the same spans and recurrence, so both
+passes make the same skip decisions bit for bit.
 
-Per pixel, front to back over its tile's depth-sorted list (3DGS's rules, exactly):
-``power = -0.5 (a dx^2 + c dy^2) - b dx dy`` with ``(dx, dy) = (u, v) - mean2d`` (pixel (row v, col u) is
-sampled at (u, v)); skip if ``power > 0``; ``alpha = min(0.99, opacity * exp(power))``; skip if
-``alpha < 1/255``; if ``T * (1 - alpha) < 1e-4`` stop *without* accumulating; else accumulate
-``w = alpha * T`` and set ``T *= 1 - alpha``. Outputs ``rgb = sum w c + T_final * background``,
-``depth = sum w z`` (expected camera z, **not** normalised: divide by ``alpha`` for the depth of the visible
-surface), ``alpha = 1 - T_final``, and for the backward pass ``T_final`` and ``n_contrib`` (1 + the position in
-the tile list of the last accumulated Gaussian; 0 if none).
+**Rules** (3DGS's, per pixel, front to back): ``power = -0.5 (a dx^2 + c dy^2) - b dx dy`` with
+``(dx, dy) = (u, v) - mean2d`` (pixel (row v, col u) is sampled at (u, v)); ``alpha = min(0.99, opacity exp(power))``;
+skip if ``alpha < 1/255``; if ``T (1 - alpha) < 1e-4`` the pixel stops *without* accumulating; else
+``w = alpha T`` is accumulated and ``T *= 1 - alpha``. (3DGS also skips ``power > 0``, which a positive-definite
+conic never produces; pixels outside the cut-off ellipse, the only ones the span excludes, have
+``alpha < 1/255``.) Outputs: ``rgb = sum w c + T_final background``, ``depth = sum w z`` (camera z, **not**
+normalised: divide by ``alpha`` for the depth of the visible surface), ``alpha = 1 - T_final``, and for the
+backward pass ``T_final`` and ``n_contrib`` (1 + the position in the tile list of the last accumulated Gaussian; 0
+if none).
 
-Before blending, :func:`pack_splats` copies each sorted pair's Gaussian data (mean, conic, opacity, depth, a
-precomputed skip threshold, colour) into contiguous arrays in sorted order, so the inner loop streams memory
-instead of gathering by Gaussian index (measured in docs/rasteriser.md). The threshold lets a pixel skip a Gaussian
-without an ``exp`` when ``power < log(1 / (255 opacity)) - 1e-3``, where the 1/255 test would skip it anyway.
+**Packing.** Before blending, :func:`pack_splats` copies each sorted pair's Gaussian data (mean, conic, opacity,
+depth, cut-off radius^2, colour) into contiguous arrays in sorted order, so the blend streams memory instead of
+gathering by Gaussian index (measured in docs/rasteriser.md).
 
 Twin: :func:`mgso_kernels.reference.splat.render`.
 """
@@ -27,48 +34,66 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
+from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "splat_alpha", "tile_pixel",
-           "ALPHA_MIN", "ALPHA_MAX", "T_MIN"]
+__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "vec16", "vec16i", "row_span",
+           "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "ROW_THREADS_PER_TILE"]
 
-vec8 = wp.types.vector(length=8, dtype=wp.float32)
+vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
+vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 
-ALPHA_MIN = wp.constant(1.0 / 255.0)
-ALPHA_MAX = wp.constant(0.99)
-T_MIN = wp.constant(1.0e-4)
-SKIP_MARGIN = wp.constant(1.0e-3)
 TS = wp.constant(TILE_SIZE)
-TILE_PIXELS = wp.constant(TILE_SIZE * TILE_SIZE)
+ROW_THREADS_PER_TILE = TILE_SIZE  # one thread per pixel row of a tile
 
 
 @wp.func
-def tile_pixel(i: int, cam: Camera) -> wp.vec3i:
-    """Tile-major thread index -> (tile, column, row)."""
-    tile = i // TILE_PIXELS
-    local = i - tile * TILE_PIXELS
+def tile_row(i: int, cam: Camera) -> wp.vec4i:
+    """Row-thread index -> (tile, first column, row y, number of columns inside the image; 0 if the row is out).
+
+    Consecutive slots of 16 threads are whole tiles, visited in the interleaved order of ``cam.tile_stride``.
+    """
+    slot = i // TS
+    r = i - slot * TS
+    tile = (slot * cam.tile_stride) % (cam.tiles_x * cam.tiles_y)
     ty = tile // cam.tiles_x
     tx = tile - ty * cam.tiles_x
-    return wp.vec3i(tile, tx * TS + local % TS, ty * TS + local // TS)
+    y = ty * TS + r
+    x0 = tx * TS
+    nx = wp.min(TS, cam.width - x0)
+    if y >= cam.height:
+        nx = 0
+    return wp.vec4i(tile, x0, y, nx)
 
 
 @wp.func
-def splat_power(s: vec8, px: float, py: float) -> float:
-    dx = px - s[0]
-    dy = py - s[1]
-    return -0.5 * (s[2] * dx * dx + s[4] * dy * dy) - s[3] * dx * dy
+def row_span(s: vec8, dy: float, x0: int, nx: int) -> wp.vec2i:
+    """Columns [lo, hi] of the row (relative to x0, clipped to [0, nx)) inside the cut-off ellipse; lo > hi: none.
+
+    ``s`` = (mx, my, a, b, c, opacity, exp(-a), r2); the ellipse is a dx^2 + 2 b dx dy + c dy^2 <= r2.
+    """
+    a = s[2]
+    b = s[3]
+    disc = a * s[7] - (a * s[4] - b * b) * dy * dy
+    if disc < 0.0:
+        return wp.vec2i(1, 0)
+    half = wp.sqrt(disc) / a
+    xc = s[0] - b * dy / a
+    lo = wp.max(int(wp.ceil(xc - half)) - x0, 0)
+    hi = wp.min(int(wp.floor(xc + half)) - x0, nx - 1)
+    return wp.vec2i(lo, hi)
 
 
 @wp.func
-def splat_alpha(s: vec8, power: float) -> float:
-    """Clamped alpha, or 0 when the Gaussian is skipped at this pixel (power > 0 or alpha < 1/255)."""
-    if power > 0.0 or power < s[7]:
-        return 0.0
-    alpha = wp.min(ALPHA_MAX, s[5] * wp.exp(power))
-    if alpha < ALPHA_MIN:
-        return 0.0
-    return alpha
+def span_exp_start(s: vec8, dx: float, dy: float) -> wp.vec2:
+    """(E, F) at the first pixel of a span: E = exp(power), F = exp(power(x+1) - power(x)); then per pixel
+    E *= F, F *= exp(-a) (= s[6])."""
+    a = s[2]
+    b = s[3]
+    power = -0.5 * (a * dx * dx + s[4] * dy * dy) - b * dx * dy
+    step = -(a * dx + b * dy) - 0.5 * a
+    return wp.vec2(wp.exp(power), wp.exp(step))
 
 
 @wp.kernel
@@ -76,24 +101,17 @@ def pack_splats(
     offset: int,
     slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
     pair_gauss: wp.array(dtype=wp.int32),  # [M] Gaussian of each slot
-    means2d: wp.array(dtype=wp.vec2),  # [N]
-    conics: wp.array(dtype=wp.vec3),  # [N]
-    opacities: wp.array(dtype=float),  # [N]
-    depths: wp.array(dtype=float),  # [N]
-    colors: wp.array(dtype=wp.vec3),  # [N] (ignored when with_color == 0)
+    splat_g: wp.array(dtype=vec8),  # [N] per Gaussian (projection's)
+    rgbz_g: wp.array(dtype=wp.vec4),  # [N] per Gaussian colour + depth (ignored when with_color == 0)
     with_color: int,
-    splats: wp.array(dtype=vec8),  # [M] out: mx, my, a, b, c, opacity, depth, skip threshold
-    splat_rgb: wp.array(dtype=wp.vec3),  # [M] out
+    splats: wp.array(dtype=vec8),  # [M] out, in sorted order
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] out: r, g, b, depth
 ):
     j = offset + wp.tid()
     g = pair_gauss[slots[j]]
-    m = means2d[g]
-    q = conics[g]
-    op = opacities[g]
-    thr = -wp.log(255.0 * op) - SKIP_MARGIN
-    splats[j] = vec8(m[0], m[1], q[0], q[1], q[2], op, depths[g], thr)
+    splats[j] = splat_g[g]
     if with_color != 0:
-        splat_rgb[j] = colors[g]
+        splat_rgbz[j] = rgbz_g[g]
 
 
 @wp.kernel
@@ -102,7 +120,7 @@ def rasterize_forward(
     cam: Camera,
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] [start, end) into the sorted pairs
     splats: wp.array(dtype=vec8),  # [M] packed, sorted
-    splat_rgb: wp.array(dtype=wp.vec3),  # [M] packed, sorted
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] packed, sorted: r, g, b, depth
     background: wp.vec3,  # RGB
     rgb: wp.array3d(dtype=float),  # [H, W, 3] out
     depth: wp.array2d(dtype=float),  # [H, W] out, sum w z (unnormalised)
@@ -110,40 +128,64 @@ def rasterize_forward(
     T_final: wp.array2d(dtype=float),  # [H, W] out
     n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] out, tile-list count up to the last accumulated Gaussian
 ):
-    tp = tile_pixel(offset + wp.tid(), cam)
-    px = tp[1]
-    py = tp[2]
-    if px >= cam.width or py >= cam.height:
+    tr = tile_row(offset + wp.tid(), cam)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
         return
-    start = ranges[tp[0], 0]
-    end = ranges[tp[0], 1]
-    fx = float(px)
-    fy = float(py)
-    T = float(1.0)
-    C = wp.vec3(0.0)
-    D = float(0.0)
-    last = int(0)
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    fy = float(y)
+    T = vec16(1.0)
+    Cr = vec16(0.0)
+    Cg = vec16(0.0)
+    Cb = vec16(0.0)
+    D = vec16(0.0)
+    last = vec16i(0)
+    done = int(0)  # bit k: pixel x0 + k has stopped
+    full = (1 << nx) - 1
     for j in range(start, end):
         s = splats[j]
-        a = splat_alpha(s, splat_power(s, fx, fy))
-        if a == 0.0:
+        dy = fy - s[1]
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
             continue
-        Tn = T * (1.0 - a)
-        if Tn < T_MIN:
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        col = splat_rgbz[j]
+        for k in range(span[0], span[1] + 1):
+            if (done >> k) & 1 == 0:
+                a = wp.min(ALPHA_MAX, s[5] * E)
+                if a >= ALPHA_MIN:
+                    Tk = T[k]
+                    Tn = Tk * (1.0 - a)
+                    if Tn < T_MIN:
+                        done = done | (1 << k)
+                    else:
+                        w = a * Tk
+                        Cr[k] = Cr[k] + w * col[0]
+                        Cg[k] = Cg[k] + w * col[1]
+                        Cb[k] = Cb[k] + w * col[2]
+                        D[k] = D[k] + w * col[3]
+                        T[k] = Tn
+                        last[k] = j - start + 1
+            E = E * F
+            F = F * s[6]
+        if done == full:
             break
-        w = a * T
-        C += w * splat_rgb[j]
-        D += w * s[6]
-        T = Tn
-        last = j - start + 1
-    out = C + T * background
-    rgb[py, px, 0] = out[0]
-    rgb[py, px, 1] = out[1]
-    rgb[py, px, 2] = out[2]
-    depth[py, px] = D
-    alpha[py, px] = 1.0 - T
-    T_final[py, px] = T
-    n_contrib[py, px] = last
+    for k in range(nx):
+        x = x0 + k
+        Tk = T[k]
+        rgb[y, x, 0] = Cr[k] + Tk * background[0]
+        rgb[y, x, 1] = Cg[k] + Tk * background[1]
+        rgb[y, x, 2] = Cb[k] + Tk * background[2]
+        depth[y, x] = D[k]
+        alpha[y, x] = 1.0 - Tk
+        T_final[y, x] = Tk
+        n_contrib[y, x] = last[k]
 
 
 @wp.kernel
@@ -154,57 +196,74 @@ def rasterize_alpha(
     splats: wp.array(dtype=vec8),  # [M] packed, sorted
     alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
 ):
-    tp = tile_pixel(offset + wp.tid(), cam)
-    px = tp[1]
-    py = tp[2]
-    if px >= cam.width or py >= cam.height:
+    tr = tile_row(offset + wp.tid(), cam)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
         return
-    fx = float(px)
-    fy = float(py)
-    T = float(1.0)
-    for j in range(ranges[tp[0], 0], ranges[tp[0], 1]):
+    fy = float(y)
+    T = vec16(1.0)
+    done = int(0)
+    full = (1 << nx) - 1
+    for j in range(ranges[tile, 0], ranges[tile, 1]):
         s = splats[j]
-        a = splat_alpha(s, splat_power(s, fx, fy))
-        if a == 0.0:
+        dy = fy - s[1]
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
             continue
-        Tn = T * (1.0 - a)
-        if Tn < T_MIN:
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        for k in range(span[0], span[1] + 1):
+            if (done >> k) & 1 == 0:
+                a = wp.min(ALPHA_MAX, s[5] * E)
+                if a >= ALPHA_MIN:
+                    Tn = T[k] * (1.0 - a)
+                    if Tn < T_MIN:
+                        done = done | (1 << k)
+                    else:
+                        T[k] = Tn
+            E = E * F
+            F = F * s[6]
+        if done == full:
             break
-        T = Tn
-    alpha[py, px] = 1.0 - T
+    for k in range(nx):
+        alpha[y, x0 + k] = 1.0 - T[k]
 
 
 # ------------------------------------------------------------------------------------------------- launchers
-def _pixel_threads(cam: Camera) -> int:
-    return cam.tiles_x * cam.tiles_y * TILE_SIZE * TILE_SIZE
+def _row_threads(cam: Camera) -> int:
+    return cam.tiles_x * cam.tiles_y * ROW_THREADS_PER_TILE
 
 
-def launch_pack_splats(slots, pair_gauss, means2d, conics, opacities, depths, colors, n_pairs: int, splats,
-                       splat_rgb, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
-    """Copy the sorted pairs' Gaussian data into contiguous arrays (``colors=None``: alpha-only)."""
+def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats, splat_rgbz, device: str,
+                       threads: int | None = None, min_chunk: int = 4096) -> None:
+    """Copy the sorted pairs' Gaussian data into contiguous arrays (``rgbz_g=None``: alpha-only)."""
     from ..runtime import launch_split
 
-    if splats.shape[0] < n_pairs or splat_rgb.shape[0] < n_pairs:
+    if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
         raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
     if n_pairs == 0:
         return
-    with_color = 0 if colors is None else 1
-    colors = colors if colors is not None else _dummy_vec3(device)
-    launch_split(pack_splats, n_pairs, [slots, pair_gauss, means2d, conics, opacities, depths, colors, with_color,
-                                        splats, splat_rgb], device, threads=threads, min_chunk=min_chunk)
+    with_color = 0 if rgbz_g is None else 1
+    rgbz_g = rgbz_g if rgbz_g is not None else _dummy_vec4(device)
+    launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, with_color, splats, splat_rgbz], device,
+                 threads=threads, min_chunk=min_chunk)
 
 
 _dummies: dict = {}
 
 
-def _dummy_vec3(device):
-    key = ("vec3", str(device))
+def _dummy_vec4(device):
+    key = ("vec4", str(device))
     if key not in _dummies:
-        _dummies[key] = wp.zeros(1, dtype=wp.vec3, device=device)
+        _dummies[key] = wp.zeros(1, dtype=wp.vec4, device=device)
     return _dummies[key]
 
 
-def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgb, background, rgb, depth, alpha, T_final,
+def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
                              n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
     """Blend every pixel; outputs (H, W[, 3]) are fully overwritten."""
     from ..runtime import launch_split
@@ -217,9 +276,9 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgb, background,
     check_array(n_contrib, "n_contrib", wp.int32, (H, W), device)
     if ranges.shape[0] < cam.tiles_x * cam.tiles_y:
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
-    launch_split(rasterize_forward, _pixel_threads(cam), [cam, ranges, splats, splat_rgb, wp.vec3(*background),
+    launch_split(rasterize_forward, _row_threads(cam), [cam, ranges, splats, splat_rgbz, wp.vec3(*background),
                                                            rgb, depth, alpha, T_final, n_contrib],
-                 device, threads=threads, min_chunk=min_chunk, align=TILE_SIZE * TILE_SIZE)
+                 device, threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
 
 
 def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
@@ -228,6 +287,5 @@ def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, thre
     from ._checks import check_array
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
-    launch_split(rasterize_alpha, _pixel_threads(cam), [cam, ranges, splats, alpha], device,
-                 threads=threads, min_chunk=min_chunk,
-                 align=TILE_SIZE * TILE_SIZE)
+    launch_split(rasterize_alpha, _row_threads(cam), [cam, ranges, splats, alpha], device,
+                 threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)

@@ -9,16 +9,16 @@ sum of what lies behind. With ``G = v_rgb``, ``g_i = c_i . G + z_i v_depth`` and
     v_c_i = w_i G,   v_z_i = w_i v_depth
 
 then through ``alpha = min(0.99, opacity exp(power))`` (zero where the clamp is active) to the opacity, the conic
-and the 2D mean. The skip decisions (``power > 0``, ``alpha < 1/255``) are re-evaluated with the forward's own
-:func:`mgso_kernels.splat.raster.splat_alpha`, so both passes agree pixel for pixel.
+and the 2D mean. Threads are tile rows as in :mod:`mgso_kernels.splat.raster`, with the same row spans and the same
+``exp`` recurrence, so the skip decisions are the forward's bit for bit.
 
-**Accumulation without cross-thread atomics on the CPU.** Each contributing (pixel, pair) adds a 12-vector
-``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|)`` into that pair's *slot* (one per
-(tile, Gaussian) pair, see :mod:`mgso_kernels.splat.bin`). All pixels of a tile run on one CPU thread (chunks are
-whole tiles), so the adds are never concurrent on the CPU; on CUDA ``wp.atomic_add`` is atomic. Then
-:func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU result is bitwise identical
-however the launch is split. The last two components are the AbsGS statistic: the sum over pixels of the absolute
-per-pixel 2D-mean gradient.
+**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 12-vector
+``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|)`` of each Gaussian and adds it once
+into that pair's *slot* (one per (tile, Gaussian) pair, see :mod:`mgso_kernels.splat.bin`). All rows of a tile run
+on one CPU thread (chunks are whole tiles), so the adds are never concurrent on the CPU; on CUDA
+``wp.atomic_add`` is atomic. Then :func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU
+result is bitwise identical however the launch is split. The last two components are the AbsGS statistic: the sum
+over pixels of the absolute per-pixel 2D-mean gradient.
 
 Twin: :func:`mgso_kernels.reference.splat.render_vjp`.
 """
@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import warp as wp
 
-from .camera import Camera
-from .raster import ALPHA_MAX, splat_alpha, splat_power, tile_pixel, vec8
+from .camera import TILE_SIZE, Camera
+from .common import ALPHA_MAX, ALPHA_MIN, vec8
+from .raster import ROW_THREADS_PER_TILE, row_span, span_exp_start, tile_row, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["rasterize_backward", "gather_gaussian_grads", "vec12"]
+__all__ = ["rasterize_backward", "gather_gaussian_grads", "accumulate_densify_stats", "vec12"]
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
@@ -43,7 +44,7 @@ def rasterize_backward(
     cam: Camera,
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
     splats: wp.array(dtype=vec8),  # [M] packed, sorted (forward's)
-    splat_rgb: wp.array(dtype=wp.vec3),  # [M]
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] r, g, b, depth
     slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
     background: wp.vec3,
     T_final: wp.array2d(dtype=float),  # [H, W] forward's
@@ -55,58 +56,101 @@ def rasterize_backward(
     use_alpha: int,  # 0: v_alpha ignored
     pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
 ):
-    tp = tile_pixel(offset + wp.tid(), cam)
-    px = tp[1]
-    py = tp[2]
-    if px >= cam.width or py >= cam.height:
+    tr = tile_row(offset + wp.tid(), cam)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
         return
-    n = n_contrib[py, px]
-    if n == 0:
-        return
-    start = ranges[tp[0], 0]
-    fx = float(px)
-    fy = float(py)
-    G = wp.vec3(v_rgb[py, px, 0], v_rgb[py, px, 1], v_rgb[py, px, 2])
-    vD = float(0.0)
-    if use_depth != 0:
-        vD = v_depth[py, px]
-    vA = float(0.0)
-    if use_alpha != 0:
-        vA = v_alpha[py, px]
-    Tf = T_final[py, px]
-    T = Tf
-    behind = Tf * (wp.dot(background, G) - vA)  # the background's and alpha's share of d/d alpha_i, times (1-a_i)
-    S = float(0.0)
-    for k in range(n):
-        j = start + n - 1 - k
+    start = ranges[tile, 0]
+    fy = float(y)
+    T = vec16(0.0)
+    S = vec16(0.0)
+    Gr = vec16(0.0)
+    Gg = vec16(0.0)
+    Gb = vec16(0.0)
+    VD = vec16(0.0)
+    behind = vec16(0.0)
+    nc = vec16i(0)
+    n_max = int(0)
+    for k in range(nx):
+        x = x0 + k
+        Tf = T_final[y, x]
+        T[k] = Tf
+        Gr[k] = v_rgb[y, x, 0]
+        Gg[k] = v_rgb[y, x, 1]
+        Gb[k] = v_rgb[y, x, 2]
+        vA = float(0.0)
+        if use_depth != 0:
+            VD[k] = v_depth[y, x]
+        if use_alpha != 0:
+            vA = v_alpha[y, x]
+        # the background's and alpha's share of d loss / d alpha_i, times (1 - alpha_i)
+        behind[k] = Tf * (background[0] * Gr[k] + background[1] * Gg[k] + background[2] * Gb[k] - vA)
+        nc[k] = n_contrib[y, x]
+        n_max = wp.max(n_max, nc[k])
+    for jj in range(n_max):
+        i = n_max - 1 - jj  # position in the tile list, back to front
+        j = start + i
         s = splats[j]
-        power = splat_power(s, fx, fy)
-        a = splat_alpha(s, power)
-        if a == 0.0:
-            continue
-        one_minus = 1.0 - a
-        T = T / one_minus  # transmittance in front of this Gaussian
-        w = a * T
-        col = splat_rgb[j]
-        gi = wp.dot(col, G) + s[6] * vD
-        v_a = T * gi - (S + behind) / one_minus
-        S += w * gi
-        v_col = w * G
-        v_z = w * vD
-        # alpha = min(0.99, opacity exp(power)): no gradient where clamped
-        r = s[5] * wp.exp(power)
-        v_r = float(0.0)
-        if r <= ALPHA_MAX:
-            v_r = v_a
-        v_op = v_r * r / s[5]
-        v_pow = v_r * r
-        dx = fx - s[0]
         dy = fy - s[1]
-        gx = (s[2] * dx + s[3] * dy) * v_pow
-        gy = (s[3] * dx + s[4] * dy) * v_pow
-        wp.atomic_add(pair_grads, slots[j],
-                      vec12(gx, gy, -0.5 * dx * dx * v_pow, -dx * dy * v_pow, -0.5 * dy * dy * v_pow, v_op,
-                            v_col[0], v_col[1], v_col[2], v_z, wp.abs(gx), wp.abs(gy)))
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
+            continue
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        col = splat_rgbz[j]
+        # per-span sums; dy is constant along the row and dx steps by 1, so the conic and mean gradients factor:
+        # sum_px (a dx + b dy) v_pow = a P1 + b dy P0, sum_px -0.5 dx^2 v_pow = -0.5 P2, ...
+        P0 = float(0.0)  # sum v_pow
+        P1 = float(0.0)  # sum dx v_pow
+        P2 = float(0.0)  # sum dx^2 v_pow
+        v_op = float(0.0)
+        v_cr = float(0.0)
+        v_cg = float(0.0)
+        v_cb = float(0.0)
+        v_z = float(0.0)
+        abs_x = float(0.0)
+        abs_y = float(0.0)
+        hit = int(0)
+        dx = float(x0 + span[0]) - s[0]
+        for k in range(span[0], span[1] + 1):
+            if i < nc[k]:
+                r = s[5] * E
+                a = wp.min(ALPHA_MAX, r)
+                if a >= ALPHA_MIN:
+                    hit = 1
+                    inv = 1.0 / (1.0 - a)
+                    Tk = T[k] * inv  # transmittance in front of this Gaussian
+                    T[k] = Tk
+                    w = a * Tk
+                    gi = col[0] * Gr[k] + col[1] * Gg[k] + col[2] * Gb[k] + col[3] * VD[k]
+                    v_a = Tk * gi - (S[k] + behind[k]) * inv
+                    S[k] = S[k] + w * gi
+                    v_r = float(0.0)
+                    if r <= ALPHA_MAX:  # no gradient through the 0.99 clamp
+                        v_r = v_a
+                    v_pow = v_r * r
+                    P0 += v_pow
+                    P1 += dx * v_pow
+                    P2 += dx * dx * v_pow
+                    m = wp.abs(v_pow)
+                    abs_x += wp.abs(s[2] * dx + s[3] * dy) * m
+                    abs_y += wp.abs(s[3] * dx + s[4] * dy) * m
+                    v_op += v_r * E
+                    v_cr += w * Gr[k]
+                    v_cg += w * Gg[k]
+                    v_cb += w * Gb[k]
+                    v_z += w * VD[k]
+            E = E * F
+            F = F * s[6]
+            dx = dx + 1.0
+        acc = vec12(s[2] * P1 + s[3] * dy * P0, s[3] * P1 + s[4] * dy * P0, -0.5 * P2, -dy * P1, -0.5 * dy * dy * P0,
+                    v_op, v_cr, v_cg, v_cb, v_z, abs_x, abs_y)
+        if hit != 0:
+            wp.atomic_add(pair_grads, slots[j], acc)
 
 
 @wp.kernel
@@ -160,7 +204,7 @@ def accumulate_densify_stats(
 
 
 # ------------------------------------------------------------------------------------------------- launchers
-def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgb, slots, background, T_final, n_contrib, v_rgb,
+def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
                               threads: int | None = None, min_chunk: int = 4096) -> None:
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
@@ -169,8 +213,6 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgb, slots, bac
     """
     from ..runtime import launch_split
     from ._checks import check_array
-    from .raster import TILE_SIZE
-
     H, W = cam.height, cam.width
     check_array(v_rgb, "v_rgb", wp.float32, (H, W, 3), device)
     use_depth = 0 if v_depth is None else 1
@@ -186,9 +228,10 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgb, slots, bac
     if pair_grads.shape[0] < n_pairs:
         raise ValueError(f"rasterize_backward: pair_grads holds {pair_grads.shape[0]}, need {n_pairs}")
     pair_grads[:n_pairs].zero_()
-    launch_split(rasterize_backward, cam.tiles_x * cam.tiles_y * TILE_SIZE * TILE_SIZE,
-                 [cam, ranges, splats, splat_rgb, slots, wp.vec3(*background), T_final, n_contrib, v_rgb, v_depth,
-                  v_alpha, use_depth, use_alpha, pair_grads], device, threads=threads, min_chunk=min_chunk, align=TILE_SIZE * TILE_SIZE)
+    launch_split(rasterize_backward, cam.tiles_x * cam.tiles_y * ROW_THREADS_PER_TILE,
+                 [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb, v_depth,
+                  v_alpha, use_depth, use_alpha, pair_grads], device,
+                 threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
 
 
 def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,

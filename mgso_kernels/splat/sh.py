@@ -17,12 +17,11 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import Camera
+from .common import vec6
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["evaluate_sh", "evaluate_sh_backward", "vec6", "SH_C0"]
-
-vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 SH_C0 = wp.constant(0.28209479177387814)
 SH_C1 = wp.constant(0.4886025119029199)
@@ -145,17 +144,18 @@ def evaluate_sh(
     num_bases: int,  # (degree + 1)^2 <= K
     cam: Camera,
     radii: wp.array(dtype=wp.int32),  # [N] 0 = culled (colour not computed, set to 0)
-    colors: wp.array(dtype=wp.vec3),  # [N] out, RGB
+    depths: wp.array(dtype=float),  # [N] camera z, copied into the 4th component for the blend
+    rgbz: wp.array(dtype=wp.vec4),  # [N] out, (R, G, B, depth)
 ):
     g = offset + wp.tid()
     if radii[g] == 0:
-        colors[g] = wp.vec3(0.0)
+        rgbz[g] = wp.vec4(0.0)
         return
     d = wp.vec3(1.0, 0.0, 0.0)
     if num_bases > 1:
         d = wp.normalize(view_dir(means, g, cam))
     c = sh_raw_color(sh, g, num_bases, d)
-    colors[g] = wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
+    rgbz[g] = wp.vec4(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0), depths[g])
 
 
 @wp.kernel
@@ -225,16 +225,18 @@ def _check_sh(sh, means, num_bases, device):
     return n
 
 
-def launch_evaluate_sh(sh, means, num_bases: int, cam: Camera, radii, colors, device: str,
+def launch_evaluate_sh(sh, means, num_bases: int, cam: Camera, radii, depths, rgbz, device: str,
                        threads: int | None = None, min_chunk: int = 4096) -> None:
-    """Colours (N,) vec3 of the Gaussians with ``radii > 0`` (others get 0)."""
+    """Colours + depth (N,) vec4 of the Gaussians with ``radii > 0`` (others get 0)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
     n = _check_sh(sh, means, num_bases, device)
     check_array(radii, "radii", wp.int32, (n,), device)
-    check_array(colors, "colors", wp.vec3, (n,), device)
-    launch_split(evaluate_sh, n, [sh, means, int(num_bases), cam, radii, colors], device, threads=threads, min_chunk=min_chunk)
+    check_array(depths, "depths", wp.float32, (n,), device)
+    check_array(rgbz, "rgbz", wp.vec4, (n,), device)
+    launch_split(evaluate_sh, n, [sh, means, int(num_bases), cam, radii, depths, rgbz], device, threads=threads,
+                 min_chunk=min_chunk)
 
 
 def launch_evaluate_sh_backward(sh, means, num_bases: int, cam: Camera, radii, v_colors, v_sh, v_means,
