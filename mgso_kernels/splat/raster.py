@@ -152,6 +152,9 @@ def rasterize_forward(
         span = row_span(s, dy, x0, nx)
         if span[0] > span[1]:
             continue
+        bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
+        if done & bits == bits:  # every pixel of the span has stopped
+            continue
         e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
         E = e[0]
         F = e[1]
@@ -212,6 +215,9 @@ def rasterize_alpha(
         dy = fy - s[1]
         span = row_span(s, dy, x0, nx)
         if span[0] > span[1]:
+            continue
+        bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
+        if done & bits == bits:
             continue
         e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
         E = e[0]

@@ -66,12 +66,11 @@ def rasterize_backward(
     start = ranges[tile, 0]
     fy = float(y)
     T = vec16(0.0)
-    S = vec16(0.0)
+    S = vec16(0.0)  # sum over the Gaussians behind of w g, plus the background's and alpha's share
     Gr = vec16(0.0)
     Gg = vec16(0.0)
     Gb = vec16(0.0)
     VD = vec16(0.0)
-    behind = vec16(0.0)
     nc = vec16i(0)
     n_max = int(0)
     for k in range(nx):
@@ -87,16 +86,35 @@ def rasterize_backward(
         if use_alpha != 0:
             vA = v_alpha[y, x]
         # the background's and alpha's share of d loss / d alpha_i, times (1 - alpha_i)
-        behind[k] = Tf * (background[0] * Gr[k] + background[1] * Gg[k] + background[2] * Gb[k] - vA)
+        S[k] = Tf * (background[0] * Gr[k] + background[1] * Gg[k] + background[2] * Gb[k] - vA)
         nc[k] = n_contrib[y, x]
         n_max = wp.max(n_max, nc[k])
+    # pixels in decreasing n_contrib order, so the set of pixels a list position can reach (n_contrib > i) grows
+    # by a pointer as i goes down
+    order = vec16i(0)
+    for k in range(nx):
+        order[k] = k
+    for k in range(1, nx):
+        kk = order[k]
+        q = k
+        while q > 0 and nc[order[q - 1]] < nc[kk]:
+            order[q] = order[q - 1]
+            q -= 1
+        order[q] = kk
+    active = int(0)
+    ptr = int(0)
     for jj in range(n_max):
         i = n_max - 1 - jj  # position in the tile list, back to front
+        while ptr < nx and nc[order[ptr]] > i:
+            active = active | (1 << order[ptr])
+            ptr += 1
         j = start + i
         s = splats[j]
         dy = fy - s[1]
         span = row_span(s, dy, x0, nx)
         if span[0] > span[1]:
+            continue
+        if active & (((1 << (span[1] - span[0] + 1)) - 1) << span[0]) == 0:
             continue
         e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
         E = e[0]
@@ -117,7 +135,7 @@ def rasterize_backward(
         hit = int(0)
         dx = float(x0 + span[0]) - s[0]
         for k in range(span[0], span[1] + 1):
-            if i < nc[k]:
+            if (active >> k) & 1 != 0:
                 r = s[5] * E
                 a = wp.min(ALPHA_MAX, r)
                 if a >= ALPHA_MIN:
@@ -127,7 +145,7 @@ def rasterize_backward(
                     T[k] = Tk
                     w = a * Tk
                     gi = col[0] * Gr[k] + col[1] * Gg[k] + col[2] * Gb[k] + col[3] * VD[k]
-                    v_a = Tk * gi - (S[k] + behind[k]) * inv
+                    v_a = Tk * gi - S[k] * inv
                     S[k] = S[k] + w * gi
                     v_r = float(0.0)
                     if r <= ALPHA_MAX:  # no gradient through the 0.99 clamp
