@@ -55,8 +55,8 @@ from . import sh as _sh
 from ._checks import as_float_array
 from .camera import TILE_SIZE, Camera, camera_centre, make_camera
 
-__all__ = ["Rasterizer", "RenderOutput", "Gradients", "DensifyStats", "Camera", "make_camera", "camera_centre",
-           "TILE_SIZE"]
+__all__ = ["Rasterizer", "RenderOutput", "AlphaOutput", "Gradients", "DensifyStats", "Camera", "make_camera",
+           "camera_centre", "TILE_SIZE"]
 
 _GROWTH = 1.5
 
@@ -93,6 +93,17 @@ class RenderOutput:
     @property
     def num_visible(self) -> int:
         return int(np.count_nonzero(self.radii.numpy()))
+
+
+@dataclass
+class AlphaOutput:
+    """What :meth:`Rasterizer.render_alpha` returns: ``alpha`` (H, W) float32 accumulated opacity (``1 - alpha`` is
+    the transmittance; same rules as the full render), ``radii`` (N,) int32 3-sigma screen radius (0 = culled, i.e.
+    not visible in this view), ``n_pairs`` (tile, Gaussian) pairs blended."""
+
+    alpha: wp.array
+    radii: wp.array
+    n_pairs: int
 
 
 @dataclass
@@ -354,8 +365,9 @@ class Rasterizer:
             camera=camera, background=bg, num_bases=num_bases, T_final=T_final, n_contrib=n_contrib,
             params=params, generation=self._generation)
 
-    def render_alpha(self, means, log_scales, quats, opacity_logits, camera: Camera) -> wp.array:
-        """Accumulated alpha (H, W) only: no colours, no SH, no saved state (the cheap coverage path for seeding).
+    def render_alpha(self, means, log_scales, quats, opacity_logits, camera: Camera) -> AlphaOutput:
+        """Accumulated alpha (H, W) and per-Gaussian visibility only: no colours, no SH, no depth, no saved state
+        (the cheap coverage path for seeding and visibility tests; ``sh`` is not needed).
 
         Same projection, binning and blending rules as :meth:`forward`; ``1 - alpha`` is the transmittance.
         Invalidates the previous :class:`RenderOutput` of this rasteriser.
@@ -375,7 +387,7 @@ class Rasterizer:
         alpha = self._image("alpha_only", camera.height, camera.width)
         _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp)
         self._stage("blend", t)
-        return alpha
+        return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
 
     # -------------------------------------------------------------------------------------------- backward
     def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *,

@@ -140,9 +140,10 @@ def test_render_alpha_matches_forward(wp_device):
     out = rast.forward(scene["means"], scene["log_scales"], scene["quats"], scene["opacity_logits"], scene["sh"],
                        _wcam(cam))
     full = out.alpha.numpy().copy()
-    alpha = rast.render_alpha(scene["means"], scene["log_scales"], scene["quats"], scene["opacity_logits"],
-                              _wcam(cam)).numpy()
-    assert np.array_equal(alpha, full)
+    radii = out.radii.numpy().copy()
+    a = rast.render_alpha(scene["means"], scene["log_scales"], scene["quats"], scene["opacity_logits"], _wcam(cam))
+    assert np.array_equal(a.alpha.numpy(), full)
+    assert np.array_equal(a.radii.numpy(), radii) and a.n_pairs == out.n_pairs
     with pytest.raises(RuntimeError, match="stale"):
         rast.backward(out, np.zeros((48, 64, 3), np.float32))
 
