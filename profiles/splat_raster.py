@@ -191,7 +191,8 @@ def main(argv=None) -> int:
             row["alpha_only_ms"] = round(1e3 * statistics.median(alpha_only), 2)
             results.append(row)
     print(json.dumps({"profile": "splat_raster", "device": device, "threads": runtime.cpu_threads(),
-                      "repeats": args.repeats, "sh_degree": args.degree, "scene": args.scene, "cpu": platform.processor() or
+                      "repeats": args.repeats, "sh_degree": args.degree, "scene": args.scene,
+                      "cpu": platform.processor() or
                       platform.machine(), "results": results}))
     return 0
 

@@ -10,8 +10,8 @@ row's horizontal slab, the x-extent of that convex slice is computed in closed f
 leftmost/rightmost point, if it lies in the slab, or the boundary at the slab's edges), and the tiles whose columns
 meet that extent are listed. This is the tightest possible list (an ellipse-rectangle intersection test, like
 gsplat's/StopThePop's tile-ellipse tests but exact), at O(rows) work per Gaussian. ``r2`` is inflated by a
-relative 1e-3 (+1e-2, :func:`mgso_kernels.splat.common.cutoff_r2`) so float32 rounding can never drop a tile a pixel of which the blend would accept; the
-blend applies the exact 1/255 rule itself.
+relative 1e-3 (+1e-2, :func:`mgso_kernels.splat.common.cutoff_r2`) so float32 rounding can never drop a tile
+the blend would use; the blend applies the exact 1/255 rule itself.
 
 **Keys.** One int64 key per (tile, Gaussian) pair: tile index (row-major, ``ty * tiles_x + tx``) in the high 32
 bits, the float32 depth's bit pattern in the low 32 (positive floats sort like their bit patterns; depths are
@@ -219,7 +219,8 @@ def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> None:
         wp.utils.radix_sort_pairs(keys, slots, n_pairs, begin_bit=0, end_bit=tile_key_bits(n_tiles))
 
 
-def launch_tile_ranges(keys, n_pairs: int, ranges, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_tile_ranges(keys, n_pairs: int, ranges, device: str, threads: int | None = None,
+                       min_chunk: int = 4096) -> None:
     """Zero ``ranges`` (tiles, 2) and fill each tile's [start, end) in the sorted keys."""
     from ..runtime import launch_split
 

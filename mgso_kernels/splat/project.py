@@ -345,10 +345,12 @@ def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, ep
         check_array(a, name, dt, shape, device)
     launch_split(project_gaussians_backward, n, [means, log_scales, quats, opacities, cam, float(eps2d), radii,
                                                  v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales,
-                                                 v_quats, v_opacity_logits, v_pose_partial], device, threads=threads, min_chunk=min_chunk)
+                                                 v_quats, v_opacity_logits, v_pose_partial], device,
+                 threads=threads, min_chunk=min_chunk)
 
 
-def launch_reduce_pose(v_pose_partial, block_sums, v_pose, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_reduce_pose(v_pose_partial, block_sums, v_pose, device: str, threads: int | None = None,
+                       min_chunk: int = 4096) -> None:
     """Sum the (N,) per-Gaussian pose terms into ``v_pose`` (6,) in float64 blocks of :data:`POSE_BLOCK`."""
     from ..runtime import launch_split
 

@@ -4,13 +4,13 @@
 ``i // 16``, so a contiguous chunk of threads (what :func:`mgso_kernels.runtime.launch_split` gives one CPU core,
 ``align=16``) is a set of whole tiles. Slots visit tiles in an interleaved order (``tile = slot * stride mod
 tiles``, stride coprime, near tiles / golden ratio), so each core gets tiles from all over the image and a scene
-that is busy in one half does not leave the other core idle. Per Gaussian of the tile's depth-sorted list the thread computes the
-exact span of the row inside the Gaussian's cut-off ellipse (``opacity exp(power) >= 1/255``, one ``sqrt``) and
-touches only the pixels in that span; along the span ``exp(power)`` follows the recurrence
-``E(x+1) = E(x) F(x)``, ``F(x+1) = F(x) exp(-a)`` (the power is quadratic in x), so a row costs three ``exp`` per
-Gaussian instead of one per pixel. On this 2-core CPU that was ~4x faster than a thread per pixel testing every
-list entry (docs/rasteriser.md has the measurements). The backward pass uses the same spans and recurrence, so both
-passes make the same skip decisions bit for bit.
+that is busy in one half does not leave the other core idle. Per Gaussian of the tile's depth-sorted list the thread
+computes the exact span of the row inside the Gaussian's cut-off ellipse (``opacity exp(power) >= 1/255``, one
+``sqrt``) and touches only the pixels in that span; along the span ``exp(power)`` follows the recurrence
+``E(x+1) = E(x) F(x)``, ``F(x+1) = F(x) exp(-a)`` (the power is quadratic in x; ``exp(-a)`` is precomputed per
+Gaussian), so a row costs two ``exp`` per Gaussian instead of one per pixel. Single-threaded on this 2-core CPU
+that was 2.2x faster than a thread per pixel testing every list entry (docs/rasteriser.md has the measurements).
+The backward pass uses the same spans and recurrence, so both passes make the same skip decisions bit for bit.
 
 **Rules** (3DGS's, per pixel, front to back): ``power = -0.5 (a dx^2 + c dy^2) - b dx dy`` with
 ``(dx, dy) = (u, v) - mean2d`` (pixel (row v, col u) is sampled at (u, v)); ``alpha = min(0.99, opacity exp(power))``;
@@ -287,7 +287,8 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
                  device, threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
 
 
-def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None,
+                           min_chunk: int = 4096) -> None:
     """Accumulated alpha only (H, W): the cheap path for coverage tests."""
     from ..runtime import launch_split
     from ._checks import check_array

@@ -253,13 +253,15 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
 
 
 def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,
-                                 v_depths, absgrad, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+                                 v_depths, absgrad, device: str, threads: int | None = None,
+                                 min_chunk: int = 4096) -> None:
     """Sum each Gaussian's slot range into per-Gaussian screen-space gradients (all outputs overwritten)."""
     from ..runtime import launch_split
 
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
-                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads, min_chunk=min_chunk)
+                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads,
+                 min_chunk=min_chunk)
 
 
 def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum, absgrad2d_sum, count, max_radii,
@@ -268,4 +270,5 @@ def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum
 
     n = v_means2d.shape[0]
     launch_split(accumulate_densify_stats, n, [v_means2d, absgrad, radii, wp.vec2(*scale), grad2d_sum,
-                                               absgrad2d_sum, count, max_radii], device, threads=threads, min_chunk=min_chunk)
+                                               absgrad2d_sum, count, max_radii], device, threads=threads,
+                 min_chunk=min_chunk)

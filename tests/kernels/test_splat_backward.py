@@ -79,6 +79,38 @@ def test_twin_gradients_match_finite_differences(degree, seed):
     np.testing.assert_allclose(g["v_pose"], fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
 
+def test_twin_gradients_with_cutoffs_match_finite_differences():
+    # with the cut-offs on the image jumps where a Gaussian crosses 1/255 or a pixel's early stop moves; a tiny
+    # step (1e-7, float64) crosses none of those here, so this checks how the analytic backward treats the 0.99
+    # clamp, the skips and the early stop (the scene must exercise them)
+    rng = np.random.default_rng(4)
+    cam = _camera(rng, 16, 12)
+    scene = ref.random_scene(rng, 14, cam, 0, px_range=(1.5, 4.0), hard_cases=False)
+    scene["opacity_logits"][:7] = 6.0  # opacity 0.9975: alpha clamps at 0.99 near the centres
+    bg = np.array([0.3, 0.1, 0.6])
+    ups = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    fw = ref.render(*(scene[k] for k in PARAMS), cam, bg, 0)
+    assert (~fw["unclamped"]).any()  # clamped somewhere
+    assert (fw["T_final"] < 1e-3).any()  # some pixels stopped early
+    g = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, *ups, sh_degree=0)
+
+    def loss(sc):
+        out = ref.render(*(sc[k] for k in PARAMS), cam, bg, 0)
+        return np.sum(out["rgb"] * ups[0]) + np.sum(out["depth"] * ups[1]) + np.sum(out["alpha"] * ups[2])
+
+    eps = 1e-7
+    for name in PARAMS:
+        x = scene[name]
+        fd = np.zeros_like(x)
+        for idx in np.ndindex(x.shape):
+            hi, lo = dict(scene), dict(scene)
+            hi[name], lo[name] = x.copy(), x.copy()
+            hi[name][idx] += eps
+            lo[name][idx] -= eps
+            fd[idx] = (loss(hi) - loss(lo)) / (2 * eps)
+        np.testing.assert_allclose(g[GRAD_OF[name]], fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max(), err_msg=name)
+
+
 def test_twin_cutoffs_switch_changes_the_image():
     # the switch must really remove the cut-offs (else the FD test above would test the jumpy function)
     rng = np.random.default_rng(9)
