@@ -192,10 +192,11 @@ def _sigmoid(x):
     return 1.0 / (1.0 + np.exp(-x))
 
 
-def project(means, log_scales, quats, opacity_logits, cam, eps2d: float = 0.3) -> dict:
+def project(means, log_scales, quats, opacity_logits, cam, eps2d: float = 0.3, antialiased: bool = False) -> dict:
     """Project N Gaussians. Returns a dict of (N, ...) float64 arrays: means2d (pixels), conics (a, b, c) with
-    ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``, cov2d (2, 2), depths (camera z), opacities, valid
-    (near < z < far), and the intermediates :func:`project_vjp` needs."""
+    ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``, cov2d (2, 2, dilated), depths (camera z), opacities (the
+    effective ones: ``sigmoid(logit)``, times ``sqrt(det(cov2d - eps2d I) / det(cov2d))`` when ``antialiased``,
+    Mip-Splatting's compensation), valid (near < z < far), and the intermediates :func:`project_vjp` needs."""
     means = np.asarray(means, np.float64)
     R, t = cam.R, cam.t
     pc = means @ R.T + t
@@ -222,15 +223,19 @@ def project(means, log_scales, quats, opacity_logits, cam, eps2d: float = 0.3) -
     conics = np.stack([cov2[:, 1, 1] / det, -cov2[:, 0, 1] / det, cov2[:, 0, 0] / det], -1)
     means2d = np.stack([cam.fx * rx + cam.cx, cam.fy * ry + cam.cy], -1)
     valid = (z > cam.near) & (z < cam.far)
-    opac = _sigmoid(np.asarray(opacity_logits, np.float64))
-    return dict(means2d=means2d, conics=conics, cov2d=cov2, depths=z, opacities=opac, valid=valid,
+    sig = _sigmoid(np.asarray(opacity_logits, np.float64))
+    det_raw = (cov2[:, 0, 0] - eps2d) * (cov2[:, 1, 1] - eps2d) - cov2[:, 0, 1] ** 2
+    comp = np.sqrt(np.maximum(det_raw, 0.0) / det) if antialiased else np.ones_like(det)
+    return dict(means2d=means2d, conics=conics, cov2d=cov2, depths=z, opacities=sig * comp, valid=valid,
                 pc=pc, qn=qn, qnorm=qnorm, M=M, s=s, L=L, cov3=cov3, covc=covc, J=J, clx=clx, cly=cly,
-                clipped_x=(rx < -lxn) | (rx > lxp), clipped_y=(ry < -lyn) | (ry > lyp))
+                clipped_x=(rx < -lxn) | (rx > lxp), clipped_y=(ry < -lyn) | (ry > lyp), sig=sig, comp=comp,
+                det=det, det_raw=det_raw, eps2d=eps2d, antialiased=antialiased)
 
 
-def project_vjp(proj: dict, cam, v_means2d, v_conics, v_depths):
+def project_vjp(proj: dict, cam, v_means2d, v_conics, v_depths, v_opacities):
     """Gradients through :func:`project` (float64): (v_means (N, 3), v_log_scales (N, 3), v_quats (N, 4),
-    v_pose (6,)). The pose gradient is for ``world_to_cam <- exp(delta) @ world_to_cam``, delta = (v, w)."""
+    v_opacity_logits (N,), v_pose (6,)); ``v_opacities`` is w.r.t. the effective opacities. The pose gradient is
+    for ``world_to_cam <- exp(delta) @ world_to_cam``, delta = (v, w)."""
     R = cam.R
     pc, J, covc, conics = proj["pc"], proj["J"], proj["covc"], proj["conics"]
     x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
@@ -241,6 +246,18 @@ def project_vjp(proj: dict, cam, v_means2d, v_conics, v_depths):
     V = np.stack([np.stack([v_conics[:, 0], 0.5 * v_conics[:, 1]], -1),
                   np.stack([0.5 * v_conics[:, 1], v_conics[:, 2]], -1)], -2)
     G = -Q @ V @ Q  # v_cov2d
+    sig, comp = proj["sig"], proj["comp"]
+    v_logits = v_opacities * comp * sig * (1.0 - sig)
+    if proj["antialiased"]:
+        # comp = sqrt(q), q = det_raw / det; d q / d (A, B, D) of cov2d = [[A, B], [B, D]] (B counted once)
+        cov2, det, det_raw, eps = proj["cov2d"], proj["det"], proj["det_raw"], proj["eps2d"]
+        A, B, D = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v_q = np.where(comp > 0, v_opacities * sig / (2.0 * comp), 0.0)
+        dA = ((D - eps) * det - det_raw * D) / det ** 2
+        dD = ((A - eps) * det - det_raw * A) / det ** 2
+        dB = -2.0 * B * (det - det_raw) / det ** 2
+        G = G + v_q[:, None, None] * np.stack([np.stack([dA, 0.5 * dB], -1), np.stack([0.5 * dB, dD], -1)], -2)
     Jt = np.swapaxes(J, 1, 2)
     v_covc = Jt @ G @ J
     v_J = 2.0 * G @ J @ covc
@@ -277,7 +294,7 @@ def project_vjp(proj: dict, cam, v_means2d, v_conics, v_depths):
     qn, qnorm = proj["qn"], proj["qnorm"]
     v_qn = quat_to_rotmat_vjp(qn, v_M)
     v_quats = (v_qn - qn * np.sum(qn * v_qn, -1, keepdims=True)) / qnorm
-    return v_means, v_log_scales, v_quats, v_pose
+    return v_means, v_log_scales, v_quats, v_logits, v_pose
 
 
 # ----------------------------------------------------------------------------------------------------- binning
@@ -375,13 +392,13 @@ def _blend(proj, colors, cam, background, cutoffs):
 
 
 def render(means, log_scales, quats, opacity_logits, sh, cam, background=(0.0, 0.0, 0.0), sh_degree=None,
-           eps2d: float = 0.3, cutoffs: bool = True) -> dict:
+           eps2d: float = 0.3, cutoffs: bool = True, antialiased: bool = False) -> dict:
     """Render (H, W) with every Gaussian against every pixel. Returns rgb (H, W, 3), depth (H, W) (unnormalised
     ``sum w_i z_i``), alpha (H, W), T_final (H, W), plus the projection (``proj``) and colours (``colors``)."""
     sh = np.asarray(sh, np.float64)
     if sh_degree is None:
         sh_degree = int(round(np.sqrt(sh.shape[1]))) - 1
-    proj = project(means, log_scales, quats, opacity_logits, cam, eps2d)
+    proj = project(means, log_scales, quats, opacity_logits, cam, eps2d, antialiased)
     colors = sh_to_rgb(sh, np.asarray(means, np.float64), cam.centre, sh_degree)
     out = _blend(proj, colors, cam, background, cutoffs)
     out.update(proj=proj, colors=colors)
@@ -389,7 +406,7 @@ def render(means, log_scales, quats, opacity_logits, sh, cam, background=(0.0, 0
 
 
 def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_rgb, v_depth=None, v_alpha=None,
-               sh_degree=None, eps2d: float = 0.3, cutoffs: bool = True) -> dict:
+               sh_degree=None, eps2d: float = 0.3, cutoffs: bool = True, antialiased: bool = False) -> dict:
     """Analytic gradients of ``sum(v_rgb * rgb) + sum(v_depth * depth) + sum(v_alpha * alpha)``.
 
     Returns v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_pose (6,), and the per-Gaussian screen-space
@@ -399,7 +416,8 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
     sh = np.asarray(sh, np.float64)
     if sh_degree is None:
         sh_degree = int(round(np.sqrt(sh.shape[1]))) - 1
-    fw = render(means, log_scales, quats, opacity_logits, sh, cam, background, sh_degree, eps2d, cutoffs)
+    fw = render(means, log_scales, quats, opacity_logits, sh, cam, background, sh_degree, eps2d, cutoffs,
+                antialiased)
     proj, colors = fw["proj"], fw["colors"]
     N = len(proj["depths"])
     H, W = cam.height, cam.width
@@ -444,9 +462,7 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
         gy = (b * dx + c * dy) * v_pow
         v_means2d[g] = [gx.sum(), gy.sum()]
         absgrad[g] = [np.abs(gx).sum(), np.abs(gy).sum()]
-    opac = proj["opacities"]
-    v_logits = v_opac * opac * (1.0 - opac)
-    v_means, v_log_scales, v_quats, v_pose = project_vjp(proj, cam, v_means2d, v_conics, out_v_z)
+    v_means, v_log_scales, v_quats, v_logits, v_pose = project_vjp(proj, cam, v_means2d, v_conics, out_v_z, v_opac)
     v_sh, v_means_sh, v_centre = sh_to_rgb_vjp(sh, np.asarray(means, np.float64), cam.centre, sh_degree, out_v_col)
     v_means = v_means + v_means_sh
     # camera centre C = -R^T t; under world_to_cam <- exp(delta) world_to_cam, dC/dv = -R^T, dC/dw = 0

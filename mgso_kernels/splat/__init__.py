@@ -180,16 +180,19 @@ class Rasterizer:
     """Workspace + entry points of the rasteriser (forward, alpha-only forward, backward).
 
     ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
-    dilation of the 2D covariance (px^2, 3DGS's 0.3; no antialiasing opacity compensation). ``threads``: CPU
+    dilation of the 2D covariance (px^2, 3DGS's 0.3). ``antialiased``: also multiply each opacity by
+    ``sqrt(det(J Sigma J^T) / det(J Sigma J^T + eps2d I))`` (Mip-Splatting's compensation, gsplat's ``antialiased`` mode);
+    off by default, as in the original 3DGS. ``threads``: CPU
     threads for split launches (``None``: the runtime's setting); ``min_chunk``: fewest threads a CPU chunk gets (a
     launch smaller than two chunks stays on one core). ``profile=True`` synchronises after each stage
     and records seconds per stage in :attr:`timings` (for ``profiles/splat_raster.py``; slows the pipeline a little).
     """
 
-    def __init__(self, device: str | None = None, *, eps2d: float = 0.3, threads: int | None = None,
-                 min_chunk: int = 4096, profile: bool = False):
+    def __init__(self, device: str | None = None, *, eps2d: float = 0.3, antialiased: bool = False,
+                 threads: int | None = None, min_chunk: int = 4096, profile: bool = False):
         self.device = runtime.resolve_device(device) if device is not None else runtime.default_device()
         self.eps2d = float(eps2d)
+        self.antialiased = bool(antialiased)
         self.threads = threads
         self._split = {"threads": threads, "min_chunk": int(min_chunk)}
         self.profile = profile
@@ -292,8 +295,8 @@ class Rasterizer:
         means2d, conics = self.means2d_.view(n), self.conics_.view(n)
         depths, opac, radii = self.depths_.view(n), self.opacities_.view(n), self.radii_.view(n)
         splat_g = self.splat_g_.view(n)
-        _project.launch_project(means, log_scales, quats, opacity_logits, camera, self.eps2d, means2d, conics,
-                                depths, opac, radii, splat_g, dev, **sp)
+        _project.launch_project(means, log_scales, quats, opacity_logits, camera, self.eps2d, self.antialiased,
+                                means2d, conics, depths, opac, radii, splat_g, dev, **sp)
         t = self._stage("project", t)
         touched = self.tiles_touched_.view(n + 1)
         offsets = self.pair_offsets_.view(n + 1)
@@ -442,9 +445,9 @@ class Rasterizer:
         v_means, v_log_scales = self.v_means_.view(n), self.v_log_scales_.view(n)
         v_quats, v_logits = self.v_quats_.view(n), self.v_opacity_logits_.view(n)
         v_pose_partial, v_sh = self.v_pose_partial_.view(n), self.v_sh_.view(n)
-        _project.launch_project_backward(means, log_scales, quats, self.opacities_.view(n), cam, self.eps2d, radii,
-                                         v_means2d, v_conics, v_depths, v_opac, v_means, v_log_scales, v_quats,
-                                         v_logits, v_pose_partial, dev, **sp)
+        _project.launch_project_backward(means, log_scales, quats, opacity_logits, cam, self.eps2d,
+                                         self.antialiased, radii, v_means2d, v_conics, v_depths, v_opac, v_means,
+                                         v_log_scales, v_quats, v_logits, v_pose_partial, dev, **sp)
         _sh.launch_evaluate_sh_backward(sh, means, out.num_bases, cam, radii, v_colors, v_sh, v_means,
                                         v_pose_partial, dev, **sp)
         _project.launch_reduce_pose(v_pose_partial, self.pose_blocks_.full, self.v_pose, dev, **sp)

@@ -4,8 +4,10 @@ Per Gaussian: ``p_c = R p_w + t``; ``Sigma_3 = M S S^T M^T`` with ``M`` the rota
 ``w, x, y, z`` quaternion and ``S = diag(exp(log_scales))``; ``Sigma_c = R Sigma_3 R^T``; EWA splatting
 ``Sigma_2 = J Sigma_c J^T + eps2d I`` with the perspective Jacobian ``J`` evaluated at the tangent clamped to
 ``[-lim_neg, lim_pos]`` (1.3x the half field of view, :func:`mgso_kernels.splat.camera.make_camera`); ``eps2d``
-(0.3 px^2) is the low-pass dilation of 3DGS, applied **without** the antialiasing opacity compensation (as the
-original 3DGS). Conic ``(a, b, c)`` = inverse of ``Sigma_2``: ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``.
+(0.3 px^2) is the low-pass dilation of 3DGS. By default it is applied **without** the antialiasing opacity
+compensation (as the original 3DGS); ``antialiased=1`` multiplies the opacity by
+``sqrt(det(Sigma_2 - eps2d I) / det(Sigma_2))`` (Mip-Splatting / gsplat's ``antialiased`` mode), gradient included.
+``opacities`` are the effective (compensated) ones. Conic ``(a, b, c)`` = inverse of ``Sigma_2``: ``power = -0.5 (a dx^2 + c dy^2) - b dx dy``.
 
 Culling (``radii = 0``): ``z <= near`` or ``z >= far``; opacity below 1/255 (it can never reach the blending
 threshold); non-finite covariance; and the frustum: the cut-off ellipse's bounding box (where
@@ -108,10 +110,11 @@ def project_gaussians(
     opacity_logits: wp.array(dtype=float),  # [N] opacity = sigmoid(logit)
     cam: Camera,
     eps2d: float,  # low-pass dilation, px^2
+    antialiased: int,  # 1: opacity *= sqrt(det(Sigma_2 - eps2d I) / det(Sigma_2))
     means2d: wp.array(dtype=wp.vec2),  # [N] out, pixels
     conics: wp.array(dtype=wp.vec3),  # [N] out, (a, b, c) inverse 2D covariance, 1/px^2
     depths: wp.array(dtype=float),  # [N] out, camera z
-    opacities: wp.array(dtype=float),  # [N] out, sigmoid(logit)
+    opacities: wp.array(dtype=float),  # [N] out, effective opacity (sigmoid(logit) [* compensation])
     radii: wp.array(dtype=wp.int32),  # [N] out, 3-sigma screen radius in pixels; 0 = culled
     splats: wp.array(dtype=vec8),  # [N] out, blending data (mx, my, a, b, c, opacity, exp(-a), cut-off r2)
 ):
@@ -127,7 +130,7 @@ def project_gaussians(
     conics[g] = wp.vec3(0.0)
     if not (z > cam.near and z < cam.far):
         return
-    if op < ALPHA_MIN:
+    if op < ALPHA_MIN:  # the compensation only lowers it
         return
     q = load_vec4(quats, g)
     qn = wp.normalize(q)
@@ -141,6 +144,12 @@ def project_gaussians(
     det = cv[0] * cv[2] - cv[1] * cv[1]
     if not (det > 0.0) or not wp.isfinite(det):
         return
+    if antialiased != 0:
+        det_raw = (cv[0] - eps2d) * (cv[2] - eps2d) - cv[1] * cv[1]
+        op = op * wp.sqrt(wp.max(det_raw, 0.0) / det)
+        opacities[g] = op
+        if op < ALPHA_MIN:
+            return
     inv_det = 1.0 / det
     mx = cam.fx * pc[0] / z + cam.cx
     my = cam.fy * pc[1] / z + cam.cy
@@ -165,14 +174,15 @@ def project_gaussians_backward(
     means: wp.array2d(dtype=float),  # [N, 3]
     log_scales: wp.array2d(dtype=float),  # [N, 3]
     quats: wp.array2d(dtype=float),  # [N, 4]
-    opacities: wp.array(dtype=float),  # [N] sigmoid(logit) from the forward pass
+    opacity_logits: wp.array(dtype=float),  # [N]
     cam: Camera,
     eps2d: float,
+    antialiased: int,
     radii: wp.array(dtype=wp.int32),  # [N] 0 = culled: all gradients 0
     v_means2d: wp.array(dtype=wp.vec2),  # [N] upstream
     v_conics: wp.array(dtype=wp.vec3),  # [N] upstream
     v_depths: wp.array(dtype=float),  # [N] upstream (camera z)
-    v_opacities: wp.array(dtype=float),  # [N] upstream (d/d opacity)
+    v_opacities: wp.array(dtype=float),  # [N] upstream (d/d effective opacity)
     v_means: wp.array2d(dtype=float),  # [N, 3] out
     v_log_scales: wp.array2d(dtype=float),  # [N, 3] out
     v_quats: wp.array2d(dtype=float),  # [N, 4] out
@@ -189,8 +199,7 @@ def project_gaussians_backward(
         v_opacity_logits[g] = 0.0
         v_pose_partial[g] = vec6(0.0)
         return
-    op = opacities[g]
-    v_opacity_logits[g] = v_opacities[g] * op * (1.0 - op)
+    sig = sigmoid(opacity_logits[g])
 
     # recompute the forward quantities
     p = load_vec3(means, g)
@@ -220,6 +229,20 @@ def project_gaussians_backward(
     Q = wp.mat22(a, b, b, c)
     V = wp.mat22(vq[0], 0.5 * vq[1], 0.5 * vq[1], vq[2])
     G2 = -(Q * V * Q)
+    v_op = v_opacities[g]
+    comp = float(1.0)
+    if antialiased != 0:
+        # comp = sqrt(q), q = det_raw / det: d q / d (A, B, D) of Sigma_2 = [[A, B], [B, D]] (B counted once)
+        det_raw = (cv[0] - eps2d) * (cv[2] - eps2d) - cv[1] * cv[1]
+        comp = wp.sqrt(wp.max(det_raw, 0.0) / det)
+        if comp > 0.0:
+            v_ratio = v_op * sig / (2.0 * comp)
+            d2 = det * det
+            dA = ((cv[2] - eps2d) * det - det_raw * cv[2]) / d2
+            dD = ((cv[0] - eps2d) * det - det_raw * cv[0]) / d2
+            dB = -2.0 * cv[1] * (det - det_raw) / d2
+            G2 = G2 + v_ratio * wp.mat22(dA, 0.5 * dB, 0.5 * dB, dD)
+    v_opacity_logits[g] = v_op * comp * sig * (1.0 - sig)
     G = wp.mat33(G2[0, 0], G2[0, 1], 0.0, G2[1, 0], G2[1, 1], 0.0, 0.0, 0.0, 0.0)
     # Sigma2 = J covc J^T (+ eps): v_covc = J^T G J, v_J = 2 G J covc (rows 0, 1)
     v_covc = wp.transpose(J) * G * J
@@ -306,8 +329,9 @@ def finish_pose(
 
 
 # ------------------------------------------------------------------------------------------------- launchers
-def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, means2d, conics, depths,
-                   opacities, radii, splats, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, antialiased: bool, means2d,
+                   conics, depths, opacities, radii, splats, device: str, threads: int | None = None,
+                   min_chunk: int = 4096) -> None:
     """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long)."""
     from ..runtime import launch_split
     from ._checks import check_array
@@ -319,21 +343,24 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     for name, a, dt in (("means2d", means2d, wp.vec2), ("conics", conics, wp.vec3), ("depths", depths, wp.float32),
                         ("opacities", opacities, wp.float32), ("radii", radii, wp.int32), ("splats", splats, vec8)):
         check_array(a, name, dt, (n,), device)
-    launch_split(project_gaussians, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d), means2d,
-                                        conics, depths, opacities, radii, splats], device, threads=threads,
+    launch_split(project_gaussians, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d),
+                                        int(bool(antialiased)), means2d, conics, depths, opacities, radii, splats],
+                 device, threads=threads,
                  min_chunk=min_chunk)
 
 
-def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, eps2d: float, radii, v_means2d,
-                            v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats, v_opacity_logits,
-                            v_pose_partial, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, antialiased: bool,
+                            radii, v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats,
+                            v_opacity_logits, v_pose_partial, device: str, threads: int | None = None,
+                            min_chunk: int = 4096) -> None:
     """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten."""
     from ..runtime import launch_split
     from ._checks import check_array
 
     n = means.shape[0]
     for name, a, dt, shape in (("means", means, wp.float32, (n, 3)), ("log_scales", log_scales, wp.float32, (n, 3)),
-                               ("quats", quats, wp.float32, (n, 4)), ("opacities", opacities, wp.float32, (n,)),
+                               ("quats", quats, wp.float32, (n, 4)),
+                               ("opacity_logits", opacity_logits, wp.float32, (n,)),
                                ("radii", radii, wp.int32, (n,)), ("v_means2d", v_means2d, wp.vec2, (n,)),
                                ("v_conics", v_conics, wp.vec3, (n,)), ("v_depths", v_depths, wp.float32, (n,)),
                                ("v_opacities", v_opacities, wp.float32, (n,)),
@@ -343,7 +370,8 @@ def launch_project_backward(means, log_scales, quats, opacities, cam: Camera, ep
                                ("v_opacity_logits", v_opacity_logits, wp.float32, (n,)),
                                ("v_pose_partial", v_pose_partial, vec6, (n,))):
         check_array(a, name, dt, shape, device)
-    launch_split(project_gaussians_backward, n, [means, log_scales, quats, opacities, cam, float(eps2d), radii,
+    launch_split(project_gaussians_backward, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d),
+                                                 int(bool(antialiased)), radii,
                                                  v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales,
                                                  v_quats, v_opacity_logits, v_pose_partial], device,
                  threads=threads, min_chunk=min_chunk)

@@ -35,8 +35,8 @@ def _upstream(rng, cam, which):
     return v_rgb, v_depth, v_alpha
 
 
-def _loss(scene, cam, bg, ups, degree):
-    out = ref.render(*(scene[k] for k in PARAMS), cam, bg, degree, cutoffs=False)
+def _loss(scene, cam, bg, ups, degree, antialiased=False):
+    out = ref.render(*(scene[k] for k in PARAMS), cam, bg, degree, cutoffs=False, antialiased=antialiased)
     v_rgb, v_depth, v_alpha = ups
     total = np.sum(out["rgb"] * v_rgb)
     if v_depth is not None:
@@ -46,14 +46,14 @@ def _loss(scene, cam, bg, ups, degree):
     return total
 
 
-@pytest.mark.parametrize("degree,seed", [(0, 0), (1, 1), (3, 2)])
-def test_twin_gradients_match_finite_differences(degree, seed):
+@pytest.mark.parametrize("degree,seed,aa", [(0, 0, False), (1, 1, False), (3, 2, False), (1, 5, True)])
+def test_twin_gradients_match_finite_differences(degree, seed, aa):
     rng = np.random.default_rng(seed)
     cam = _camera(rng, 20, 16)
     scene = ref.random_scene(rng, 8, cam, degree, px_range=(1.0, 4.0))
     bg = np.array([0.3, 0.1, 0.6])
     ups = _upstream(rng, cam, ("rgb", "depth", "alpha"))
-    g = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, *ups, sh_degree=degree, cutoffs=False)
+    g = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, *ups, sh_degree=degree, cutoffs=False, antialiased=aa)
     eps = 1e-6
     for name in PARAMS:
         x = scene[name]
@@ -64,7 +64,7 @@ def test_twin_gradients_match_finite_differences(degree, seed):
             hi[name][idx] += eps
             lo[name] = x.copy()
             lo[name][idx] -= eps
-            fd[idx] = (_loss(hi, cam, bg, ups, degree) - _loss(lo, cam, bg, ups, degree)) / (2 * eps)
+            fd[idx] = (_loss(hi, cam, bg, ups, degree, aa) - _loss(lo, cam, bg, ups, degree, aa)) / (2 * eps)
         an = g[GRAD_OF[name]]
         assert np.abs(fd).max() > 1e-3, name  # something depends on it
         np.testing.assert_allclose(an, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max(), err_msg=name)
@@ -75,7 +75,7 @@ def test_twin_gradients_match_finite_differences(degree, seed):
         d[k] = eps
         hi = dataclasses.replace(cam, world_to_cam=se3_exp(d) @ cam.world_to_cam)
         lo = dataclasses.replace(cam, world_to_cam=se3_exp(-d) @ cam.world_to_cam)
-        fd[k] = (_loss(scene, hi, bg, ups, degree) - _loss(scene, lo, bg, ups, degree)) / (2 * eps)
+        fd[k] = (_loss(scene, hi, bg, ups, degree, aa) - _loss(scene, lo, bg, ups, degree, aa)) / (2 * eps)
     np.testing.assert_allclose(g["v_pose"], fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
 
@@ -145,6 +145,24 @@ def test_warp_backward_matches_twin(wp_device, which, degree, seed):
         assert a.shape == r[name].shape, name
         assert np.abs(r[name]).max() > 0 or name == "v_sh" and "rgb" not in which, name
         _close(a, r[name], name)
+
+
+def test_warp_antialiased_matches_twin(wp_device):
+    rng = np.random.default_rng(15)
+    cam = _camera(rng, 48, 40)
+    scene = ref.random_scene(rng, 45, cam, 1)
+    bg = (0.2, 0.5, 0.1)
+    v_rgb, v_depth, v_alpha = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    rast = Rasterizer(wp_device, antialiased=True)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha, antialiased=True)
+    plain = ref.render(*(scene[k] for k in PARAMS), cam, bg)
+    assert np.abs(plain["rgb"] - r["forward"]["rgb"]).max() > 1e-2  # the compensation changes the image
+    for key in ("rgb", "depth", "alpha"):
+        _close(getattr(out, key).numpy(), r["forward"][key], key, tol=1e-4)
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d"):
+        _close(getattr(grads, name).numpy(), r[name], name)
 
 
 def test_split_backward_is_bitwise_identical(wp_device):
