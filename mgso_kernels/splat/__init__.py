@@ -182,19 +182,26 @@ class Rasterizer:
     ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
     dilation of the 2D covariance (px^2, 3DGS's 0.3). ``antialiased``: also multiply each opacity by
     ``sqrt(det(J Sigma J^T) / det(J Sigma J^T + eps2d I))`` (Mip-Splatting's compensation, gsplat's ``antialiased`` mode);
-    off by default, as in the original 3DGS. ``threads``: CPU
+    off by default, as in the original 3DGS. ``pixels_per_thread``: pixels of a tile row a blending thread shades
+    (1, 2, 4, 8 or 16; default 16 on the CPU, where it shares the span work, and 1 on CUDA). ``threads``: CPU
     threads for split launches (``None``: the runtime's setting); ``min_chunk``: fewest threads a CPU chunk gets (a
     launch smaller than two chunks stays on one core). ``profile=True`` synchronises after each stage
     and records seconds per stage in :attr:`timings` (for ``profiles/splat_raster.py``; slows the pipeline a little).
     """
 
     def __init__(self, device: str | None = None, *, eps2d: float = 0.3, antialiased: bool = False,
-                 threads: int | None = None, min_chunk: int = 4096, profile: bool = False):
+                 pixels_per_thread: int | None = None, threads: int | None = None, min_chunk: int = 4096,
+                 profile: bool = False):
         self.device = runtime.resolve_device(device) if device is not None else runtime.default_device()
         self.eps2d = float(eps2d)
         self.antialiased = bool(antialiased)
         self.threads = threads
         self._split = {"threads": threads, "min_chunk": int(min_chunk)}
+        if pixels_per_thread is None:
+            pixels_per_thread = TILE_SIZE if wp.get_device(self.device).is_cpu else 1
+        if pixels_per_thread not in _raster.SEGMENT_WIDTHS:
+            raise ValueError(f"pixels_per_thread must be one of {_raster.SEGMENT_WIDTHS}, got {pixels_per_thread}")
+        self.pixels_per_thread = int(pixels_per_thread)
         self.profile = profile
         self.timings: dict[str, float] = {}
         self._generation = 0
@@ -361,7 +368,8 @@ class Rasterizer:
         rgb, depth, alpha = self._image("rgb", H, W), self._image("depth", H, W), self._image("alpha", H, W)
         T_final, n_contrib = self._image("T_final", H, W), self._image("n_contrib", H, W)
         _raster.launch_rasterize_forward(camera, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full, bg,
-                                         rgb, depth, alpha, T_final, n_contrib, dev, **sp)
+                                         rgb, depth, alpha, T_final, n_contrib, dev, **sp,
+                                         seg=self.pixels_per_thread)
         self._stage("blend", t)
         return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=radii, means2d=self.means2d_.view(n).view(
             wp.float32), depths=self.depths_.view(n), tiles_touched=self.tiles_touched_.view(n), n_pairs=n_pairs,
@@ -388,7 +396,8 @@ class Rasterizer:
                                    self.splats_.full, self.splat_rgbz_.full, dev, **sp)
         t = self._stage("pack", t)
         alpha = self._image("alpha_only", camera.height, camera.width)
-        _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp)
+        _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp,
+                                       seg=self.pixels_per_thread)
         self._stage("blend", t)
         return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
 
@@ -432,7 +441,8 @@ class Rasterizer:
         self._ensure(self.v_sh_, n)
         _raster_bwd.launch_rasterize_backward(cam, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full,
                                               self.slots_.full, out.background, out.T_final, out.n_contrib, v_rgb,
-                                              v_depth, v_alpha, self.pair_grads_.full, m, dev, **sp)
+                                              v_depth, v_alpha, self.pair_grads_.full, m, dev, **sp,
+                                              seg=self.pixels_per_thread)
         t = self._stage("backward_blend", t)
         v_means2d, v_conics = self.v_means2d_.view(n), self.v_conics_.view(n)
         v_opac, v_colors, v_depths = self.v_opacities_.view(n), self.v_colors_.view(n), self.v_depths_.view(n)

@@ -39,29 +39,42 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "vec16", "vec16i", "row_span",
-           "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "ROW_THREADS_PER_TILE"]
+           "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
 
 vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
 vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 
 TS = wp.constant(TILE_SIZE)
-ROW_THREADS_PER_TILE = TILE_SIZE  # one thread per pixel row of a tile
+SEGMENT_WIDTHS = (1, 2, 4, 8, 16)  # pixels per thread the blend kernels accept
+
+
+def segment_threads(cam: Camera, seg: int) -> tuple[int, int]:
+    """(threads of a blend launch, threads per tile) for segments of ``seg`` pixels."""
+    if seg not in SEGMENT_WIDTHS:
+        raise ValueError(f"pixels per thread must be one of {SEGMENT_WIDTHS}, got {seg}")
+    per_tile = TILE_SIZE * (TILE_SIZE // seg)
+    return cam.tiles_x * cam.tiles_y * per_tile, per_tile
 
 
 @wp.func
-def tile_row(i: int, cam: Camera) -> wp.vec4i:
-    """Row-thread index -> (tile, first column, row y, number of columns inside the image; 0 if the row is out).
+def tile_row(i: int, cam: Camera, seg: int) -> wp.vec4i:
+    """Thread index -> (tile, first column, row y, number of columns of the segment inside the image; 0: none).
 
-    Consecutive slots of 16 threads are whole tiles, visited in the interleaved order of ``cam.tile_stride``.
+    A thread shades ``seg`` consecutive pixels of one tile row (16: the whole row). Consecutive groups of
+    ``16 * 16 / seg`` threads are whole tiles, visited in the interleaved order of ``cam.tile_stride``.
     """
-    slot = i // TS
-    r = i - slot * TS
+    nseg = TS // seg
+    per_tile = TS * nseg
+    slot = i // per_tile
+    rem = i - slot * per_tile
+    r = rem // nseg
+    sg = rem - r * nseg
     tile = (slot * cam.tile_stride) % (cam.tiles_x * cam.tiles_y)
     ty = tile // cam.tiles_x
     tx = tile - ty * cam.tiles_x
     y = ty * TS + r
-    x0 = tx * TS
-    nx = wp.min(TS, cam.width - x0)
+    x0 = tx * TS + sg * seg
+    nx = wp.min(seg, cam.width - x0)
     if y >= cam.height:
         nx = 0
     return wp.vec4i(tile, x0, y, nx)
@@ -118,6 +131,7 @@ def pack_splats(
 def rasterize_forward(
     offset: int,
     cam: Camera,
+    seg: int,  # pixels per thread (1, 2, 4, 8, 16): 16 = a tile row (CPU), 1 = a pixel (GPU)
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] [start, end) into the sorted pairs
     splats: wp.array(dtype=vec8),  # [M] packed, sorted
     splat_rgbz: wp.array(dtype=wp.vec4),  # [M] packed, sorted: r, g, b, depth
@@ -128,7 +142,7 @@ def rasterize_forward(
     T_final: wp.array2d(dtype=float),  # [H, W] out
     n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] out, tile-list count up to the last accumulated Gaussian
 ):
-    tr = tile_row(offset + wp.tid(), cam)
+    tr = tile_row(offset + wp.tid(), cam, seg)
     tile = tr[0]
     x0 = tr[1]
     y = tr[2]
@@ -195,11 +209,12 @@ def rasterize_forward(
 def rasterize_alpha(
     offset: int,
     cam: Camera,
+    seg: int,  # pixels per thread
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
     splats: wp.array(dtype=vec8),  # [M] packed, sorted
     alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
 ):
-    tr = tile_row(offset + wp.tid(), cam)
+    tr = tile_row(offset + wp.tid(), cam, seg)
     tile = tr[0]
     x0 = tr[1]
     y = tr[2]
@@ -240,10 +255,6 @@ def rasterize_alpha(
 
 
 # ------------------------------------------------------------------------------------------------- launchers
-def _row_threads(cam: Camera) -> int:
-    return cam.tiles_x * cam.tiles_y * ROW_THREADS_PER_TILE
-
-
 def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats, splat_rgbz, device: str,
                        threads: int | None = None, min_chunk: int = 4096) -> None:
     """Copy the sorted pairs' Gaussian data into contiguous arrays (``rgbz_g=None``: alpha-only)."""
@@ -270,8 +281,10 @@ def _dummy_vec4(device):
 
 
 def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
-                             n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
-    """Blend every pixel; outputs (H, W[, 3]) are fully overwritten."""
+                             n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096,
+                             seg: int = TILE_SIZE) -> None:
+    """Blend every pixel; outputs (H, W[, 3]) are fully overwritten. ``seg``: pixels per thread; ``min_chunk``:
+    fewest pixels per CPU chunk."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -282,17 +295,19 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
     check_array(n_contrib, "n_contrib", wp.int32, (H, W), device)
     if ranges.shape[0] < cam.tiles_x * cam.tiles_y:
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
-    launch_split(rasterize_forward, _row_threads(cam), [cam, ranges, splats, splat_rgbz, wp.vec3(*background),
-                                                           rgb, depth, alpha, T_final, n_contrib],
-                 device, threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_forward, dim, [cam, seg, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
+                                          alpha, T_final, n_contrib],
+                 device, threads=threads, min_chunk=max(1, min_chunk // seg), align=per_tile)
 
 
 def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None,
-                           min_chunk: int = 4096) -> None:
+                           min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
     """Accumulated alpha only (H, W): the cheap path for coverage tests."""
     from ..runtime import launch_split
     from ._checks import check_array
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
-    launch_split(rasterize_alpha, _row_threads(cam), [cam, ranges, splats, alpha], device,
-                 threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_alpha, dim, [cam, seg, ranges, splats, alpha], device, threads=threads,
+                 min_chunk=max(1, min_chunk // seg), align=per_tile)

@@ -29,7 +29,7 @@ import warp as wp
 
 from .camera import TILE_SIZE, Camera
 from .common import ALPHA_MAX, ALPHA_MIN, vec8
-from .raster import ROW_THREADS_PER_TILE, row_span, span_exp_start, tile_row, vec16, vec16i
+from .raster import row_span, segment_threads, span_exp_start, tile_row, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
@@ -42,6 +42,7 @@ vec12 = wp.types.vector(length=12, dtype=wp.float32)
 def rasterize_backward(
     offset: int,
     cam: Camera,
+    seg: int,  # pixels per thread, as the forward
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
     splats: wp.array(dtype=vec8),  # [M] packed, sorted (forward's)
     splat_rgbz: wp.array(dtype=wp.vec4),  # [M] r, g, b, depth
@@ -56,7 +57,7 @@ def rasterize_backward(
     use_alpha: int,  # 0: v_alpha ignored
     pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
 ):
-    tr = tile_row(offset + wp.tid(), cam)
+    tr = tile_row(offset + wp.tid(), cam, seg)
     tile = tr[0]
     x0 = tr[1]
     y = tr[2]
@@ -224,7 +225,7 @@ def accumulate_densify_stats(
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
-                              threads: int | None = None, min_chunk: int = 4096) -> None:
+                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
 
     ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output).
@@ -246,10 +247,11 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     if pair_grads.shape[0] < n_pairs:
         raise ValueError(f"rasterize_backward: pair_grads holds {pair_grads.shape[0]}, need {n_pairs}")
     pair_grads[:n_pairs].zero_()
-    launch_split(rasterize_backward, cam.tiles_x * cam.tiles_y * ROW_THREADS_PER_TILE,
-                 [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb, v_depth,
-                  v_alpha, use_depth, use_alpha, pair_grads], device,
-                 threads=threads, min_chunk=max(1, min_chunk // TILE_SIZE), align=ROW_THREADS_PER_TILE)
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_backward, dim,
+                 [cam, seg, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
+                  v_depth, v_alpha, use_depth, use_alpha, pair_grads], device,
+                 threads=threads, min_chunk=max(1, min_chunk // seg), align=per_tile)
 
 
 def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,

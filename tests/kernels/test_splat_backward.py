@@ -165,6 +165,29 @@ def test_warp_antialiased_matches_twin(wp_device):
         _close(getattr(grads, name).numpy(), r[name], name)
 
 
+@pytest.mark.parametrize("seg", [1, 2, 8])
+def test_pixels_per_thread_variants_match_twin(wp_device, seg):
+    # 16 pixels per thread is the CPU default (every other test); 1 is the CUDA default: same rules, same results
+    rng = np.random.default_rng(20 + seg)
+    cam = _camera(rng, 40, 36)
+    scene = ref.random_scene(rng, 40, cam, 1)
+    bg = (0.3, 0.3, 0.3)
+    v_rgb, v_depth, v_alpha = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    rast = Rasterizer(wp_device, pixels_per_thread=seg, threads=3, min_chunk=64)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha)
+    for key in ("rgb", "depth", "alpha"):
+        _close(getattr(out, key).numpy(), r["forward"][key], key, tol=1e-4)
+    alpha_only = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), _wcam(cam)).alpha.numpy().copy()
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)  # render_alpha invalidated the first one
+    assert np.array_equal(alpha_only, out.alpha.numpy())
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
+        _close(getattr(grads, name).numpy(), r[name], name)
+    with pytest.raises(ValueError, match="pixels_per_thread"):
+        Rasterizer(wp_device, pixels_per_thread=3)
+
+
 def test_split_backward_is_bitwise_identical(wp_device):
     if not wp.get_device(wp_device).is_cpu:
         pytest.skip("splitting only applies to CPU launches")
