@@ -67,6 +67,8 @@ def test_background_and_empty_scene(wp_device):
     out = rast.forward(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 1, 3)),
                        _wcam(cam), (1.0, 0.0, 0.0))
     assert out.n_pairs == 0 and np.allclose(out.rgb.numpy(), [1.0, 0.0, 0.0])
+    g = rast.backward(out, np.ones((24, 40, 3), np.float32), np.ones((24, 40), np.float32))
+    assert g.v_means.shape == (0, 3) and g.v_sh.shape == (0, 1, 3) and np.all(g.v_pose.numpy() == 0)
 
 
 def _pairs(rast, out):
