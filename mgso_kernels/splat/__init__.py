@@ -1,6 +1,6 @@
 """Tile-sorted 3D Gaussian Splatting rasteriser in Warp, with a hand-written backward pass.
 
-One code path for the CPU (pixel-parallel launches split over the cores) and CUDA. Use :class:`Rasterizer`:
+One code path for the CPU (blending threads split over the cores) and CUDA. Use :class:`Rasterizer`:
 
     from mgso_kernels import runtime
     from mgso_kernels.splat import Rasterizer, make_camera
@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 import warp as wp

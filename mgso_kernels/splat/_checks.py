@@ -1,4 +1,4 @@
-"""Argument checks for the splatting launchers (plain Python, no Warp module)."""
+"""Argument checks for the splatting launchers and the rasteriser (plain Python, no Warp module)."""
 
 from __future__ import annotations
 
@@ -46,12 +46,11 @@ def _check_shape(shape, name, tail, n):
 
 
 def check_array(a: Any, name: str, dtype, shape: tuple[int, ...], device: str) -> wp.array:
-    """Check a Warp array's dtype, shape and device (or convert a NumPy array) for a kernel argument."""
+    """Check a kernel argument: a Warp array of ``dtype`` and ``shape`` on ``device`` (the launchers take Warp
+    arrays only; :class:`mgso_kernels.splat.Rasterizer` converts NumPy input)."""
     if not isinstance(a, wp.array):
-        np_dtype = wp.types.warp_type_to_np_dtype.get(dtype, None)
-        if np_dtype is None:
-            raise TypeError(f"{name}: expected a Warp array of {wp.types.type_repr(dtype)}, got {type(a).__name__}")
-        a = wp.array(np.ascontiguousarray(a, dtype=np_dtype), dtype=dtype, device=device)
+        raise TypeError(f"{name}: expected a Warp array of {wp.types.type_repr(dtype)} {tuple(shape)}, got "
+                        f"{type(a).__name__}")
     if a.dtype is not dtype:
         raise TypeError(f"{name}: expected dtype {wp.types.type_repr(dtype)}, got {wp.types.type_repr(a.dtype)}")
     if tuple(a.shape) != tuple(shape):

@@ -83,6 +83,12 @@ def test_lower_sh_degree_uses_leading_coefficients(wp_device):
                                     wp.zeros((n, 3), dtype=float, device=wp_device),
                                     wp.zeros(n, dtype=vec6, device=wp_device), wp_device)
     assert np.all(v_sh.numpy()[:, 4:] == 0) and np.any(v_sh.numpy()[:, 1:4] != 0)
+    with pytest.raises(TypeError, match="radii: expected a Warp array"):
+        wsh.launch_evaluate_sh(d_sh, d_means, 4, cam, np.ones(n, np.int32), wp.zeros(n, dtype=float,
+                               device=wp_device), rgbz, wp_device)
+    with pytest.raises(ValueError, match=r"rgbz: expected shape \(16,\)"):
+        wsh.launch_evaluate_sh(d_sh, d_means, 4, cam, ones, wp.zeros(n, dtype=float, device=wp_device), rgbz[:8],
+                               wp_device)
     with pytest.raises(ValueError, match="degree"):
         wsh.launch_evaluate_sh(d_sh, d_means, 5, cam, ones, wp.zeros(n, dtype=float, device=wp_device), rgbz,
                                wp_device)
