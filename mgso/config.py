@@ -236,6 +236,9 @@ class TrainConfig:
                                    "random init uses 100 000 in a box)")
     init_depth_range: tuple[float, float] = opt((0.5, 5.0), "camera depth range of random initial points, world "
                                                             "units (metres for an indoor RGB-D dataset)")
+    init_max_screen_px: float = opt(3.0, "random initial points: scale at most this many pixels (one sigma) in the "
+                                         "view a point was drawn from; sparse random points' kNN scales cover the "
+                                         "image and make CPU steps slow; 0 = no cap (3DGS)")
     init_opacity: float = opt(0.1, "opacity of new Gaussians (3DGS, MGSO)")
     init_knn: int = opt(3, "initial scale = mean distance to this many nearest neighbours (3DGS, MGSO)")
     holdout_every: int = opt(5, "`mgso fit` holds out every n-th frame for evaluation (never trained on); 0 = none")
@@ -253,6 +256,8 @@ class TrainConfig:
             problems.append(f"init_depth_range must be (near, far) with 0 < near < far, got {self.init_depth_range}")
         if not 0 < self.init_opacity < 1:
             problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.init_max_screen_px < 0:
+            problems.append(f"init_max_screen_px must be >= 0, got {self.init_max_screen_px}")
         if self.init_knn < 1 or self.init_points < 1:
             problems.append("init_knn and init_points must be >= 1")
         if self.holdout_every < 0 or self.max_train_views < 0 or self.metrics_every < 0 or self.sh_degree_interval < 0:

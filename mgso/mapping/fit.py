@@ -116,9 +116,12 @@ def load_initial_gaussians(init: str, views: ViewSet, cfg: Config) -> tuple[Gaus
     degree = cfg.mapping.sh_degree
     if init == "random":
         rng = np.random.default_rng(cfg.runtime.seed)
-        pts, cols = random_frustum_points(list(views), tc.init_points, tc.init_depth_range, rng)
-        arrays = gaussians_from_points(pts, cols, opacity=tc.init_opacity, knn=tc.init_knn, sh_degree=degree)
-        return arrays, {"kind": "random", "points": int(arrays.n), "depth_range": list(tc.init_depth_range)}
+        pts, cols, pixel = random_frustum_points(list(views), tc.init_points, tc.init_depth_range, rng)
+        cap = tc.init_max_screen_px * pixel if tc.init_max_screen_px > 0 else None
+        arrays = gaussians_from_points(pts, cols, opacity=tc.init_opacity, knn=tc.init_knn, max_scale=cap,
+                                       sh_degree=degree)
+        return arrays, {"kind": "random", "points": int(arrays.n), "depth_range": list(tc.init_depth_range),
+                        "max_screen_px": tc.init_max_screen_px}
     path = Path(init)
     try:
         pts, cols, others = read_point_cloud_ply(path)

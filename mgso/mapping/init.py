@@ -37,7 +37,8 @@ def knn_mean_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
 
 
 def gaussians_from_points(points: np.ndarray, colors: np.ndarray | None = None, *, opacity: float = 0.1,
-                          knn: int = 3, min_scale: float = 1e-4, sh_degree: int = 0) -> GaussianArrays:
+                          knn: int = 3, min_scale: float = 1e-4, max_scale: np.ndarray | float | None = None,
+                          sh_degree: int = 0) -> GaussianArrays:
     """Gaussians at ``points`` (N, 3) with ``colors`` (N, 3) RGB in [0, 1] (grey 0.5 when None): isotropic scale
     from the mean distance to the ``knn`` nearest neighbours (at least ``min_scale``), identity rotation, opacity
     ``opacity``."""
@@ -59,7 +60,10 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray | None = None, 
             raise ValueError("gaussians_from_points: colors must be RGB in [0, 1] (divide uint8 by 255)")
     if not 0.0 < opacity < 1.0:
         raise ValueError(f"gaussians_from_points: opacity must be in (0, 1), got {opacity}")
-    scale = np.maximum(knn_mean_distance(pts, knn), float(min_scale))
+    scale = knn_mean_distance(pts, knn)
+    if max_scale is not None:
+        scale = np.minimum(scale, np.broadcast_to(np.asarray(max_scale, dtype=np.float64), scale.shape))
+    scale = np.maximum(scale, float(min_scale))
     K = (int(sh_degree) + 1) ** 2
     sh = np.zeros((n, K, 3), np.float32)
     sh[:, 0] = rgb_to_sh_dc(rgb)
@@ -70,13 +74,14 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray | None = None, 
 
 
 def random_frustum_points(views, n: int, depth_range: tuple[float, float],
-                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` random points inside the views' frusta, and their colours.
 
     ``views``: :class:`~mgso.mapping.views.TrainView` objects (anything with ``image``, ``camera``,
     ``cam_to_world``). Each point picks a view uniformly, a pixel uniformly and a camera depth uniformly in
     ``depth_range`` (near, far; world units); its colour is the view's image at that pixel.
-    Returns (points (n, 3) float64 world, colours (n, 3) float32 RGB).
+    Returns (points (n, 3) float64 world, colours (n, 3) float32 RGB, pixel sizes (n,): the world size of one
+    pixel at the point's depth in the view it was drawn from, z / f).
     """
     views = list(views)
     if not views:
@@ -89,6 +94,7 @@ def random_frustum_points(views, n: int, depth_range: tuple[float, float],
     which = rng.integers(len(views), size=n)
     points = np.empty((n, 3))
     colors = np.empty((n, 3), np.float32)
+    pixel = np.empty(n)
     for k, view in enumerate(views):
         sel = np.flatnonzero(which == k)
         if len(sel) == 0:
@@ -101,4 +107,5 @@ def random_frustum_points(views, n: int, depth_range: tuple[float, float],
         T = view.cam_to_world
         points[sel] = pc @ T[:3, :3].T + T[:3, 3]
         colors[sel] = view.image[v, u]
-    return points, colors
+        pixel[sel] = z / np.sqrt(cam.fx * cam.fy)
+    return points, colors, pixel
