@@ -252,7 +252,7 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
             bar.update(1)
             if r.psnr is not None or r.step == tc.iterations - 1:
                 post = {"loss": f"{r.loss:.4f}", "psnr": f"{last_psnr[0]:.2f}" if last_psnr[0] else "-",
-                        "gaussians": r.num_gaussians}
+                        "gaussians": str(r.num_gaussians)}   # a string: tqdm prints 20000 as 2e+4
                 if hasattr(bar, "set_postfix"):
                     bar.set_postfix(post, refresh=False)
             if on_step is not None:
