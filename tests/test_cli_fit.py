@@ -63,6 +63,8 @@ def test_fit_reaches_the_pinned_psnr_on_held_out_frames(fitted):
     assert m["iterations"] == ITERATIONS and m["train_views"] == FRAMES - 5 and m["heldout_frames"] == 5
     assert m["iterations_per_s"] > 0 and m["train_time_s"] > 0 and m["total_time_s"] >= m["train_time_s"]
     assert m["num_gaussians"] > 1000           # densification grew the map
+    d = m["densification"]
+    assert d["refines"] == 1 and m["num_gaussians"] == 1000 + d["cloned"] + d["split"] - d["pruned"]
     assert m["init"] == {"kind": "random", "points": 1000, "depth_range": [1.0, 6.0], "max_screen_px": 3.0}
     for name in ("000000.png", "000020.png"):
         assert cv2.imread(str(fitted / "renders" / name)).shape == (H, W, 3)

@@ -244,11 +244,18 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
              len(held_pos), gmap.n, init_info["kind"], trainer.update_scene_extent())
 
     last_psnr: list[float | None] = [None]
+    refine_totals = {"refines": 0, "cloned": 0, "split": 0, "pruned": 0, "skipped_capacity": 0, "opacity_resets": 0}
 
     with progress(tc.iterations, "train") as bar:
         def callback(r: StepResult) -> None:
             if r.psnr is not None:
                 last_psnr[0] = r.psnr
+            if r.refine.refined or r.refine.opacity_reset:
+                f = r.refine
+                for key, val in (("refines", f.refined), ("cloned", f.cloned), ("split", f.split),
+                                 ("pruned", f.pruned), ("skipped_capacity", f.skipped_capacity),
+                                 ("opacity_resets", f.opacity_reset)):
+                    refine_totals[key] += int(val)
             bar.update(1)
             if r.psnr is not None or r.step == tc.iterations - 1:
                 post = {"loss": f"{r.loss:.4f}", "psnr": f"{last_psnr[0]:.2f}" if last_psnr[0] else "-",
@@ -293,6 +300,7 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
         "threads": runtime.cpu_threads(),
         "init": init_info,
         "scene_extent": float(gmap.scene_extent),
+        "densification": refine_totals,
         "loss_first": float(summary.losses[:n_loss].mean()) if n_loss else None,
         "loss_last": float(summary.losses[-n_loss:].mean()) if n_loss else None,
         "loss_window": n_loss,
