@@ -31,7 +31,6 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Iterator, Protocol
 
-import cv2
 import numpy as np
 import warp as wp
 
