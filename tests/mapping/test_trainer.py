@@ -298,3 +298,11 @@ def test_pose_refinement_moves_a_perturbed_pose_towards_the_truth(room, wp_devic
     e1 = reprojection_error(views[7].world_to_cam)
     assert e0 > 2.0 and e1 < 0.3 * e0, (e0, e1)
     np.testing.assert_array_equal(gmap.to_numpy().means, before.means)     # the map did not move
+
+
+def test_quiet_runtime_silences_warp_module_loads(wp_device):
+    """runtime.init(quiet=True) (the default, what the CLI uses) must also lower Warp 1.19's log level: its
+    config.quiet alone no longer stops a 'Module ... load on device' line per kernel module in `mgso fit`."""
+    import warp as wp
+
+    assert wp.config.log_level >= wp.LOG_WARNING
