@@ -23,7 +23,7 @@ import yaml
 
 __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
-    "DensifyConfig", "OutputConfig",
+    "DensifyConfig", "TrainConfig", "OutputConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles",
 ]
@@ -209,6 +209,64 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class TrainConfig:
+    """Training the map on posed views: the step MGSO's mapper runs, and ``mgso fit`` (docs/fitting.md)."""
+
+    iterations: int = opt(3000, "training steps of `mgso fit` (3DGS runs 30 000 on a GPU; a few thousand is a CPU-sized "
+                                "run)")
+    background: tuple[float, float, float] = opt((0.0, 0.0, 0.0), "RGB behind the Gaussians in renders (3DGS: black)")
+    min_scene_extent: float = opt(1.0, "floor of the scene extent (world units) from the camera centres: few or "
+                                       "close cameras would make the means rate and size thresholds tiny")
+    learn_exposure: bool = opt(False, "learn an affine brightness (a, b) per view with its own Adam, the loss compares "
+                                      "exp(a) render + b with the image (MGSO; off for fit: held-out frames have none)")
+    pyramid_levels: int = opt(1, "Gaussian-pyramid training (Photo-SLAM): levels of 2x2-averaged images; 1 = full "
+                                 "resolution only")
+    pyramid_uses: int = opt(2, "times a view is trained at each coarser level before the next finer one "
+                               "(Photo-SLAM's per-keyframe times of use)")
+    sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
+                                        "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
+    refine_poses: bool = opt(False, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
+                                    "(left perturbation); off: poses are trusted (ground truth, DSO's window)")
+    lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
+                                            "cam_trans_delta)")
+    lr_pose_rotation: float = opt(0.003, "Adam rate of the pose rotation delta, radians (MonoGS cam_rot_delta)")
+    metrics_every: int = opt(10, "compute the training PSNR every n steps (reads the render back to the host); 0 = "
+                                 "never")
+    init_points: int = opt(20_000, "random initial points in the view frusta for `mgso fit --init random` (3DGS's "
+                                   "random init uses 100 000 in a box)")
+    init_depth_range: tuple[float, float] = opt((0.5, 5.0), "camera depth range of random initial points, world "
+                                                            "units (metres for an indoor RGB-D dataset)")
+    init_max_screen_px: float = opt(3.0, "random initial points: scale at most this many pixels (one sigma) in the "
+                                         "view a point was drawn from; sparse random points' kNN scales cover the "
+                                         "image and make CPU steps slow; 0 = no cap (3DGS)")
+    init_opacity: float = opt(0.1, "opacity of new Gaussians (3DGS, MGSO)")
+    init_knn: int = opt(3, "initial scale = mean distance to this many nearest neighbours (3DGS, MGSO)")
+    holdout_every: int = opt(5, "`mgso fit` holds out every n-th frame for evaluation (never trained on); 0 = none")
+    max_train_views: int = opt(0, "`mgso fit` trains on at most this many views, evenly spread; 0 = all")
+
+    def __post_init__(self):
+        problems = []
+        if self.iterations < 0:
+            problems.append(f"iterations must be >= 0, got {self.iterations}")
+        if self.pyramid_levels < 1 or self.pyramid_uses < 0:
+            problems.append("pyramid_levels must be >= 1 and pyramid_uses >= 0")
+        if not self.min_scene_extent > 0:
+            problems.append(f"min_scene_extent must be > 0, got {self.min_scene_extent}")
+        if not 0 < self.init_depth_range[0] < self.init_depth_range[1]:
+            problems.append(f"init_depth_range must be (near, far) with 0 < near < far, got {self.init_depth_range}")
+        if not 0 < self.init_opacity < 1:
+            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.init_max_screen_px < 0:
+            problems.append(f"init_max_screen_px must be >= 0, got {self.init_max_screen_px}")
+        if self.init_knn < 1 or self.init_points < 1:
+            problems.append("init_knn and init_points must be >= 1")
+        if self.holdout_every < 0 or self.max_train_views < 0 or self.metrics_every < 0 or self.sh_degree_interval < 0:
+            problems.append("holdout_every, max_train_views, metrics_every and sh_degree_interval must be >= 0")
+        if problems:
+            raise ConfigError("mapping.train: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
@@ -220,6 +278,8 @@ class MappingConfig:
     optim: OptimConfig = field(default_factory=OptimConfig, metadata={"reason": "Adam settings of the map"})
     densify: DensifyConfig = field(default_factory=DensifyConfig,
                                    metadata={"reason": "densification and pruning rules"})
+    train: TrainConfig = field(default_factory=TrainConfig,
+                               metadata={"reason": "training on posed views (the step, fit, initial points)"})
 
 
 @dataclass(frozen=True)
@@ -276,7 +336,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if origin is typing.Union or str(origin) == "types.UnionType":
         for a in typing.get_args(tp):
             if a is type(None) and value is None:
