@@ -188,10 +188,11 @@ class KeyframeSeedInput:
 
 # ----------------------------------------------------------------------------------------------- helpers
 def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` (H, W[, C]) at (x, y), coordinates clamped to the pixel centres' range."""
+    """Bilinear samples (float64) of ``image`` (H, W[, C]) at (x, y), coordinates clamped to the pixel centres'
+    range. Only the four neighbours of each sample are read (no copy of the image)."""
     h, w = image.shape[:2]
-    x = np.clip(x, 0.0, w - 1.0)
-    y = np.clip(y, 0.0, h - 1.0)
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, w - 1.0)
+    y = np.clip(np.asarray(y, dtype=np.float64), 0.0, h - 1.0)
     x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
     y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
     x1 = np.minimum(x0 + 1, w - 1)
@@ -201,8 +202,8 @@ def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     if image.ndim == 3:
         fx = fx[..., None]
         fy = fy[..., None]
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    top = image[y0, x0].astype(np.float64) * (1 - fx) + image[y0, x1].astype(np.float64) * fx
+    bottom = image[y1, x0].astype(np.float64) * (1 - fx) + image[y1, x1].astype(np.float64) * fx
     return top * (1 - fy) + bottom * fy
 
 
@@ -210,11 +211,10 @@ def sample_pattern_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(M, 3) mean colour of ``image`` (H, W, 3) over DSO's 8-pixel pattern around each ``uv`` (M, 2), bilinear,
     pattern pixels clamped to the image."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    img = np.asarray(image, dtype=np.float64)
-    acc = np.zeros((len(uv), img.shape[2]))
-    for dx, dy in PATTERN:
-        acc += _bilinear(img, uv[:, 0] + dx, uv[:, 1] + dy)
-    return (acc / len(PATTERN)).astype(np.float32)
+    img = np.asarray(image)
+    x = uv[:, 0][None, :] + PATTERN[:, 0][:, None]        # (8, M)
+    y = uv[:, 1][None, :] + PATTERN[:, 1][:, None]
+    return _bilinear(img, x, y).mean(axis=0).astype(np.float32)
 
 
 def backproject(uv: np.ndarray, depth: np.ndarray, camera: PinholeCamera, cam_to_world: np.ndarray) -> np.ndarray:
@@ -360,13 +360,14 @@ def make_candidates(msg: KeyframeSeedInput, cfg: SeedingConfig) -> SeedCandidate
         fill = delaunay_fill(uv_p, z_p, cfg)
     else:
         fill = FillPoints.empty()
-    colors_p = msg.colors[ok] if msg.colors is not None else sample_pattern_colors(msg.image, uv_p)
-    colors_f = sample_pattern_colors(msg.image, fill.uv)
-    colors = np.concatenate([colors_p.astype(np.float64), colors_f.astype(np.float64)])
+    all_uv = np.concatenate([uv_p, fill.uv])
+    if msg.colors is None:
+        colors = sample_pattern_colors(msg.image, all_uv).astype(np.float64)
+    else:
+        colors = np.concatenate([msg.colors[ok], sample_pattern_colors(msg.image, fill.uv)]).astype(np.float64)
     if msg.exposure is not None:
         a, b = msg.exposure
         colors = (colors - b) / math.exp(a)
-    all_uv = np.concatenate([uv_p, fill.uv])
     all_z = np.concatenate([z_p, fill.depth])
     return SeedCandidates(
         uv=all_uv, depth=all_z, means=backproject(all_uv, all_z, cam, msg.cam_to_world),
