@@ -224,8 +224,9 @@ class SeedingConfig:
     fill_depth: Literal["mean", "barycentric"] = opt(
         "barycentric", "fill depth: mean of the vertex depths (MGSO) or barycentric inverse depth (exact on planes; "
                        "measured better, docs/seeding.md)")
-    fill_max_depth_ratio: float = opt(1.3, "skip triangles whose farthest / nearest vertex depth exceeds this: they "
-                                           "straddle a depth edge and their fill would float between surfaces")
+    fill_max_depth_ratio: float = opt(1.5, "skip triangles whose farthest / nearest vertex depth exceeds this: they "
+                                           "straddle a depth edge and their fill would float between surfaces "
+                                           "(1.5: as few floaters as 1.3, half the rejections; docs/seeding.md)")
     fill_area_per_point_px: float = opt(400.0, "a triangle gets k^2 spread points, k = ceil(sqrt(area / this)); "
                                                "below this area its centroid only")
     fill_max_subdivisions: int = opt(4, "cap of k above (at most k^2 = 16 points per triangle)")
