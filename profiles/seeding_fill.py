@@ -129,7 +129,7 @@ def main(argv=None) -> int:
                 **fill_errors(cfg), "large_triangles": sum(f.num_large for f in cands),
                 "rejected_discontinuity": sum(f.num_rejected_discontinuity for f in cands)}
     added_per_kf: list[int] | None = None
-    out: dict = {"settings": {**{k_: v for k_, v in vars(args).items()}, "keyframes": len(kf_idx),
+    out: dict = {"profile": "seeding_fill", "settings": {**{k_: v for k_, v in vars(args).items()}, "keyframes": len(kf_idx),
                               "eval_frames": len(eval_idx), "scene_depth_range_m": [round(zmin, 2), round(zmax, 2)],
                               "seeding": dataclasses.asdict(seed_base)}, "geometry": geometry, "variants": {}}
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
