@@ -9,9 +9,9 @@ The ``random`` variant adds, at each keyframe, as many random points in that key
 uniform depth in the scene's true depth range) as the ``barycentric`` variant added there.
 
 Printed, one JSON line: the fill's depth error for mean and barycentric depth over several ``fill_max_depth_ratio``
-values (``geometry``, no training), and per variant the PSNR on held-out frames (every frame that is not a keyframe, at its true
-pose), the Gaussians in the map, the seeding counts, and the fill points' depth error against the true depth
-(median / 90th percentile of |z - z_true| / z_true, share above 5 % and 20 %); plus the settings.
+values (``geometry``, no training), and per variant the PSNR on held-out frames (every frame that is not a keyframe,
+at its true pose), the Gaussians in the map, the seeding counts, and the fill points' depth error against the true
+depth (median / 90th percentile of |z - z_true| / z_true, share above 5 % and 20 %); plus the settings.
 
     python profiles/seeding_fill.py --variants mean,barycentric,nofill,random
 """
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
 
     from mgso import synthetic
     from mgso.camera import PinholeCamera
-    from mgso.config import MappingConfig, SeedingConfig
+    from mgso.config import MappingConfig
     from mgso.eval import psnr
     from mgso.mapping import seeding as sd
     from mgso.mapping.gaussian_map import GaussianMap, scene_extent_from_cameras
@@ -129,9 +129,9 @@ def main(argv=None) -> int:
                 **fill_errors(cfg), "large_triangles": sum(f.num_large for f in cands),
                 "rejected_discontinuity": sum(f.num_rejected_discontinuity for f in cands)}
     added_per_kf: list[int] | None = None
-    out: dict = {"profile": "seeding_fill", "settings": {**{k_: v for k_, v in vars(args).items()}, "keyframes": len(kf_idx),
-                              "eval_frames": len(eval_idx), "scene_depth_range_m": [round(zmin, 2), round(zmax, 2)],
-                              "seeding": dataclasses.asdict(seed_base)}, "geometry": geometry, "variants": {}}
+    settings = {**vars(args), "keyframes": len(kf_idx), "eval_frames": len(eval_idx),
+                "scene_depth_range_m": [round(zmin, 2), round(zmax, 2)], "seeding": dataclasses.asdict(seed_base)}
+    out: dict = {"profile": "seeding_fill", "settings": settings, "geometry": geometry, "variants": {}}
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     if "random" in variants and "barycentric" in variants:   # random matches the barycentric counts
         variants = [v for v in variants if v != "random"] + ["random"]
