@@ -10,7 +10,7 @@ import pytest
 
 from mgso import synthetic
 from mgso.camera import PinholeCamera
-from mgso.config import ConfigError, MappingConfig, SeedingConfig
+from mgso.config import Config, ConfigError, MappingConfig, SeedingConfig, apply_overrides
 from mgso.mapping import seeding as sd
 from mgso.mapping.gaussian_map import SH_C0, GaussianMap
 
@@ -86,6 +86,10 @@ def test_config_is_checked():
     with pytest.raises(ConfigError, match="visibility_threshold"):
         SeedingConfig(visibility_threshold=0.0)
     assert MappingConfig().seeding.min_new_gaussians == 30   # MGSO's rule (issue 6)
+    cfg = apply_overrides(Config(), ["mapping.seeding.fill_depth=mean", "mapping.seeding.alpha_downscale=1"])
+    assert cfg.mapping.seeding.fill_depth == "mean" and cfg.mapping.seeding.alpha_downscale == 1
+    with pytest.raises(ConfigError, match="knn"):
+        apply_overrides(Config(), ["mapping.seeding.knn=0"])
 
 
 # ---------------------------------------------------------------------------------------- back-projection
