@@ -23,7 +23,7 @@ import yaml
 
 __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
-    "DensifyConfig", "TrainConfig", "OutputConfig",
+    "DensifyConfig", "TrainConfig", "SeedingConfig", "OutputConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles",
 ]
@@ -267,6 +267,66 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class SeedingConfig:
+    """MGSO's seeding of new Gaussians from DSO's points at each keyframe (docs/seeding.md)."""
+
+    enabled: bool = opt(True, "seed Gaussians from each keyframe's DSO points (MGSO); false: the map grows by "
+                              "densification only")
+    use_immature: bool = opt(True, "also seed immature points with a good depth interval (MGSO: tracked pixels not "
+                                   "used for the pose)")
+    min_point_weight: float = opt(0.0, "drop points whose weight (e.g. DSO's inverse-depth Hessian) is below this; "
+                                       "0 keeps all")
+    fill: bool = opt(True, "add points inside large Delaunay triangles of the points (MGSO's low-gradient fill)")
+    fill_min_triangle_area_px: float = opt(100.0, "fill triangles larger than this (px^2 at keyframe resolution; "
+                                                  "DSO's 2000 points at 640x480 give 77 px^2 per triangle)")
+    fill_depth: Literal["mean", "barycentric"] = opt(
+        "barycentric", "fill depth: mean of the vertex depths (MGSO) or barycentric inverse depth (exact on planes; "
+                       "measured better, docs/seeding.md)")
+    fill_max_depth_ratio: float = opt(1.5, "skip triangles whose farthest / nearest vertex depth exceeds this: they "
+                                           "straddle a depth edge and their fill would float between surfaces "
+                                           "(1.5: as few floaters as 1.3, half the rejections; docs/seeding.md)")
+    fill_area_per_point_px: float = opt(400.0, "a triangle gets k^2 spread points, k = ceil(sqrt(area / this)); "
+                                               "below this area its centroid only")
+    fill_max_subdivisions: int = opt(4, "cap of k above (at most k^2 = 16 points per triangle)")
+    visibility_threshold: float = opt(0.5, "keep a candidate only where the map's alpha is below this (the pixel is "
+                                           "mostly empty; SplaTAM's silhouette threshold 0.5)")
+    alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
+                                  "at 2)")
+    min_new_gaussians: int = opt(30, "add nothing when fewer candidates survive the visibility filter (MGSO: 30)")
+    init_opacity: float = opt(0.1, "opacity of new Gaussians (MGSO, 3DGS)")
+    knn: int = opt(3, "scale = mean distance to this many nearest neighbours among new and visible Gaussians "
+                      "(MGSO, 3DGS)")
+    scale_min_px: float = opt(0.5, "smallest initial scale, in pixels of the keyframe (x depth / f in world units)")
+    scale_max_px: float = opt(20.0, "largest initial scale, in keyframe pixels: a lonely point does not become a "
+                                    "fog over the view")
+
+    def __post_init__(self):
+        problems = []
+        if self.fill_min_triangle_area_px < 0 or self.fill_area_per_point_px <= 0:
+            problems.append("fill_min_triangle_area_px must be >= 0 and fill_area_per_point_px > 0")
+        if self.fill_depth not in ("mean", "barycentric"):
+            problems.append(f"fill_depth must be 'mean' or 'barycentric', got {self.fill_depth!r}")
+        if not self.fill_max_depth_ratio >= 1.0:
+            problems.append(f"fill_max_depth_ratio must be >= 1, got {self.fill_max_depth_ratio}")
+        if self.fill_max_subdivisions < 1:
+            problems.append(f"fill_max_subdivisions must be >= 1, got {self.fill_max_subdivisions}")
+        if not 0.0 < self.visibility_threshold <= 1.0:
+            problems.append(f"visibility_threshold must be in (0, 1], got {self.visibility_threshold}")
+        if self.alpha_downscale < 1:
+            problems.append(f"alpha_downscale must be >= 1, got {self.alpha_downscale}")
+        if self.min_new_gaussians < 0:
+            problems.append(f"min_new_gaussians must be >= 0, got {self.min_new_gaussians}")
+        if not 0.0 < self.init_opacity < 1.0:
+            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.knn < 1:
+            problems.append(f"knn must be >= 1, got {self.knn}")
+        if not 0.0 < self.scale_min_px <= self.scale_max_px:
+            problems.append(f"need 0 < scale_min_px <= scale_max_px, got {self.scale_min_px}, {self.scale_max_px}")
+        if problems:
+            raise ConfigError("mapping.seeding: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
@@ -280,6 +340,8 @@ class MappingConfig:
                                    metadata={"reason": "densification and pruning rules"})
     train: TrainConfig = field(default_factory=TrainConfig,
                                metadata={"reason": "training on posed views (the step, fit, initial points)"})
+    seeding: SeedingConfig = field(default_factory=SeedingConfig,
+                                   metadata={"reason": "MGSO's seeding of Gaussians from DSO's points"})
 
 
 @dataclass(frozen=True)
