@@ -24,6 +24,7 @@ import logging
 import math
 import sys
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -55,6 +56,7 @@ def main(argv=None) -> int:
     from mgso.config import MappingConfig
     from mgso.eval import psnr
     from mgso.mapping import seeding as sd
+    from mgso.mapping.init import random_frustum_points
     from mgso.mapping.gaussian_map import GaussianMap, scene_extent_from_cameras
     from mgso.tracking.pixel_selector import PixelSelector
     from mgso_kernels import runtime
@@ -152,8 +154,8 @@ def main(argv=None) -> int:
             if var == "random":
                 n_add = added_per_kf[j] if added_per_kf is not None else 1000
                 if n_add > 0:
-                    pts, cols = sd.random_points_in_frusta(cam, seq.cam_to_world[i][None], seq.images[i][None],
-                                                           n_add, (zmin, zmax), rng)
+                    view = SimpleNamespace(camera=cam, cam_to_world=seq.cam_to_world[i], image=seq.images[i])
+                    pts, cols, _ = random_frustum_points([view], n_add, (zmin, zmax), rng)
                     zc = (pts - seq.cam_to_world[i][:3, 3]) @ seq.cam_to_world[i][:3, :3][:, 2]
                     nb = gmap.means.numpy() if gmap.n else None
                     sc = sd.seed_scales(pts, zc, math.sqrt(cam.fx * cam.fy), cfg, nb)

@@ -46,7 +46,6 @@ __all__ = [
     "PointKind", "SeedStatus", "KeyframeSeedInput", "FillPoints", "SeedCandidates", "SeedResult", "SeedPlan",
     "Coverage", "sample_pattern_colors", "backproject", "delaunay_fill", "make_candidates", "sample_alpha",
     "seed_scales", "gaussians_from_seeds", "plan_seeds", "render_coverage", "seed_keyframe",
-    "random_points_in_frusta",
 ]
 
 log = logging.getLogger(__name__)
@@ -625,38 +624,3 @@ def _replace(res: SeedResult, **changes) -> SeedResult:
 
 
 # ------------------------------------------------------------------------------------ random comparison
-def random_points_in_frusta(cameras, cam_to_worlds, images, n: int, depth_range: tuple[float, float],
-                            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` random points in the views' frusta with their colours: the initialisation MGSO compares against.
-
-    Each point picks a view uniformly, a pixel uniformly and a camera depth uniformly in ``depth_range`` (near, far,
-    world units); its colour is the view's image at that pixel. ``cameras``: one pinhole per view (or one for all);
-    ``cam_to_worlds`` (V, 4, 4); ``images`` (V, H, W, 3). Returns (points (n, 3) float64 world, colours (n, 3)
-    float32).
-    """
-    T = np.asarray(cam_to_worlds, dtype=np.float64).reshape(-1, 4, 4)
-    V = len(T)
-    if V == 0:
-        raise ValueError("random_points_in_frusta: no views")
-    cams = [_as_pinhole(c) for c in cameras] if isinstance(cameras, (list, tuple)) else [_as_pinhole(cameras)] * V
-    if len(cams) != V or len(images) != V:
-        raise ValueError(f"random_points_in_frusta: {V} poses, {len(cams)} cameras and {len(images)} images")
-    near, far = (float(d) for d in depth_range)
-    if not 0.0 < near < far:
-        raise ValueError(f"random_points_in_frusta: depth_range must satisfy 0 < near < far, got {depth_range}")
-    if n < 1:
-        raise ValueError(f"random_points_in_frusta: n must be >= 1, got {n}")
-    which = rng.integers(V, size=n)
-    points = np.empty((n, 3))
-    colors = np.empty((n, 3), np.float32)
-    for k in range(V):
-        sel = np.flatnonzero(which == k)
-        if len(sel) == 0:
-            continue
-        cam = cams[k]
-        u = rng.integers(cam.width, size=len(sel))
-        v = rng.integers(cam.height, size=len(sel))
-        z = rng.uniform(near, far, size=len(sel))
-        points[sel] = backproject(np.stack([u, v], axis=1), z, cam, T[k])
-        colors[sel] = np.asarray(images[k])[v, u]
-    return points, colors

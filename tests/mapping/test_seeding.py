@@ -408,18 +408,3 @@ def test_disabled_seeding_adds_nothing(seq, cam, rast, wp_device):
     gm = GaussianMap(100, 0, wp_device)
     r = sd.seed_keyframe(gm, rast, _message(seq, cam, _grid_points(cam)), SeedingConfig(enabled=False), 0)
     assert r.status is sd.SeedStatus.DISABLED and gm.n == 0
-
-
-# -------------------------------------------------------------------------------------------- random init
-def test_random_points_in_frusta(seq, cam, rng):
-    pts, cols = sd.random_points_in_frusta(cam, seq.cam_to_world, seq.images, 500, (1.0, 3.0), rng)
-    assert pts.shape == (500, 3) and cols.shape == (500, 3)
-    seen = np.zeros(500, bool)
-    for i in range(len(seq.cam_to_world)):
-        uv, z = _project(pts, cam, seq.cam_to_world[i])
-        inside = (z > 1.0 - 1e-9) & (z < 3.0 + 1e-9) & (uv[:, 0] > -0.5) & (uv[:, 0] < cam.width - 0.5)
-        inside &= (uv[:, 1] > -0.5) & (uv[:, 1] < cam.height - 0.5)
-        seen |= inside
-    assert seen.all()
-    with pytest.raises(ValueError, match="depth_range"):
-        sd.random_points_in_frusta(cam, seq.cam_to_world, seq.images, 5, (3.0, 1.0), rng)
