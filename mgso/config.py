@@ -346,6 +346,9 @@ class MapperConfig:
     seed_marginalized: bool = opt(True, "also seed from marginalised points (final depths) where the map is still "
                                         "empty, seen from their host keyframe (MGSO)")
     min_train_views: int = opt(1, "no training before this many keyframes reached the map")
+    opacity_reset: bool = opt(False, "keep mapping.densify's periodic opacity reset (3DGS); off: a reset makes the "
+                                     "whole map nearly transparent, so the next keyframes' visibility test would "
+                                     "seed everywhere again (SplaTAM and MGSO's seeding rule add by coverage)")
 
     def __post_init__(self):
         problems = []

@@ -53,7 +53,8 @@ from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.mapping.messages import KeyframeMessage, MapperMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, plan_seeds,
                                   render_coverage, seed_keyframe, seed_scales)
-from mgso.mapping.trainer import StepResult, Trainer
+from mgso.mapping.strategy import DefaultStrategy
+from mgso.mapping.trainer import StepResult, Trainer, TrainStep
 from mgso.mapping.views import LeastUsedSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
@@ -142,7 +143,10 @@ class Mapper:
         self.device = self.gmap.device
         self.views = ViewSet()
         self.sampler = LeastUsedSampler(self.cfg.newest_probability, seed=seed)
-        self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler, seed=seed)
+        densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
+        step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
+        self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
+                               train_step=step, seed=seed)
         self.observer = observer or Observer()
         self.stats = MapperStats()
         self.queue: queue.Queue = queue.Queue(maxsize=self.cfg.queue_size)
