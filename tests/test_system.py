@@ -287,3 +287,35 @@ def test_sigint_in_a_subprocess_writes_outputs(room, tmp_path):
     assert words[:2] == ["interrupted", "True"] and 7 <= int(words[2]) < 24 and int(words[3]) >= 2
     assert (tmp_path / "map.ply").is_file() and (tmp_path / "metrics.json").is_file()
     assert read_gaussians_ply(tmp_path / "map.ply").n > 0
+
+
+def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
+    """The runner's path of `mgso run` (progress observer, outputs, summary lines), with the oracle odometry."""
+    from mgso.runner import run_system
+
+    cfg = load_config(None, [*BASE, "mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=5",
+                             "system.eval_photo_slam=false"])
+    seq = open_sequence(str(room), config=cfg.input)
+    bars = []
+
+    class Bar:
+        def __init__(self, total, desc):
+            self.total, self.desc, self.n = total, desc, 0
+            bars.append(self)
+
+        def update(self, n=1):
+            self.n += n
+
+        def close(self):
+            pass
+
+    s = run_system(seq, cfg, tmp_path, OracleOdometry.from_sequence(seq, **ORACLE), odometry_name="oracle",
+                   progress=Bar)
+    assert s.ok and s.frames == 24 and bars[0].n == 24 and bars[0].total == 24
+    assert any(b.desc == "eval monogs" and b.n == b.total == 3 for b in bars)
+    names = {p.name for p in s.written}
+    assert {"trajectory.txt", "keyframes.txt", "map.ply", "points.ply", "metrics.json", "trajectory.png",
+            "renders"} <= names
+    text = "\n".join(s.lines())
+    assert "ATE" in text and "keyframes, Sim(3)" in text and "MonoGS protocol" in text and "Gaussians" in text
+    assert s.figures["num_gaussians"] > 0 and s.figures["psnr_monogs_db"] > 15
