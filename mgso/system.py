@@ -58,7 +58,7 @@ from mgso.mapping.mapper import Mapper, MapperStats
 from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
 from mgso.observers import Observer, ObserverList
 
-__all__ = ["Odometry", "OdometryFrame", "System", "SystemResult", "FrameLog", "PointCloud", "Player",
+__all__ = ["Odometry", "OdometryFrame", "DsoOdometry", "System", "SystemResult", "FrameLog", "PointCloud", "Player",
            "write_outputs", "METRICS_KEYS"]
 
 log = logging.getLogger(__name__)
@@ -560,3 +560,148 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
         metrics = json.load(fh)
     metrics["written"] = written
     return metrics
+
+
+# ------------------------------------------------------------------------------------ the DSO odometry
+class DsoOdometry:
+    """The DSO odometry (:class:`mgso.odometry.Odometry`: coarse tracker, window, initialiser) as an
+    :class:`Odometry` of the system: its observer events become mapper messages.
+
+    - ``on_keyframe`` -> :class:`~mgso.mapping.messages.KeyframeMessage`: the keyframe's RGB image and camera in the
+      odometry's image geometry (the pyramid crop), its pose in the common world, DSO's affine (a, b) and exposure
+      time, and DSO's points that see it: every active point of the window (depth refined by the window), projected
+      into the new keyframe (the depth map the coarse tracker tracks against; a new keyframe hosts no point with a
+      depth yet).
+    - ``on_window_optimized`` -> :class:`~mgso.mapping.messages.PoseUpdate` of every keyframe in the window (poses and
+      affine).
+    - ``on_points_marginalized`` -> :class:`~mgso.mapping.messages.MarginalizedPoints`, one per host keyframe, in the
+      common world.
+    - :meth:`finish`: the odometry's final poses of every keyframe, and the points still active.
+
+    ``camera``: the sequence's undistorted pinhole camera; ``config``: the full configuration; ``device``: Warp's;
+    ``observer``: also gets the odometry's own events (tracking loss, ...).
+    """
+
+    def __init__(self, camera, config: Config, *, device: str = "cpu", observer: Observer | None = None):
+        from mgso.camera import PinholeCamera
+        from mgso.odometry import Odometry as _Dso, geometry_for
+
+        self.geometry = geometry_for(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, config)
+        g = self.geometry
+        c = g.camera
+        self.camera = PinholeCamera(c.fx, c.fy, c.cx, c.cy, g.width, g.height)
+        self._events: list = []
+        fan = ObserverList([_EventLog(self._events)] + ([observer] if observer is not None else []))
+        self.dso = _Dso(g, config, device=device, observer=fan)
+        self.name = "DSO (mgso.odometry)"
+
+    # ------------------------------------------------------------------------------------------ messages
+    def _world_points(self, positions: np.ndarray, segment: int) -> np.ndarray:
+        S = self.dso.segment_similarity(segment)
+        return np.asarray(positions, np.float64) @ S[:3, :3].T + S[:3, 3]
+
+    def _keyframe_message(self, ev) -> KeyframeMessage | None:
+        w = self.dso.window
+        try:
+            slot = w.slot_of_keyframe(ev.keyframe_id)
+        except KeyError:       # marginalised within its own step (cannot happen with DSO's rule; be safe)
+            log.warning("keyframe %d left the window before it reached the map", ev.keyframe_id)
+            return None
+        if w.rgb_ is None:
+            raise RuntimeError("the odometry's window keeps no RGB images (keep_rgb=False): the map needs them")
+        c2w = np.asarray(ev.cam_to_world, np.float64)
+        pts = self._world_points(w.points_world(), ev.segment) if w.active.n else np.zeros((0, 3))
+        T = se3_inverse(c2w)
+        pc = pts @ T[:3, :3].T + T[:3, 3]
+        cam = self.camera
+        ok = pc[:, 2] > 1e-6
+        z = np.where(ok, pc[:, 2], 1.0)
+        uv = np.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+        exposure = float(w.exposure_[slot])
+        return KeyframeMessage(ev.keyframe_id, ev.frame_index, ev.timestamp, w.rgb_[slot], cam, c2w, uv[ok],
+                               1.0 / z[ok], affine=tuple(w.affine_[slot]),
+                               exposure_ms=exposure if exposure > 0 else None, segment=ev.segment)
+
+    def _pose_update(self, ev) -> PoseUpdate:
+        w = self.dso.window
+        aff = {}
+        for kid in ev.keyframe_ids:
+            try:
+                aff[int(kid)] = tuple(w.affine_[w.slot_of_keyframe(int(kid))])
+            except KeyError:
+                pass
+        return PoseUpdate({int(k): T for k, T in zip(ev.keyframe_ids, ev.cam_to_world)}, affine=aff)
+
+    def _points(self, marg) -> list[MarginalizedPoints]:
+        if not len(marg):
+            return []
+        pos = self._world_points(marg.positions, marg.segment)
+        hosts = np.asarray(marg.host_keyframe_ids)
+        return [MarginalizedPoints(pos[hosts == h], np.asarray(marg.colors)[hosts == h], host_keyframe_id=int(h))
+                for h in np.unique(hosts)]
+
+    def _drain(self) -> list:
+        out = []
+        for kind, ev in self._events:
+            if kind == "keyframe":
+                msg = self._keyframe_message(ev)
+                if msg is not None:
+                    out.append(msg)
+            elif kind == "window":
+                out.append(self._pose_update(ev))
+            elif kind == "points":
+                out += self._points(ev)
+        self._events.clear()
+        return out
+
+    # ------------------------------------------------------------------------------------------ protocol
+    def process(self, frame) -> OdometryFrame:
+        r = self.dso.process(frame)
+        rec = self.dso.frames[-1]
+        msgs = self._drain()
+        # DSO emits the keyframe after its window update: the mapper gets the keyframe first, then the poses
+        kfs = [m for m in msgs if isinstance(m, KeyframeMessage)]
+        rest = [m for m in msgs if not isinstance(m, KeyframeMessage)]
+        return OdometryFrame(r.index, r.timestamp, r.cam_to_world, is_keyframe=bool(kfs),
+                             affine=tuple(rec.affine), exposure_ms=getattr(frame, "exposure_ms", None),
+                             status=r.status.value, messages=tuple(kfs + rest),
+                             seconds=r.time_track_s + r.time_map_s)
+
+    def finish(self) -> list:
+        self.dso.finish()
+        out = self._drain()
+        kt = self.dso.keyframe_trajectory()
+        ids = sorted(self.dso.keyframes)
+        if ids:
+            out.append(PoseUpdate({k: T for k, T in zip(ids, kt.cam_to_world)}))
+        w = self.dso.window
+        if w.active.n:
+            seg = int(w.segment_[w.order[-1]]) if w.order else self.dso.segment
+            pos = self._world_points(w.points_world(), seg)
+            hosts = w.keyframe_id_[w.active.host]
+            for h in np.unique(hosts):
+                out.append(MarginalizedPoints(pos[hosts == h], w.active.rgb[hosts == h], host_keyframe_id=int(h)))
+        return out
+
+    def trajectory(self) -> Trajectory:
+        return self.dso.trajectory()
+
+    def keyframe_trajectory(self) -> Trajectory:
+        return self.dso.keyframe_trajectory()
+
+
+class _EventLog(Observer):
+    """Collects the odometry's events in order (the adapter turns them into messages after each frame)."""
+
+    def __init__(self, events: list):
+        self.events = events
+
+    def on_keyframe(self, ev) -> None:
+        self.events.append(("keyframe", ev))
+
+    def on_window_optimized(self, ev) -> None:
+        self.events.append(("window", ev))
+
+    def on_points_marginalized(self, ev) -> None:
+        self.events.append(("points", ev))

@@ -66,6 +66,11 @@ def test_messages_check_their_fields(seq, cam):
         PoseUpdate({3: np.ones((4, 4))})
     with pytest.raises(ValueError, match="colors"):
         MarginalizedPoints(np.zeros((4, 3)), np.zeros((3, 3)), 0)
+    drift = np.eye(4)
+    drift[:3, :3] += 1e-3 * np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, 1.0]])   # round-off of a chain
+    m = KeyframeMessage(0, 0, 0.0, seq.images[0], cam, drift, m.points_uv, m.idepths)
+    R = m.cam_to_world[:3, :3]
+    assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12 and np.abs(R - drift[:3, :3]).max() < 2e-3
     u = PoseUpdate({2: np.eye(4)}, affine={2: (0.1, 2.0)})
     assert u.keyframe_ids == [2] and u.affine[2] == (0.1, 2.0)
     with pytest.raises(TypeError):
