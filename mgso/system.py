@@ -173,6 +173,7 @@ class SystemResult:
     loop_seconds: float                 # wall time of the frame loop (first frame in -> last frame done)
     finish_seconds: float               # odometry.finish + the mapper's last messages and final refinement
     frames_lost: int = 0                # frames without a pose
+    keyframe_frames: list = field(default_factory=list)   # frame index of every keyframe sent to the map
 
     @property
     def tracking_fps(self) -> float:
@@ -280,12 +281,14 @@ class System:
         self.cloud = PointCloud()
         self.frame_log = FrameLog()
         self._keyframes = 0
+        self._keyframe_frames: list[int] = []
         self._pose_updates = 0
 
     def _dispatch(self, messages) -> None:
         for msg in messages:
             if isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
+                self._keyframe_frames.append(msg.frame_index)
                 self.observer.on_keyframe(msg)
             elif isinstance(msg, PoseUpdate):
                 self._pose_updates += 1
@@ -353,7 +356,7 @@ class System:
             pose_updates=self._pose_updates, interrupted=interrupted, trajectory=self.odometry.trajectory(),
             keyframe_trajectory=self.odometry.keyframe_trajectory(), frame_log=self.frame_log, cloud=self.cloud,
             mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s, finish_seconds=finish_s,
-            frames_lost=lost)
+            frames_lost=lost, keyframe_frames=list(self._keyframe_frames))
         self.observer.on_sequence_end(result)
         return result
 
@@ -365,6 +368,7 @@ class System:
                 self.cloud.add(msg)
             elif isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
+                self._keyframe_frames.append(msg.frame_index)
             self.mapper.submit(msg)
         self.mapper.stop(refine=not interrupted)
 
@@ -462,7 +466,9 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     tracked = [k for k in range(len(log_)) if log_.timestamp[k] in pose_at]
     tracked_idx = [log_.index[k] for k in tracked]
     pos_of = {log_.index[k]: k for k in tracked}
-    kf_idx = [log_.index[k] for k in range(len(log_)) if log_.is_keyframe[k]]
+    # keyframes = every frame that reached the map as a training view (DSO's first keyframe is announced frames
+    # after its own frame, when the initialiser succeeds: OdometryFrame.is_keyframe cannot say it)
+    kf_idx = sorted(set(result.keyframe_frames) | {log_.index[k] for k in range(len(log_)) if log_.is_keyframe[k]})
     cam = seq.calibration.output if seq is not None else None
     sc = cfg.system
 

@@ -319,3 +319,33 @@ def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
     text = "\n".join(s.lines())
     assert "ATE" in text and "keyframes, Sim(3)" in text and "MonoGS protocol" in text and "Gaussians" in text
     assert s.figures["num_gaussians"] > 0 and s.figures["psnr_monogs_db"] > 15
+
+
+class _LateFirstKeyframe:
+    """DSO announces its first keyframe (frame 0) only when the initialiser succeeds, frames later."""
+
+    def __init__(self, odo, delay=3):
+        self.odo, self.delay, self.held = odo, delay, ()
+
+    def process(self, frame):
+        import dataclasses
+
+        r = self.odo.process(frame)
+        if r.index == 0:
+            self.held = r.messages
+            return dataclasses.replace(r, messages=(), is_keyframe=False, cam_to_world=None, status="initializing")
+        if r.index == self.delay:
+            return dataclasses.replace(r, messages=self.held + r.messages)
+        return r
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)
+
+
+def test_late_announced_keyframes_are_not_evaluated_as_held_out(room, tmp_path):
+    result, metrics, system, *_ = _run(room, tmp_path, "mapping.mapper.iterations_per_keyframe=2",
+                                       "mapping.mapper.final_iterations=0", "system.eval_photo_slam=false",
+                                       "output.plot=false", odometry_wrapper=_LateFirstKeyframe)
+    assert result.keyframe_frames == [0, 4, 8, 12, 16, 20] and system.mapper.views[0].name.endswith("(frame 0)")
+    frames = [f["frame"] for f in metrics["render"][0]["frames"]]
+    assert 0 not in frames and frames == [5, 10, 15]
