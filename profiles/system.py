@@ -63,13 +63,16 @@ def _one(args) -> dict:
     out = Path(args.out) / f"{name}-{args.odometry}-{args.init}"
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
-    if args.odometry != "oracle":
-        raise SystemExit("only --odometry oracle exists until the DSO odometry is plugged into mgso.system")
-    try:
-        odo = OracleOdometry.from_sequence(seq, keyframe_every=args.keyframe_every, points=args.points,
-                                           idepth_noise=args.idepth_noise)
-    except ValueError as exc:
-        return {"skipped": str(exc)}
+    if args.odometry == "dso":
+        from mgso.system import DsoOdometry
+
+        odo = DsoOdometry(seq.calibration.output, cfg, device=device)
+    else:
+        try:
+            odo = OracleOdometry.from_sequence(seq, keyframe_every=args.keyframe_every, points=args.points,
+                                               idepth_noise=args.idepth_noise)
+        except ValueError as exc:
+            return {"skipped": str(exc)}
     system = System(odo, cfg, device=device)
     t0 = time.perf_counter()
     result = system.run(seq.frames())
@@ -86,11 +89,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("paths", nargs="*", help="sequences (default: the shared 7-Scenes and KITTI excerpts)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--odometry", default="oracle", choices=["oracle"])
+    ap.add_argument("--odometry", default="oracle", choices=["oracle", "dso"],
+                    help="dso: mgso.odometry through mgso.system.DsoOdometry; oracle: ground truth")
     ap.add_argument("--init", default="dso", choices=["dso", "random"])
     ap.add_argument("--downscale", type=int, default=2, help="divide the image size (2: 320x240 for 7-Scenes)")
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (0 = all)")
-    ap.add_argument("--keyframe-every", type=int, default=10, help="oracle: a keyframe every N frames")
+    ap.add_argument("--keyframe-every", type=int, default=10, help="oracle: a keyframe every N frames (DSO decides "
+                                                                   "its own)")
     ap.add_argument("--points", type=int, default=600, help="oracle: DSO points a keyframe")
     ap.add_argument("--idepth-noise", type=float, default=0.02, help="oracle: relative inverse-depth noise")
     ap.add_argument("--iterations-per-keyframe", type=int, default=20)
