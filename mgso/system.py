@@ -318,8 +318,9 @@ class System:
         interrupted = False
         processed, read, odo_s, lost = 0, 0, 0.0, 0
         t_loop = time.perf_counter()
+        it = iter(source)
         try:
-            for frame in source:
+            for frame in it:
                 read += 1
                 t0 = time.perf_counter()
                 r = self.odometry.process(frame)
@@ -333,6 +334,13 @@ class System:
         except KeyboardInterrupt:
             interrupted = True
             log.warning("interrupted after %d frames: finishing the odometry and writing what was done", processed)
+        except BaseException:
+            self._abort()
+            raise
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:        # stop the player's / the prefetch's thread now
+                close()
         loop_s = time.perf_counter() - t_loop
         t_fin = time.perf_counter()
         try:
@@ -359,6 +367,13 @@ class System:
             frames_lost=lost, keyframe_frames=list(self._keyframe_frames))
         self.observer.on_sequence_end(result)
         return result
+
+    def _abort(self) -> None:
+        """The run failed: stop the mapping thread without training (its own failure, if any, is logged)."""
+        try:
+            self.mapper.stop(refine=False, timeout=60)
+        except Exception:  # the original error is the one to raise
+            log.exception("stopping the mapper after a failure")
 
     def _dispatch_final(self, final, interrupted: bool) -> None:
         for msg in final:

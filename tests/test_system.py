@@ -349,3 +349,25 @@ def test_late_announced_keyframes_are_not_evaluated_as_held_out(room, tmp_path):
     assert result.keyframe_frames == [0, 4, 8, 12, 16, 20] and system.mapper.views[0].name.endswith("(frame 0)")
     frames = [f["frame"] for f in metrics["render"][0]["frames"]]
     assert 0 not in frames and frames == [5, 10, 15]
+
+
+class _Broken:
+    def __init__(self, odo):
+        self.odo = odo
+
+    def process(self, frame):
+        if frame.index == 6:
+            raise RuntimeError("odometry broke")
+        return self.odo.process(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)
+
+
+def test_an_odometry_failure_stops_the_mapping_thread_and_propagates(room):
+    cfg = load_config(None, [*BASE, "system.mode=realtime", "system.playback_speed=0"])
+    seq = open_sequence(str(room), config=cfg.input)
+    system = System(_Broken(OracleOdometry.from_sequence(seq, **ORACLE)), cfg)
+    with pytest.raises(RuntimeError, match="odometry broke"):
+        _in_thread(lambda: system.run(seq.frames()), timeout=60)
+    assert not system.mapper.running and system.mapper.stats.stopped_by == "interrupt"
