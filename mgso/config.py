@@ -206,6 +206,9 @@ class TrackingConfig:
     init_max_frames: int = opt(40, "give up an initialisation attempt after this many frames without enough "
                                    "parallax and retry from a newer first frame (DSO waits forever)")
     init_min_points: int = opt(50, "a first frame with fewer selected points (level 0) is not used")
+    init_max_rmse: float = opt(20.0, "give up an initialisation attempt when the level-0 RMSE exceeds this (the "
+                                     "first frame does not match the others; DSO resets when the first window's "
+                                     "RMSE exceeds 20)")
     # tracking loss
     lost_rmse_factor: float = opt(3.0, "tracking is lost when the RMSE exceeds this x the reference's first RMSE "
                                        "(DSO only detects non-finite results)")

@@ -121,7 +121,7 @@ class TrackingLost:
     segment: int  # the segment that ended
     reason: LossReason
     rmse: float
-    first_rmse: float
+    first_rmse: float  # the RMSE it was compared with (TrackResult.baseline_rmse)
     inlier_ratio: float
     message: str = ""
 
@@ -478,7 +478,7 @@ class Odometry:
             return LossReason.NO_HYPOTHESIS
         if not np.isfinite(tr.rmse0):
             return LossReason.NON_FINITE
-        base = max(tr.first_rmse, cfg.lost_min_rmse) if tr.first_rmse > 0 else cfg.lost_min_rmse
+        base = max(tr.baseline_rmse, cfg.lost_min_rmse)
         if tr.rmse0 > cfg.lost_rmse_factor * base:
             return LossReason.RESIDUAL
         if tr.inlier_ratio < cfg.lost_min_inlier_ratio:
@@ -486,9 +486,9 @@ class Odometry:
         return None
 
     def _lose(self, rec, pyr, exposure, rgb, tr: TrackResult, reason: LossReason) -> TrackedFrame:
-        ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, tr.first_rmse, tr.inlier_ratio,
-                          f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, first "
-                          f"{tr.first_rmse:.2f}, inliers {tr.inlier_ratio:.2f})")
+        ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, tr.baseline_rmse,
+                          tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
+                          f"first rmse {tr.baseline_rmse:.2f}, inliers {tr.inlier_ratio:.2f})")
         log.warning(ev.message)
         self.num_lost += 1
         rec.status = FrameStatus.LOST
@@ -518,10 +518,9 @@ class Odometry:
             pts = w.marginalize_points(np.ones(w.active.n, bool))
             self.observer.on_points_marginalized(pts)
         w.clear()
-        self.tracker.reference = None
+        self.tracker.set_reference(None)
         with self._ref_lock:
             self._pending_reference = None
-        self.tracker.last_rmse[:] = 100.0
         self.initialized = False
         self._frames_since_kf = 0
 

@@ -262,6 +262,8 @@ class TrackResult:
     num_reference_points: int  # level-0 points of the reference
     reference_keyframe_id: int
     first_rmse: float  # the reference's first RMSE (after this frame)
+    baseline_rmse: float  # the first RMSE known before this frame: this reference's, or the previous reference's
+    # when this is the first frame tracked against it (-1 when none); what a residual blow-up is measured against
 
     @property
     def cam_to_ref(self) -> np.ndarray:
@@ -297,11 +299,18 @@ class CoarseTracker:
             self.cams.append(make_intrinsics(c.fx, c.fy, c.cx, c.cy, wl, hl))
         self.reference: TrackingReference | None = None
         self.last_rmse = np.full(geometry.levels, 100.0)  # DSO lastCoarseRMSE (constructor: 100)
+        self._previous_first_rmse = -1.0
 
-    def set_reference(self, reference: TrackingReference) -> None:
-        """Swap in a new reference (DSO: ``coarseTracker_forNewKF`` becomes ``coarseTracker``)."""
-        if len(reference.levels) != self.geometry.levels:
+    def set_reference(self, reference: TrackingReference | None) -> None:
+        """Swap in a new reference (DSO: ``coarseTracker_forNewKF`` becomes ``coarseTracker``); ``None`` clears it
+        (a new tracking segment)."""
+        if reference is not None and len(reference.levels) != self.geometry.levels:
             raise ValueError("reference built for another pyramid")
+        if reference is None:
+            self._previous_first_rmse = -1.0
+            self.last_rmse[:] = 100.0
+        elif self.reference is not None and self.reference.first_rmse > 0:
+            self._previous_first_rmse = self.reference.first_rmse
         self.reference = reference
 
     # ------------------------------------------------------------------------------------------ one run
@@ -432,6 +441,7 @@ class CoarseTracker:
             raise ValueError("track_frame needs at least one hypothesis")
         c = self.config
         nlev = self.geometry.levels
+        baseline = ref.first_rmse if ref.first_rmse > 0 else self._previous_first_rmse
         achieved = np.full(nlev, np.nan)
         have_good = False
         best: LevelsResult | None = None
@@ -455,11 +465,11 @@ class CoarseTracker:
             T = np.asarray(hypotheses[0], dtype=np.float64)
             self.last_rmse = achieved
             return TrackResult(False, T, tuple(affine_init), achieved, (0.0, 0.0, 0.0), tried, iters, 0, 0,
-                               ref.num_points_l0, ref.keyframe_id, ref.first_rmse)
+                               ref.num_points_l0, ref.keyframe_id, ref.first_rmse, baseline)
         self.last_rmse = achieved.copy()
         if ref.first_rmse < 0:
             ref.first_rmse = float(achieved[0])
         s0 = best.stats0
         return TrackResult(True, best.ref_to_new, best.affine, achieved, best.flow, tried, iters,
                            s0.num_terms if s0 else 0, s0.num_inliers if s0 else 0, ref.num_points_l0,
-                           ref.keyframe_id, ref.first_rmse)
+                           ref.keyframe_id, ref.first_rmse, baseline)

@@ -131,9 +131,10 @@ MAX_BFS_STEPS = 40  # DSO growDistBFS: k < 40; unreached pixels stay at 1000
 
 
 def distance_map(seeds: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """DSO ``CoarseDistanceMap``: ``[h, w]`` float32 steps to the nearest seed (``seeds [N, 2]`` integer ``(x,
-    y)``), growing by 8-neighbours on odd steps and 4-neighbours on even ones (an octagonal distance), 1000 beyond
-    39 steps."""
+    """DSO ``CoarseDistanceMap::makeDistanceMap``: ``[h, w]`` float32 breadth-first steps to the nearest seed
+    (``seeds [N, 2]`` integer ``(x, y)``). As DSO's ``growDistBFS``: only the pixels reached in the previous step
+    grow, by their 8 neighbours on odd steps and their 4 neighbours on even ones (an octagonal distance); pixels on
+    the image border are reached but do not grow; 1000 beyond 39 steps."""
     h, w = shape
     out = np.full((h, w), 1000.0, np.float32)
     reached = np.zeros((h, w), bool)
@@ -142,13 +143,17 @@ def distance_map(seeds: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     out[reached] = 0.0
     if not reached.any():
         return out
+    interior = np.zeros((h, w), bool)
+    interior[1:h - 1, 1:w - 1] = True
+    frontier = reached.copy()
     for k in range(1, MAX_BFS_STEPS):
-        grown = ndimage.binary_dilation(reached, structure=_SQUARE if k % 2 else _CROSS)
+        grown = ndimage.binary_dilation(frontier & interior, structure=_SQUARE if k % 2 else _CROSS)
         new = grown & ~reached
         if not new.any():
             break
         out[new] = k
-        reached = grown
+        reached |= new
+        frontier = new
     return out
 
 

@@ -18,7 +18,8 @@ inverse depths eliminated by a Schur complement, Levenberg-Marquardt damping, DS
 Deviation from DSO, on purpose: ``optReg`` updates all points of a level at once from the previous smoothed values
 (DSO updates them one after the other in place, so a point may see a neighbour's new value); the outcome differs
 only in the order of averaging. DSO never gives up; mgso reports ``FAILED`` after ``init_max_frames`` frames without
-enough parallax, or when the first frame has too few points, and the odometry retries from a newer frame.
+enough parallax, when the level-0 RMSE exceeds ``init_max_rmse`` (the frames do not match the first one), or when
+the first frame has too few points, and the odometry retries from a newer frame.
 """
 
 from __future__ import annotations
@@ -365,6 +366,9 @@ class CoarseInitializer:
         if not done and not self.snapped and self.frame_id >= cfg.init_max_frames:
             status = InitStatus.FAILED
             msg = f"no parallax after {self.frame_id} frames (translation {np.linalg.norm(T[:3, 3]):.4f})"
+        if not done and not (rmse <= cfg.init_max_rmse):
+            status = InitStatus.FAILED
+            msg = f"level-0 RMSE {rmse:.1f} above init_max_rmse {cfg.init_max_rmse:g}: the frames do not match"
         if not np.all(np.isfinite(T)):
             status = InitStatus.FAILED
             msg = "the initialiser's pose became non-finite"
