@@ -203,12 +203,16 @@ class TrackingConfig:
                                            "snapping (couplingWeight)")
     init_frames_after_snap: int = opt(5, "frames tracked after enough parallax before initialising "
                                          "(trackFrame: frameID > snappedAt + 5)")
+    init_done_translation: float = opt(0.1, "the initialisation also ends, before init_frames_after_snap, once the "
+                                            "translation reaches this (scene units: mean inverse depth 1), so fast "
+                                            "motion (a car) does not lose the overlap; handheld motion rarely gets "
+                                            "there first (mgso; DSO only counts frames)")
     init_max_frames: int = opt(40, "give up an initialisation attempt after this many frames without enough "
                                    "parallax and retry from a newer first frame (DSO waits forever)")
     init_min_points: int = opt(50, "a first frame with fewer selected points (level 0) is not used")
-    init_max_rmse: float = opt(20.0, "give up an initialisation attempt when the level-0 RMSE exceeds this (the "
-                                     "first frame does not match the others; DSO resets when the first window's "
-                                     "RMSE exceeds 20)")
+    init_max_rmse: float = opt(25.0, "give up an initialisation attempt when the level-0 RMSE exceeds this (the "
+                                     "first frame does not match the others: a frame of noise gives 30-35; KITTI "
+                                     "initialises at 14-17; DSO resets when the first window's RMSE exceeds 20)")
     # tracking loss
     lost_rmse_factor: float = opt(3.0, "tracking is lost when the RMSE exceeds this x the reference's first RMSE "
                                        "(DSO only detects non-finite results)")

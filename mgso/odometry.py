@@ -46,7 +46,7 @@ from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinh
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 
 from .config import Config
-from .geometry import se3_inverse
+from .geometry import se3_exp, se3_inverse, se3_log
 from .io.trajectory import Trajectory
 from .observers import Observer
 from .tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
@@ -271,6 +271,7 @@ class Odometry:
         self._last_good: FrameRecord | None = None  # last frame with a pose (chaining segments)
         self._last_median_depth = float("nan")
         self._frames_since_kf = 0
+        self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -387,11 +388,16 @@ class Odometry:
             anchor = self._last_good.cam_to_world.copy()
             med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
             if np.isfinite(self._last_median_depth) and np.isfinite(med_new) and med_new > 0:
-                s = self._last_median_depth / med_new
+                # keep the scale within a sane range: a broken last reference must not collapse the new segment
+                s = float(np.clip(self._last_median_depth / med_new, 0.05, 20.0))
                 idepth = idepth / s
                 rescale = rescale / s
         first_to_new = tracked.initialize.first_to_new.copy()
         first_to_new[:3, 3] /= rescale
+        # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
+        # the identity there, which fails at car speed)
+        n_frames = max(int(tracked.initialize.frames), 1)
+        self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
         g = self.geometry
@@ -450,6 +456,8 @@ class Odometry:
         last = prev.cam_to_world if prev is not None and prev.pose_valid and prev.segment == self.segment else None
         prelast = (prev2.cam_to_world if prev2 is not None and prev2.pose_valid and prev2.segment == self.segment
                    else None)
+        if last is not None and prelast is None and self._init_step is not None:
+            prelast = last @ se3_inverse(self._init_step)  # right after initialisation: its mean motion
         hyps = motion_hypotheses(ref_c2w, last, prelast, rotations=cfg.coarse_rotation_hypotheses,
                                  rotation_delta=cfg.coarse_rotation_delta)
         aff0 = prev.affine if (prev is not None and prev.pose_valid) else (0.0, 0.0)

@@ -11,8 +11,9 @@ inverse depths eliminated by a Schur complement, Levenberg-Marquardt damping, DS
   reg_weight)`` its own plus ``reg_weight`` the median of its neighbours' (``optReg``).
 - After each frame the depths are propagated up the pyramid (Hessian-weighted means of the children) so the next
   frame starts from them; at the start of each level they are propagated down from the parents.
-- When the frame that snapped is followed by ``init_frames_after_snap`` more frames, :meth:`CoarseInitializer.
-  track_frame` answers ``INITIALIZED``; the odometry then takes the first frame and this one as the first two
+- When the frame that snapped is followed by ``init_frames_after_snap`` more frames (or, mgso's addition for fast
+  motion, once the translation reaches ``init_done_translation``), :meth:`CoarseInitializer.track_frame` answers
+  ``INITIALIZED``; the odometry then takes the first frame and this one as the first two
   keyframes and the level-0 points (inverse depths scaled to a mean of 1, as DSO) as the first active points.
 
 Deviation from DSO, on purpose: ``optReg`` updates all points of a level at once from the previous smoothed values
@@ -360,7 +361,8 @@ class CoarseInitializer:
             self.snapped_at = self.frame_id
         p0 = self.points[0]
         rmse = math.sqrt(res_old[0] / max(res_old[2], 1) / 8.0)
-        done = self.snapped and self.frame_id > self.snapped_at + cfg.init_frames_after_snap
+        done = self.snapped and (self.frame_id > self.snapped_at + cfg.init_frames_after_snap
+                                 or np.linalg.norm(T[:3, 3]) >= cfg.init_done_translation)
         status = InitStatus.INITIALIZED if done else InitStatus.TRACKING
         msg = ""
         if not done and not self.snapped and self.frame_id >= cfg.init_max_frames:
