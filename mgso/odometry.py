@@ -272,6 +272,7 @@ class Odometry:
         self._last_median_depth = float("nan")
         self._frames_since_kf = 0
         self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
+        self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -397,6 +398,7 @@ class Odometry:
         # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
         # the identity there, which fails at car speed)
         n_frames = max(int(tracked.initialize.frames), 1)
+        self._init_rmse = float(tracked.initialize.rmse) if np.isfinite(tracked.initialize.rmse) else -1.0
         self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
@@ -486,7 +488,8 @@ class Odometry:
             return LossReason.NO_HYPOTHESIS
         if not np.isfinite(tr.rmse0):
             return LossReason.NON_FINITE
-        base = max(tr.baseline_rmse, cfg.lost_min_rmse)
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse  # a new segment: the init's
+        base = max(baseline, cfg.lost_min_rmse)
         if tr.rmse0 > cfg.lost_rmse_factor * base:
             return LossReason.RESIDUAL
         if tr.inlier_ratio < cfg.lost_min_inlier_ratio:
@@ -494,9 +497,10 @@ class Odometry:
         return None
 
     def _lose(self, rec, pyr, exposure, rgb, tr: TrackResult, reason: LossReason) -> TrackedFrame:
-        ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, tr.baseline_rmse,
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
+        ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, baseline,
                           tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
-                          f"first rmse {tr.baseline_rmse:.2f}, inliers {tr.inlier_ratio:.2f})")
+                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f})")
         log.warning(ev.message)
         self.num_lost += 1
         rec.status = FrameStatus.LOST
