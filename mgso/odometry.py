@@ -24,10 +24,15 @@ is mapped and again by :meth:`finish` with the keyframes' final poses. Frames be
 have no pose.
 
 **Segments.** After a tracking loss the window is emptied (its points go to the point cloud), the initialiser starts
-again, and a new segment begins. A new segment is chained to the last good pose of the previous one: its first
-keyframe gets that frame's ``cam_to_world`` (the camera is assumed not to have moved while lost), and its scale,
-which monocular odometry cannot know, is set so that the median depth of its first points equals the median depth
-of the previous segment's last tracking reference. Every frame carries its segment number.
+again, and a new segment begins. Inside the odometry every segment lives in its own frame, as DSO's does after a
+reset: the segment's first keyframe at the origin, inverse depths of mean 1 (DSO's thresholds assume that scale).
+For output the segments are chained: segment ``k > 0`` is mapped into the common world by a similarity
+(:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last good pose of segment ``k - 1`` (the
+camera is assumed not to have moved while lost) and sets its scale, which monocular odometry cannot know, so that the
+median depth of its first points equals the median depth of the previous segment's last tracking reference.
+:attr:`FrameRecord.cam_to_world` and :attr:`KeyframeRecord.cam_to_world` are in the segment's frame; the
+trajectories, :class:`FrameResult`, the observer events and :meth:`Odometry.point_cloud_world` are in the common
+world. Every frame carries its segment number.
 """
 
 from __future__ import annotations
@@ -85,7 +90,8 @@ class LossReason(str, Enum):
 
 @dataclass
 class FrameRecord:
-    """Per frame (DSO ``FrameShell``). ``cam_to_world`` is None while the frame has no pose."""
+    """Per frame (DSO ``FrameShell``). ``cam_to_world`` (in its segment's frame) is None while the frame has no
+    pose."""
 
     index: int
     timestamp: float
@@ -104,6 +110,8 @@ class FrameRecord:
 
 @dataclass
 class KeyframeRecord:
+    """Per keyframe; ``cam_to_world`` in its segment's frame (the window's estimate while in the window)."""
+
     keyframe_id: int
     frame_index: int
     timestamp: float
@@ -160,7 +168,7 @@ class FrameResult:
     timestamp: float
     status: FrameStatus
     segment: int
-    cam_to_world: np.ndarray | None  # pose at tracking time (refined later; see Odometry.frames)
+    cam_to_world: np.ndarray | None  # pose at tracking time in the common world (refined later; Odometry.frames)
     is_keyframe: bool
     keyframe_reason: str = ""
     track: TrackResult | None = None
@@ -269,7 +277,8 @@ class Odometry:
         self._ref_lock = threading.Lock()
         self._pending_reference: TrackingReference | None = None
         self._last_good: FrameRecord | None = None  # last frame with a pose (chaining segments)
-        self._last_median_depth = float("nan")
+        self._last_median_depth = float("nan")  # of the last tracking reference, in its segment's units
+        self._segment_sim: dict[int, np.ndarray] = {0: np.eye(4)}  # segment frame -> common world (Sim3 4x4)
         self._frames_since_kf = 0
         self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
@@ -331,22 +340,59 @@ class Odometry:
                 self.keyframes[kid].cam_to_world = w.cam_to_world(s)
         self._rechain_frames()
 
+    def segment_similarity(self, segment: int) -> np.ndarray:
+        """4x4 similarity ``[[s R, t], [0, 1]]`` from a segment's frame to the common world (identity for 0)."""
+        return self._segment_sim.get(int(segment), np.eye(4))
+
+    def to_world(self, segment: int, cam_to_world: np.ndarray) -> np.ndarray:
+        """A camera pose of ``segment`` in the common world (a rigid pose: the similarity's scale moves the camera
+        centre only)."""
+        S = self.segment_similarity(segment)
+        if segment == 0 or np.allclose(S, np.eye(4)):
+            return np.asarray(cam_to_world, dtype=np.float64).copy()
+        sc = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        R = S[:3, :3] / sc
+        out = np.eye(4)
+        out[:3, :3] = R @ cam_to_world[:3, :3]
+        out[:3, 3] = S[:3, :3] @ cam_to_world[:3, 3] + S[:3, 3]
+        return out
+
     def trajectory(self) -> Trajectory:
-        """Every frame with a pose (TUM-ready ``cam_to_world``)."""
+        """Every frame with a pose, camera-to-world in the common world (segments chained)."""
         good = [f for f in self.frames if f.pose_valid]
         if not good:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array([f.timestamp for f in good]), np.stack([f.cam_to_world for f in good]))
+        return Trajectory(np.array([f.timestamp for f in good]),
+                          np.stack([self.to_world(f.segment, f.cam_to_world) for f in good]))
 
     def keyframe_trajectory(self) -> Trajectory:
+        """The keyframes, camera-to-world in the common world."""
         kfs = sorted(self.keyframes.values(), key=lambda k: k.keyframe_id)
         if not kfs:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array([k.timestamp for k in kfs]), np.stack([k.cam_to_world for k in kfs]))
+        return Trajectory(np.array([k.timestamp for k in kfs]),
+                          np.stack([self.to_world(k.segment, k.cam_to_world) for k in kfs]))
 
     @property
     def point_cloud(self):
+        """The window's marginalised points (each in its segment's frame; see :meth:`point_cloud_world`)."""
         return self.window.cloud
+
+    def point_cloud_world(self, include_active: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions [M, 3], colours [M, 3])`` of the marginalised points (and, by default, the active ones) in
+        the common world."""
+        cloud = self.window.cloud
+        pos, col, seg = cloud.positions.astype(np.float64), cloud.colors, cloud.segments
+        if include_active and self.window.active.n:
+            pos = np.concatenate([pos, self.window.points_world()])
+            col = np.concatenate([col, self.window.active.rgb])
+            seg = np.concatenate([seg, np.full(self.window.active.n, self.segment)])
+        out = pos.copy()
+        for sg in np.unique(seg):
+            S = self.segment_similarity(int(sg))
+            m = seg == sg
+            out[m] = pos[m] @ S[:3, :3].T + S[:3, 3]
+        return out.astype(np.float32), col
 
     # ------------------------------------------------------------------------------------ initialisation
     def _track_initializer(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
@@ -384,15 +430,8 @@ class Odometry:
         rescale = 1.0 / ((float(np.sum(iR)) + 1e-5) / (len(iR) + 1e-5))
         idepth = iR * rescale
         # chain a new segment to the last good pose, at the previous segment's scale
-        anchor = np.eye(4)
-        if self._last_good is not None and self.segment > 0:
-            anchor = self._last_good.cam_to_world.copy()
-            med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
-            if np.isfinite(self._last_median_depth) and np.isfinite(med_new) and med_new > 0:
-                # keep the scale within a sane range: a broken last reference must not collapse the new segment
-                s = float(np.clip(self._last_median_depth / med_new, 0.05, 20.0))
-                idepth = idepth / s
-                rescale = rescale / s
+        if self.segment > 0 and self.segment not in self._segment_sim:
+            self._segment_sim[self.segment] = self._chain_segment(idepth)
         first_to_new = tracked.initialize.first_to_new.copy()
         first_to_new[:3, 3] /= rescale
         # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
@@ -405,7 +444,7 @@ class Odometry:
         g = self.geometry
         inside = (xy[:, 0] >= 3) & (xy[:, 0] < g.width - 4) & (xy[:, 1] >= 3) & (xy[:, 1] < g.height - 4)
         xy, idepth, typ = xy[inside], idepth[inside], typ[inside]
-        c2w_first = anchor
+        c2w_first = np.eye(4)  # each segment starts at its own origin (see the module text)
         first_rec.cam_to_world = c2w_first
         first_rec.status = FrameStatus.FIRST_FRAME
         first_rec.segment = self.segment
@@ -419,16 +458,35 @@ class Odometry:
         ok = pat.valid
         w.add_active_points(host=np.full(int(ok.sum()), slot0), uv=xy[ok], idepth=idepth[ok], color=pat.color[ok],
                             weight=pat.weight[ok], type=typ[ok], has_depth_prior=True)
-        self.observer.on_keyframe(KeyframeEvent(kid0, first_rec.index, first_rec.timestamp, self.segment, c2w_first,
-                                                KeyframeReason.FIRST.value, None, 0, w.describe()))
+        self.observer.on_keyframe(KeyframeEvent(kid0, first_rec.index, first_rec.timestamp, self.segment,
+                                                self.to_world(self.segment, c2w_first), KeyframeReason.FIRST.value,
+                                                None, 0, w.describe()))
         rec = tracked.record
         rec.cam_to_tracking_ref = se3_inverse(first_to_new)
         rec.tracking_ref = kid0
         rec.cam_to_world = c2w_first @ rec.cam_to_tracking_ref
         rec.affine = (0.0, 0.0)
-        tracked.result.cam_to_world = rec.cam_to_world
+        tracked.result.cam_to_world = self.to_world(self.segment, rec.cam_to_world)
         self.initialized = True
         self._make_keyframe(tracked)
+
+    def _chain_segment(self, idepth: np.ndarray) -> np.ndarray:
+        """The similarity of a new segment: its origin at the previous segment's last good pose (common world),
+        its scale matching that segment's last median depth (clamped to [0.05, 20] against a broken reference)."""
+        last = self._last_good
+        if last is None or last.cam_to_world is None:
+            return np.eye(4)
+        anchor = self.to_world(last.segment, last.cam_to_world)
+        prev = self.segment_similarity(last.segment)
+        s_prev = float(np.cbrt(np.linalg.det(prev[:3, :3])))
+        med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
+        s = 1.0
+        if np.isfinite(self._last_median_depth) and np.isfinite(med_new) and med_new > 0:
+            s = float(np.clip(s_prev * self._last_median_depth / med_new, 0.05, 20.0))
+        S = np.eye(4)
+        S[:3, :3] = s * anchor[:3, :3]
+        S[:3, 3] = anchor[:3, 3]
+        return S
 
     # ---------------------------------------------------------------------------------------- tracking
     def _offer_reference(self, ref: TrackingReference) -> None:
@@ -476,7 +534,8 @@ class Odometry:
         a_rel, _ = affine_from_to(ref.affine[0], ref.affine[1], tr.affine[0], tr.affine[1], ref.exposure, exposure)
         self._frames_since_kf += 1
         dec: KeyframeDecision = self.policy.decide(tr.flow, a_rel, tr.rmse0, ref.first_rmse, self._frames_since_kf)
-        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment, rec.cam_to_world, dec.need,
+        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment,
+                             self.to_world(rec.segment, rec.cam_to_world), dec.need,
                              dec.reason.value if dec.need else "", track=tr)
         return TrackedFrame(rec, pyr, exposure, rgb, dec.need, dec.reason.value, result)
 
@@ -587,11 +646,14 @@ class Odometry:
         for kid_r in removed:
             if kid_r in self.keyframes:
                 self.keyframes[kid_r].in_window = False
-        self.observer.on_keyframe(KeyframeEvent(kid, rec.index, rec.timestamp, self.segment, rec.cam_to_world.copy(),
-                                                tracked.reason, act, n_new, w.describe()))
+        self.observer.on_keyframe(KeyframeEvent(kid, rec.index, rec.timestamp, self.segment,
+                                                self.to_world(self.segment, rec.cam_to_world), tracked.reason, act,
+                                                n_new, w.describe()))
+        S = self.segment_similarity(self.segment)
         self.observer.on_window_optimized(WindowUpdate(
-            [int(w.keyframe_id_[s]) for s in w.order], np.stack([w.cam_to_world(s) for s in w.order]),
-            w.points_world().astype(np.float32), w.active.rgb.copy(), opt))
+            [int(w.keyframe_id_[s]) for s in w.order],
+            np.stack([self.to_world(self.segment, w.cam_to_world(s)) for s in w.order]),
+            (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
 

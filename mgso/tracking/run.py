@@ -82,10 +82,7 @@ def run_tracking(seq, cfg: Config, out_dir: Path, summary, progress, observers=(
     summary.written += [out_dir / "trajectory.txt", out_dir / "keyframes.txt"]
     _write_frames_csv(out_dir / "frames.csv", odo, stats)
     summary.written.append(out_dir / "frames.csv")
-    cloud = odo.window.cloud
-    pts = np.concatenate([cloud.positions, odo.window.points_world().astype(np.float32)]) if odo.window.active.n \
-        else cloud.positions
-    cols = np.concatenate([cloud.colors, odo.window.active.rgb]) if odo.window.active.n else cloud.colors
+    pts, cols = odo.point_cloud_world()
     from ..io.ply import write_point_cloud_ply
 
     write_point_cloud_ply(out_dir / "points.ply", pts, cols)
@@ -126,7 +123,8 @@ def run_tracking(seq, cfg: Config, out_dir: Path, summary, progress, observers=(
             for s in range(odo.segment + 1):
                 fr = [f for f in odo.frames if f.pose_valid and f.segment == s]
                 if len(fr) >= 3 and odo.segment > 0:
-                    st = Trajectory(np.array([f.timestamp for f in fr]), np.stack([f.cam_to_world for f in fr]))
+                    st = Trajectory(np.array([f.timestamp for f in fr]),
+                                    np.stack([odo.to_world(s, f.cam_to_world) for f in fr]))
                     a = compute_ate(st, gt, align="sim3", label=f"segment {s}")
                     segs[str(s)] = {"frames": len(fr), "ate_rmse": a.rmse}
             if segs:

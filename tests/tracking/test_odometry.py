@@ -111,11 +111,21 @@ def test_bad_input_is_a_reported_loss_with_recovery(wp_device, seq160, seq_jump,
     seg1 = [f for f in odo.frames if f.segment >= 1 and f.pose_valid]
     assert len(seg1) >= 8 and results[-1].status == FrameStatus.TRACKED
     assert odo.segment >= 1 and results[-1].segment == odo.segment
-    # the new segment starts where the old one ended (chained to the last good pose)
+    # each segment lives in its own frame (origin at its first keyframe) ...
     last_good = [f for f in odo.frames if f.segment == 0 and f.pose_valid][-1]
     first_new = min(seg1, key=lambda f: f.index)
     assert first_new.status == FrameStatus.FIRST_FRAME
-    np.testing.assert_allclose(first_new.cam_to_world, last_good.cam_to_world, atol=1e-9)
+    np.testing.assert_allclose(first_new.cam_to_world, np.eye(4), atol=1e-12)
+    # ... and is chained, for output, to where the old one ended (the last good pose)
+    np.testing.assert_allclose(odo.to_world(first_new.segment, first_new.cam_to_world),
+                               odo.to_world(0, last_good.cam_to_world), atol=1e-9)
+    S = odo.segment_similarity(first_new.segment)
+    scale = np.cbrt(np.linalg.det(S[:3, :3]))
+    assert 0.05 <= scale <= 20 and np.isfinite(S).all()
+    traj = odo.trajectory()
+    assert len(traj) == sum(f.pose_valid for f in odo.frames)
+    R = traj.cam_to_world[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-6)
     if kind != "jump":  # same scene, same path: the whole trajectory is still consistent after a Sim(3)
         gt = seq160.trajectory
         ate = compute_ate(odo.trajectory(), gt)
