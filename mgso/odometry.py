@@ -86,6 +86,7 @@ class LossReason(str, Enum):
     NO_HYPOTHESIS = "no_hypothesis"  # no motion hypothesis converged within the checks
     RESIDUAL = "residual"  # RMSE above lost_rmse_factor x the reference's first RMSE
     INLIERS = "inliers"  # too few reference points within the cutoff
+    JUMP = "jump"  # moved farther from the reference than lost_max_translation x its median depth
 
 
 @dataclass
@@ -553,6 +554,10 @@ class Odometry:
             return LossReason.RESIDUAL
         if tr.inlier_ratio < cfg.lost_min_inlier_ratio:
             return LossReason.INLIERS
+        ref = self.tracker.reference
+        if not np.isfinite(ref.median_depth) or \
+                np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * ref.median_depth:
+            return LossReason.JUMP
         return None
 
     def _lose(self, rec, pyr, exposure, rgb, tr: TrackResult, reason: LossReason) -> TrackedFrame:
