@@ -55,7 +55,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Iterable
 
 import numpy as np
 import warp as wp
@@ -647,8 +646,3 @@ def _inverse(T: np.ndarray) -> np.ndarray:
     out[:3, 3] = -R.T @ t
     return out
 
-
-def iter_host_groups(host: np.ndarray) -> Iterable[tuple[int, np.ndarray]]:
-    """``(slot, indices)`` for each distinct host slot in ``host``."""
-    for s in np.unique(host):
-        yield int(s), np.flatnonzero(host == s)
