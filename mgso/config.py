@@ -221,8 +221,9 @@ class TrackingConfig:
     lost_min_inlier_ratio: float = opt(0.25, "tracking is lost when fewer than this share of the reference's "
                                              "level-0 points project into the frame within the cutoff")
     lost_max_translation: float = opt(2.0, "tracking is lost when the frame is farther from its reference keyframe "
-                                           "than this x the reference's median depth (a degenerate map of points "
-                                           "at infinity leaves the translation free to run away)")
+                                           "than this x the median depth (the reference's, or the segment's first "
+                                           "points' when smaller: a map drifted towards infinity leaves the "
+                                           "translation free to run away)")
 
     def __post_init__(self):
         if self.pyramid_size_mode not in ("crop", "pad"):

@@ -27,8 +27,9 @@ have no pose.
 again, and a new segment begins. Inside the odometry every segment lives in its own frame, as DSO's does after a
 reset: the segment's first keyframe at the origin, inverse depths of mean 1 (DSO's thresholds assume that scale).
 For output the segments are chained: segment ``k > 0`` is mapped into the common world by a similarity
-(:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last good pose of segment ``k - 1`` (the
-camera is assumed not to have moved while lost) and sets its scale, which monocular odometry cannot know, so that the
+(:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last reliable pose of segment ``k - 1``
+(inlier ratio at least 0.5 and RMSE within ``kf_rmse_factor`` x the first RMSE; the frames just before a loss are
+often already wrong; the camera is assumed not to have moved since) and sets its scale, which monocular odometry cannot know, so that the
 median depth of its first points equals the median depth of the previous segment's last tracking reference.
 :attr:`FrameRecord.cam_to_world` and :attr:`KeyframeRecord.cam_to_world` are in the segment's frame; the
 trajectories, :class:`FrameResult`, the observer events and :meth:`Odometry.point_cloud_world` are in the common
@@ -276,12 +277,13 @@ class Odometry:
         self.num_lost = 0
         self._ref_lock = threading.Lock()
         self._pending_reference: TrackingReference | None = None
-        self._last_good: FrameRecord | None = None  # last frame with a pose (chaining segments)
+        self._last_good: FrameRecord | None = None  # last reliably tracked frame (chaining segments)
         self._last_median_depth = float("nan")  # of the last tracking reference, in its segment's units
         self._segment_sim: dict[int, np.ndarray] = {0: np.eye(4)}  # segment frame -> common world (Sim3 4x4)
         self._frames_since_kf = 0
         self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
+        self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -429,7 +431,7 @@ class Odometry:
         xy, iR, typ = ini.level0_points()
         rescale = 1.0 / ((float(np.sum(iR)) + 1e-5) / (len(iR) + 1e-5))
         idepth = iR * rescale
-        # chain a new segment to the last good pose, at the previous segment's scale
+        # a new segment lives in its own frame; its chaining similarity is computed here
         if self.segment > 0 and self.segment not in self._segment_sim:
             self._segment_sim[self.segment] = self._chain_segment(idepth)
         first_to_new = tracked.initialize.first_to_new.copy()
@@ -439,6 +441,8 @@ class Odometry:
         n_frames = max(int(tracked.initialize.frames), 1)
         self._init_rmse = float(tracked.initialize.rmse) if np.isfinite(tracked.initialize.rmse) else -1.0
         self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
+        pos = idepth > 0
+        self._segment_median_depth = float(np.median(1.0 / idepth[pos])) if pos.any() else float("inf")
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
         g = self.geometry
@@ -471,7 +475,7 @@ class Odometry:
         self._make_keyframe(tracked)
 
     def _chain_segment(self, idepth: np.ndarray) -> np.ndarray:
-        """The similarity of a new segment: its origin at the previous segment's last good pose (common world),
+        """The similarity of a new segment: its origin at the previous segment's last reliable pose (common world),
         its scale matching that segment's last median depth (clamped to [0.05, 20] against a broken reference)."""
         last = self._last_good
         if last is None or last.cam_to_world is None:
@@ -530,7 +534,9 @@ class Odometry:
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
         rec.cam_to_world = ref_c2w @ tr.cam_to_ref
-        self._last_good = rec
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
+        if tr.inlier_ratio >= 0.5 and (baseline <= 0 or tr.rmse0 <= cfg.kf_rmse_factor * baseline):
+            self._last_good = rec  # a reliable pose: where a later segment would be chained
         a_rel, _ = affine_from_to(ref.affine[0], ref.affine[1], tr.affine[0], tr.affine[1], ref.exposure, exposure)
         self._frames_since_kf += 1
         dec: KeyframeDecision = self.policy.decide(tr.flow, a_rel, tr.rmse0, ref.first_rmse, self._frames_since_kf)
@@ -554,8 +560,8 @@ class Odometry:
         if tr.inlier_ratio < cfg.lost_min_inlier_ratio:
             return LossReason.INLIERS
         ref = self.tracker.reference
-        if not np.isfinite(ref.median_depth) or \
-                np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * ref.median_depth:
+        depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
+        if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
             return LossReason.JUMP
         return None
 
