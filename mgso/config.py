@@ -220,6 +220,8 @@ class TrackingConfig:
                                     "does not make small residuals a loss")
     lost_min_inlier_ratio: float = opt(0.25, "tracking is lost when fewer than this share of the reference's "
                                              "level-0 points project into the frame within the cutoff")
+    lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
+                                     "that has lost its points leaves the pose unconstrained however small the RMSE)")
     lost_max_translation: float = opt(2.0, "tracking is lost when the frame is farther from its reference keyframe "
                                            "than this x the median depth (the reference's, or the segment's first "
                                            "points' when smaller: a map drifted towards infinity leaves the "

@@ -557,7 +557,7 @@ class Odometry:
         base = max(baseline, cfg.lost_min_rmse)
         if tr.rmse0 > cfg.lost_rmse_factor * base:
             return LossReason.RESIDUAL
-        if tr.inlier_ratio < cfg.lost_min_inlier_ratio:
+        if tr.inlier_ratio < cfg.lost_min_inlier_ratio or tr.num_inliers < cfg.lost_min_inliers:
             return LossReason.INLIERS
         ref = self.tracker.reference
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
