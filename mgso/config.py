@@ -222,6 +222,9 @@ class TrackingConfig:
                                              "level-0 points project into the frame within the cutoff")
     lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
                                      "that has lost its points leaves the pose unconstrained however small the RMSE)")
+    lost_max_speed_factor: float = opt(10.0, "tracking is lost when a frame moves more than this x the segment's "
+                                             "median motion per frame (at least 1 % of its median depth), after 5 "
+                                             "tracked frames: a sudden jump of the estimate, not of the camera")
     lost_max_translation: float = opt(2.0, "tracking is lost when the frame is farther from its reference keyframe "
                                            "than this x the median depth (the reference's, or the segment's first "
                                            "points' when smaller: a map drifted towards infinity leaves the "

@@ -284,6 +284,8 @@ class Odometry:
         self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
         self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
+        self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
+        self._prev_pose: np.ndarray | None = None  # the previous tracked frame's cam_to_world (this segment)
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -443,6 +445,8 @@ class Odometry:
         self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
         pos = idepth > 0
         self._segment_median_depth = float(np.median(1.0 / idepth[pos])) if pos.any() else float("inf")
+        self._segment_steps = []
+        self._prev_pose = None
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
         g = self.geometry
@@ -534,6 +538,9 @@ class Odometry:
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
         rec.cam_to_world = ref_c2w @ tr.cam_to_ref
+        if self._prev_pose is not None:
+            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose[:3, 3])))
+        self._prev_pose = rec.cam_to_world.copy()
         baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
         if tr.inlier_ratio >= 0.5 and (baseline <= 0 or tr.rmse0 <= cfg.kf_rmse_factor * baseline):
             self._last_good = rec  # a reliable pose: where a later segment would be chained
@@ -563,6 +570,12 @@ class Odometry:
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
         if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
             return LossReason.JUMP
+        if len(self._segment_steps) >= 5 and self._prev_pose is not None:
+            step = float(np.linalg.norm((self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)[:3, 3]
+                                        - self._prev_pose[:3, 3]))
+            typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
+            if step > cfg.lost_max_speed_factor * typical:
+                return LossReason.JUMP
         return None
 
     def _lose(self, rec, pyr, exposure, rgb, tr: TrackResult, reason: LossReason) -> TrackedFrame:
