@@ -265,6 +265,8 @@ class TrackResult:
     baseline_rmse: float  # the first RMSE known before this frame: this reference's, or the previous reference's
     # when this is the first frame tracked against it (-1 when none); what a residual blow-up is measured against
 
+    world_to_cam: np.ndarray | None = None  # [4, 4] ref_to_new @ the reference's world_to_cam when it was built
+
     @property
     def cam_to_ref(self) -> np.ndarray:
         return se3_inverse(self.ref_to_new)
@@ -465,11 +467,11 @@ class CoarseTracker:
             T = np.asarray(hypotheses[0], dtype=np.float64)
             self.last_rmse = achieved
             return TrackResult(False, T, tuple(affine_init), achieved, (0.0, 0.0, 0.0), tried, iters, 0, 0,
-                               ref.num_points_l0, ref.keyframe_id, ref.first_rmse, baseline)
+                               ref.num_points_l0, ref.keyframe_id, ref.first_rmse, baseline, T @ ref.world_to_cam)
         self.last_rmse = achieved.copy()
         if ref.first_rmse < 0:
             ref.first_rmse = float(achieved[0])
         s0 = best.stats0
         return TrackResult(True, best.ref_to_new, best.affine, achieved, best.flow, tried, iters,
                            s0.num_terms if s0 else 0, s0.num_inliers if s0 else 0, ref.num_points_l0,
-                           ref.keyframe_id, ref.first_rmse, baseline)
+                           ref.keyframe_id, ref.first_rmse, baseline, best.ref_to_new @ ref.world_to_cam)

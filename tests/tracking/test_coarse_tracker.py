@@ -95,6 +95,7 @@ def test_tracker_with_true_depth_recovers_poses(wp_device, seq320):
     for i, (r, est) in enumerate(zip(results, c2w), start=1):
         err = se3_log(se3_inverse(seq320.cam_to_world[i]) @ est)
         assert r.ok and r.hypotheses_tried >= 1
+        np.testing.assert_allclose(se3_inverse(r.world_to_cam), est, atol=1e-9)  # the reference is at frame 0
         assert np.linalg.norm(err[:3]) < 0.003, f"frame {i}: translation error {np.linalg.norm(err[:3]):.4f} m"
         assert np.linalg.norm(err[3:]) < 0.002, f"frame {i}: rotation error {np.linalg.norm(err[3:]):.5f} rad"
         assert r.rmse0 < 6.0 and r.inlier_ratio > 0.7
