@@ -175,6 +175,49 @@ def cmd_demo(args) -> int:
     return cmd_run(args)
 
 
+def cmd_fit(args) -> int:
+    from .mapping.fit import fit_sequence
+
+    overrides = []
+    if args.iterations is not None:
+        overrides.append(f"mapping.train.iterations={args.iterations}")
+    if args.max_frames is not None:
+        overrides.append(f"mapping.train.max_train_views={args.max_frames}")
+    if args.stride is not None:
+        overrides.append(f"input.stride={args.stride}")
+    args.set = list(args.set or []) + overrides
+    cfg = _load_cfg(args)
+    if args.downscale is not None:
+        if args.downscale < 1:
+            raise CliError(f"fit: --downscale must be >= 1, got {args.downscale}")
+        if args.downscale > 1:
+            cam = _open(args.path, args.calib, cfg, groundtruth=args.poses).calibration.output
+            w, h = int(cam.width // args.downscale), int(cam.height // args.downscale)
+            if w < 16 or h < 16:
+                raise CliError(f"fit: --downscale {args.downscale} makes {cam.width}x{cam.height} images smaller "
+                               "than 16x16")
+            args.set += [f"input.width={w}", f"input.height={h}"]
+            cfg = _load_cfg(args)
+    seq = _open(args.path, args.calib, cfg, groundtruth=args.poses)
+    init = args.init
+    if init != "random" and not Path(init).is_file():
+        raise CliError(f"fit: --init {init}: no such file (give 'random' or a PLY file)")
+    out = _out_dir(args.out, Path("runs") / f"fit-{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    size = seq.calibration.output.size
+    _print(args, f"mgso {__version__} fit: {seq.layout} sequence {seq.name!r}, {len(seq)} frames at "
+                 f"{size[0]}x{size[1]}, {cfg.mapping.train.iterations} iterations, init {init} -> {out}")
+
+    def progress(total: int, desc: str):
+        from tqdm import tqdm
+
+        return tqdm(total=total, desc=desc, unit="frame" if desc == "load" else "it",
+                    disable=getattr(args, "quiet", False), dynamic_ncols=True, file=sys.stderr)
+
+    result = fit_sequence(seq, cfg, out, init=init, progress=progress)
+    _print(args, *result.lines())
+    return EXIT_OK
+
+
 def _demo_scene_params(args) -> dict:
     return dict(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
 
@@ -220,6 +263,27 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("fit", help="fit a Gaussian map to a sequence with known poses (ground truth or --poses), "
+                                   "evaluate it on held-out frames")
+    p.add_argument("path", help="dataset folder, image folder or video file (layout detected)")
+    p.add_argument("--out", help="output folder (default runs/fit-<name>-<time>): map.ply, renders/, gt/, "
+                                 "metrics.json, config.yaml")
+    p.add_argument("--poses", help="trajectory file of camera poses (TUM or KITTI camera-to-world), instead of the "
+                                   "dataset's ground truth")
+    p.add_argument("--init", default="random", help="initial Gaussians: 'random' (points in the view frusta, "
+                                                    "mapping.train.init_*) or a PLY file (a point cloud, or a 3DGS "
+                                                    "map to train further)")
+    p.add_argument("--iterations", type=int, help="training steps (mapping.train.iterations)")
+    p.add_argument("--max-frames", type=int, help="train on at most this many views, evenly spread "
+                                                  "(mapping.train.max_train_views)")
+    p.add_argument("--stride", type=int, help="use every n-th frame of the sequence (input.stride); every 5th of "
+                                              "those is held out")
+    p.add_argument("--downscale", type=int, help="divide the image size by this (2 = half resolution, sets "
+                                                 "input.width/height): CPU speed")
+    p.add_argument("--calib", help="calibration file, when the dataset has none")
+    _common(p)
+    p.set_defaults(func=cmd_fit)
+
     p = sub.add_parser("eval", help="ATE (and RPE) of a trajectory file against ground truth")
     p.add_argument("estimate", help="estimated trajectory (TUM or KITTI format)")
     p.add_argument("--gt", required=True, help="ground-truth trajectory file, or a dataset folder with ground truth")
@@ -262,9 +326,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .eval import EvaluationError
     except ImportError:  # pragma: no cover
         EvaluationError = CliError  # type: ignore
+    from .io.ply import PlyError
+
+    errors: tuple = (CliError, ConfigError, DatasetError, CalibrationError, TrajectoryError, EvaluationError, PlyError)
+    if args.command == "fit":  # imports Warp and the trainer: only for the command that needs them
+        from .mapping.fit import FitError
+
+        errors += (FitError,)
     try:
         return args.func(args)
-    except (CliError, ConfigError, DatasetError, CalibrationError, TrajectoryError, EvaluationError) as exc:
+    except errors as exc:
         print(f"mgso {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:

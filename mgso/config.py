@@ -23,7 +23,7 @@ import yaml
 
 __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
-    "DensifyConfig", "OutputConfig",
+    "DensifyConfig", "TrainConfig", "SeedingConfig", "OutputConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles",
 ]
@@ -325,6 +325,124 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class TrainConfig:
+    """Training the map on posed views: the step MGSO's mapper runs, and ``mgso fit`` (docs/fitting.md)."""
+
+    iterations: int = opt(3000, "training steps of `mgso fit` (3DGS runs 30 000 on a GPU; a few thousand is a CPU-sized "
+                                "run)")
+    background: tuple[float, float, float] = opt((0.0, 0.0, 0.0), "RGB behind the Gaussians in renders (3DGS: black)")
+    min_scene_extent: float = opt(1.0, "floor of the scene extent (world units) from the camera centres: few or "
+                                       "close cameras would make the means rate and size thresholds tiny")
+    learn_exposure: bool = opt(False, "learn an affine brightness (a, b) per view with its own Adam, the loss compares "
+                                      "exp(a) render + b with the image (MGSO; off for fit: held-out frames have none)")
+    pyramid_levels: int = opt(1, "Gaussian-pyramid training (Photo-SLAM): levels of 2x2-averaged images; 1 = full "
+                                 "resolution only")
+    pyramid_uses: int = opt(2, "times a view is trained at each coarser level before the next finer one "
+                               "(Photo-SLAM's per-keyframe times of use)")
+    sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
+                                        "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
+    refine_poses: bool = opt(False, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
+                                    "(left perturbation); off: poses are trusted (ground truth, DSO's window)")
+    lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
+                                            "cam_trans_delta)")
+    lr_pose_rotation: float = opt(0.003, "Adam rate of the pose rotation delta, radians (MonoGS cam_rot_delta)")
+    metrics_every: int = opt(10, "compute the training PSNR every n steps (reads the render back to the host); 0 = "
+                                 "never")
+    init_points: int = opt(20_000, "random initial points in the view frusta for `mgso fit --init random` (3DGS's "
+                                   "random init uses 100 000 in a box)")
+    init_depth_range: tuple[float, float] = opt((0.5, 5.0), "camera depth range of random initial points, world "
+                                                            "units (metres for an indoor RGB-D dataset)")
+    init_max_screen_px: float = opt(3.0, "random initial points: scale at most this many pixels (one sigma) in the "
+                                         "view a point was drawn from; sparse random points' kNN scales cover the "
+                                         "image and make CPU steps slow; 0 = no cap (3DGS)")
+    init_opacity: float = opt(0.1, "opacity of new Gaussians (3DGS, MGSO)")
+    init_knn: int = opt(3, "initial scale = mean distance to this many nearest neighbours (3DGS, MGSO)")
+    holdout_every: int = opt(5, "`mgso fit` holds out every n-th frame for evaluation (never trained on); 0 = none")
+    max_train_views: int = opt(0, "`mgso fit` trains on at most this many views, evenly spread; 0 = all")
+
+    def __post_init__(self):
+        problems = []
+        if self.iterations < 0:
+            problems.append(f"iterations must be >= 0, got {self.iterations}")
+        if self.pyramid_levels < 1 or self.pyramid_uses < 0:
+            problems.append("pyramid_levels must be >= 1 and pyramid_uses >= 0")
+        if not self.min_scene_extent > 0:
+            problems.append(f"min_scene_extent must be > 0, got {self.min_scene_extent}")
+        if not 0 < self.init_depth_range[0] < self.init_depth_range[1]:
+            problems.append(f"init_depth_range must be (near, far) with 0 < near < far, got {self.init_depth_range}")
+        if not 0 < self.init_opacity < 1:
+            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.init_max_screen_px < 0:
+            problems.append(f"init_max_screen_px must be >= 0, got {self.init_max_screen_px}")
+        if self.init_knn < 1 or self.init_points < 1:
+            problems.append("init_knn and init_points must be >= 1")
+        if self.holdout_every < 0 or self.max_train_views < 0 or self.metrics_every < 0 or self.sh_degree_interval < 0:
+            problems.append("holdout_every, max_train_views, metrics_every and sh_degree_interval must be >= 0")
+        if problems:
+            raise ConfigError("mapping.train: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
+class SeedingConfig:
+    """MGSO's seeding of new Gaussians from DSO's points at each keyframe (docs/seeding.md)."""
+
+    enabled: bool = opt(True, "seed Gaussians from each keyframe's DSO points (MGSO); false: the map grows by "
+                              "densification only")
+    use_immature: bool = opt(True, "also seed immature points with a good depth interval (MGSO: tracked pixels not "
+                                   "used for the pose)")
+    min_point_weight: float = opt(0.0, "drop points whose weight (e.g. DSO's inverse-depth Hessian) is below this; "
+                                       "0 keeps all")
+    fill: bool = opt(True, "add points inside large Delaunay triangles of the points (MGSO's low-gradient fill)")
+    fill_min_triangle_area_px: float = opt(100.0, "fill triangles larger than this (px^2 at keyframe resolution; "
+                                                  "DSO's 2000 points at 640x480 give 77 px^2 per triangle)")
+    fill_depth: Literal["mean", "barycentric"] = opt(
+        "barycentric", "fill depth: mean of the vertex depths (MGSO) or barycentric inverse depth (exact on planes; "
+                       "measured better, docs/seeding.md)")
+    fill_max_depth_ratio: float = opt(1.5, "skip triangles whose farthest / nearest vertex depth exceeds this: they "
+                                           "straddle a depth edge and their fill would float between surfaces "
+                                           "(1.5: as few floaters as 1.3, half the rejections; docs/seeding.md)")
+    fill_area_per_point_px: float = opt(400.0, "a triangle gets k^2 spread points, k = ceil(sqrt(area / this)); "
+                                               "below this area its centroid only")
+    fill_max_subdivisions: int = opt(4, "cap of k above (at most k^2 = 16 points per triangle)")
+    visibility_threshold: float = opt(0.5, "keep a candidate only where the map's alpha is below this (the pixel is "
+                                           "mostly empty; SplaTAM's silhouette threshold 0.5)")
+    alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
+                                  "at 2)")
+    min_new_gaussians: int = opt(30, "add nothing when fewer candidates survive the visibility filter (MGSO: 30)")
+    init_opacity: float = opt(0.1, "opacity of new Gaussians (MGSO, 3DGS)")
+    knn: int = opt(3, "scale = mean distance to this many nearest neighbours among new and visible Gaussians "
+                      "(MGSO, 3DGS)")
+    scale_min_px: float = opt(0.5, "smallest initial scale, in pixels of the keyframe (x depth / f in world units)")
+    scale_max_px: float = opt(20.0, "largest initial scale, in keyframe pixels: a lonely point does not become a "
+                                    "fog over the view")
+
+    def __post_init__(self):
+        problems = []
+        if self.fill_min_triangle_area_px < 0 or self.fill_area_per_point_px <= 0:
+            problems.append("fill_min_triangle_area_px must be >= 0 and fill_area_per_point_px > 0")
+        if self.fill_depth not in ("mean", "barycentric"):
+            problems.append(f"fill_depth must be 'mean' or 'barycentric', got {self.fill_depth!r}")
+        if not self.fill_max_depth_ratio >= 1.0:
+            problems.append(f"fill_max_depth_ratio must be >= 1, got {self.fill_max_depth_ratio}")
+        if self.fill_max_subdivisions < 1:
+            problems.append(f"fill_max_subdivisions must be >= 1, got {self.fill_max_subdivisions}")
+        if not 0.0 < self.visibility_threshold <= 1.0:
+            problems.append(f"visibility_threshold must be in (0, 1], got {self.visibility_threshold}")
+        if self.alpha_downscale < 1:
+            problems.append(f"alpha_downscale must be >= 1, got {self.alpha_downscale}")
+        if self.min_new_gaussians < 0:
+            problems.append(f"min_new_gaussians must be >= 0, got {self.min_new_gaussians}")
+        if not 0.0 < self.init_opacity < 1.0:
+            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.knn < 1:
+            problems.append(f"knn must be >= 1, got {self.knn}")
+        if not 0.0 < self.scale_min_px <= self.scale_max_px:
+            problems.append(f"need 0 < scale_min_px <= scale_max_px, got {self.scale_min_px}, {self.scale_max_px}")
+        if problems:
+            raise ConfigError("mapping.seeding: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
@@ -336,6 +454,10 @@ class MappingConfig:
     optim: OptimConfig = field(default_factory=OptimConfig, metadata={"reason": "Adam settings of the map"})
     densify: DensifyConfig = field(default_factory=DensifyConfig,
                                    metadata={"reason": "densification and pruning rules"})
+    train: TrainConfig = field(default_factory=TrainConfig,
+                               metadata={"reason": "training on posed views (the step, fit, initial points)"})
+    seeding: SeedingConfig = field(default_factory=SeedingConfig,
+                                   metadata={"reason": "MGSO's seeding of Gaussians from DSO's points"})
 
 
 @dataclass(frozen=True)
@@ -392,7 +514,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if origin is typing.Union or str(origin) == "types.UnionType":
         for a in typing.get_args(tp):
             if a is type(None) and value is None:

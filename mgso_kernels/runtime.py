@@ -84,6 +84,8 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
             cache.mkdir(parents=True, exist_ok=True)
             wp.config.kernel_cache_dir = str(cache)
             wp.config.quiet = quiet
+            if quiet and hasattr(wp, "LOG_WARNING"):  # warp >= 1.19 reads log_level (quiet alone has no effect)
+                wp.config.log_level = wp.LOG_WARNING
             wp.init()
             _initialised = True
         if threads is not None:

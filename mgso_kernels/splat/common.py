@@ -1,0 +1,36 @@
+"""Definitions shared by the splatting kernels (Warp module with types, constants and ``@wp.func`` only).
+
+The blending rules' constants (3DGS's): a Gaussian is skipped at a pixel where ``alpha < 1/255``, alpha is clamped
+at 0.99, and a pixel stops once its transmittance would fall below 1e-4.
+
+``splat`` 8-vector, one per visible Gaussian (written by the projection, copied per (tile, Gaussian) pair before
+blending): ``(mean_x, mean_y, a, b, c, opacity, exp(-a), r2)`` with the conic ``(a, b, c)``
+(``power = -0.5 (a dx^2 + c dy^2) - b dx dy``) and ``r2`` the squared Mahalanobis radius of the *cut-off ellipse*
+``d^T conic d <= r2`` outside which ``opacity exp(power) < 1/255`` (see :func:`cutoff_r2`).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["vec6", "vec8", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN", "R2_ABS_MARGIN", "cutoff_r2"]
+
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+ALPHA_MIN = wp.constant(1.0 / 255.0)
+ALPHA_MAX = wp.constant(0.99)
+T_MIN = wp.constant(1.0e-4)
+# cut-off ellipse inflation, so float32 rounding can never exclude a pixel the 1/255 test would accept
+R2_REL_MARGIN = wp.constant(1.0e-3)
+R2_ABS_MARGIN = wp.constant(1.0e-2)
+
+
+@wp.func
+def cutoff_r2(op: float) -> float:
+    """Squared Mahalanobis radius where opacity * exp(power) = 1/255, i.e. 2 log(255 opacity), inflated by
+    a relative 1e-3 and 1e-2 (a 0.5% margin in alpha at the border)."""
+    r2 = 2.0 * wp.log(255.0 * op)
+    return r2 * (1.0 + R2_REL_MARGIN) + R2_ABS_MARGIN

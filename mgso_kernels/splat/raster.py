@@ -1,0 +1,313 @@
+"""Tile-sorted alpha blending, forward (Warp module).
+
+**Work split.** One thread per *tile row*: thread ``i`` shades the 16 pixels of row ``i % 16`` of the tile in slot
+``i // 16``, so a contiguous chunk of threads (what :func:`mgso_kernels.runtime.launch_split` gives one CPU core,
+``align=16``) is a set of whole tiles. Slots visit tiles in an interleaved order (``tile = slot * stride mod
+tiles``, stride coprime, near tiles / golden ratio), so each core gets tiles from all over the image and a scene
+that is busy in one half does not leave the other core idle. Per Gaussian of the tile's depth-sorted list the thread
+computes the exact span of the row inside the Gaussian's cut-off ellipse (``opacity exp(power) >= 1/255``, one
+``sqrt``) and touches only the pixels in that span; along the span ``exp(power)`` follows the recurrence
+``E(x+1) = E(x) F(x)``, ``F(x+1) = F(x) exp(-a)`` (the power is quadratic in x; ``exp(-a)`` is precomputed per
+Gaussian), so a row costs two ``exp`` per Gaussian instead of one per pixel. Single-threaded on this 2-core CPU
+that was 2.2x faster than a thread per pixel testing every list entry (docs/rasteriser.md has the measurements).
+The backward pass uses the same spans and recurrence, so both passes make the same skip decisions bit for bit.
+
+**Rules** (3DGS's, per pixel, front to back): ``power = -0.5 (a dx^2 + c dy^2) - b dx dy`` with
+``(dx, dy) = (u, v) - mean2d`` (pixel (row v, col u) is sampled at (u, v)); ``alpha = min(0.99, opacity exp(power))``;
+skip if ``alpha < 1/255``; if ``T (1 - alpha) < 1e-4`` the pixel stops *without* accumulating; else
+``w = alpha T`` is accumulated and ``T *= 1 - alpha``. (3DGS also skips ``power > 0``, which a positive-definite
+conic never produces; pixels outside the cut-off ellipse, the only ones the span excludes, have
+``alpha < 1/255``.) Outputs: ``rgb = sum w c + T_final background``, ``depth = sum w z`` (camera z, **not**
+normalised: divide by ``alpha`` for the depth of the visible surface), ``alpha = 1 - T_final``, and for the
+backward pass ``T_final`` and ``n_contrib`` (1 + the position in the tile list of the last accumulated Gaussian; 0
+if none).
+
+**Packing.** Before blending, :func:`pack_splats` copies each sorted pair's Gaussian data (mean, conic, opacity,
+depth, cut-off radius^2, colour) into contiguous arrays in sorted order, so the blend streams memory instead of
+gathering by Gaussian index (measured in docs/rasteriser.md).
+
+Twin: :func:`mgso_kernels.reference.splat.render`.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .camera import TILE_SIZE, Camera
+from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "vec16", "vec16i", "row_span",
+           "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
+
+vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
+vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
+
+TS = wp.constant(TILE_SIZE)
+SEGMENT_WIDTHS = (1, 2, 4, 8, 16)  # pixels per thread the blend kernels accept
+
+
+def segment_threads(cam: Camera, seg: int) -> tuple[int, int]:
+    """(threads of a blend launch, threads per tile) for segments of ``seg`` pixels."""
+    if seg not in SEGMENT_WIDTHS:
+        raise ValueError(f"pixels per thread must be one of {SEGMENT_WIDTHS}, got {seg}")
+    per_tile = TILE_SIZE * (TILE_SIZE // seg)
+    return cam.tiles_x * cam.tiles_y * per_tile, per_tile
+
+
+@wp.func
+def tile_row(i: int, cam: Camera, seg: int) -> wp.vec4i:
+    """Thread index -> (tile, first column, row y, number of columns of the segment inside the image; 0: none).
+
+    A thread shades ``seg`` consecutive pixels of one tile row (16: the whole row). Consecutive groups of
+    ``16 * 16 / seg`` threads are whole tiles, visited in the interleaved order of ``cam.tile_stride``.
+    """
+    nseg = TS // seg
+    per_tile = TS * nseg
+    slot = i // per_tile
+    rem = i - slot * per_tile
+    r = rem // nseg
+    sg = rem - r * nseg
+    tile = (slot * cam.tile_stride) % (cam.tiles_x * cam.tiles_y)
+    ty = tile // cam.tiles_x
+    tx = tile - ty * cam.tiles_x
+    y = ty * TS + r
+    x0 = tx * TS + sg * seg
+    nx = wp.min(seg, cam.width - x0)
+    if y >= cam.height:
+        nx = 0
+    return wp.vec4i(tile, x0, y, nx)
+
+
+@wp.func
+def row_span(s: vec8, dy: float, x0: int, nx: int) -> wp.vec2i:
+    """Columns [lo, hi] of the row (relative to x0, clipped to [0, nx)) inside the cut-off ellipse; lo > hi: none.
+
+    ``s`` = (mx, my, a, b, c, opacity, exp(-a), r2); the ellipse is a dx^2 + 2 b dx dy + c dy^2 <= r2.
+    """
+    a = s[2]
+    b = s[3]
+    disc = a * s[7] - (a * s[4] - b * b) * dy * dy
+    if disc < 0.0:
+        return wp.vec2i(1, 0)
+    half = wp.sqrt(disc) / a
+    xc = s[0] - b * dy / a
+    lo = wp.max(int(wp.ceil(xc - half)) - x0, 0)
+    hi = wp.min(int(wp.floor(xc + half)) - x0, nx - 1)
+    return wp.vec2i(lo, hi)
+
+
+@wp.func
+def span_exp_start(s: vec8, dx: float, dy: float) -> wp.vec2:
+    """(E, F) at the first pixel of a span: E = exp(power), F = exp(power(x+1) - power(x)); then per pixel
+    E *= F, F *= exp(-a) (= s[6])."""
+    a = s[2]
+    b = s[3]
+    power = -0.5 * (a * dx * dx + s[4] * dy * dy) - b * dx * dy
+    step = -(a * dx + b * dy) - 0.5 * a
+    return wp.vec2(wp.exp(power), wp.exp(step))
+
+
+@wp.kernel
+def pack_splats(
+    offset: int,
+    slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
+    pair_gauss: wp.array(dtype=wp.int32),  # [M] Gaussian of each slot
+    splat_g: wp.array(dtype=vec8),  # [N] per Gaussian (projection's)
+    rgbz_g: wp.array(dtype=wp.vec4),  # [N] per Gaussian colour + depth (ignored when with_color == 0)
+    with_color: int,
+    splats: wp.array(dtype=vec8),  # [M] out, in sorted order
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] out: r, g, b, depth
+):
+    j = offset + wp.tid()
+    g = pair_gauss[slots[j]]
+    splats[j] = splat_g[g]
+    if with_color != 0:
+        splat_rgbz[j] = rgbz_g[g]
+
+
+@wp.kernel
+def rasterize_forward(
+    offset: int,
+    cam: Camera,
+    seg: int,  # pixels per thread (1, 2, 4, 8, 16): 16 = a tile row (CPU), 1 = a pixel (GPU)
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] [start, end) into the sorted pairs
+    splats: wp.array(dtype=vec8),  # [M] packed, sorted
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] packed, sorted: r, g, b, depth
+    background: wp.vec3,  # RGB
+    rgb: wp.array3d(dtype=float),  # [H, W, 3] out
+    depth: wp.array2d(dtype=float),  # [H, W] out, sum w z (unnormalised)
+    alpha: wp.array2d(dtype=float),  # [H, W] out, 1 - T_final
+    T_final: wp.array2d(dtype=float),  # [H, W] out
+    n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] out, tile-list count up to the last accumulated Gaussian
+):
+    tr = tile_row(offset + wp.tid(), cam, seg)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
+        return
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    fy = float(y)
+    T = vec16(1.0)
+    Cr = vec16(0.0)
+    Cg = vec16(0.0)
+    Cb = vec16(0.0)
+    D = vec16(0.0)
+    last = vec16i(0)
+    done = int(0)  # bit k: pixel x0 + k has stopped
+    full = (1 << nx) - 1
+    for j in range(start, end):
+        s = splats[j]
+        dy = fy - s[1]
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
+            continue
+        bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
+        if done & bits == bits:  # every pixel of the span has stopped
+            continue
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        col = splat_rgbz[j]
+        for k in range(span[0], span[1] + 1):
+            if (done >> k) & 1 == 0:
+                a = wp.min(ALPHA_MAX, s[5] * E)
+                if a >= ALPHA_MIN:
+                    Tk = T[k]
+                    Tn = Tk * (1.0 - a)
+                    if Tn < T_MIN:
+                        done = done | (1 << k)
+                    else:
+                        w = a * Tk
+                        Cr[k] = Cr[k] + w * col[0]
+                        Cg[k] = Cg[k] + w * col[1]
+                        Cb[k] = Cb[k] + w * col[2]
+                        D[k] = D[k] + w * col[3]
+                        T[k] = Tn
+                        last[k] = j - start + 1
+            E = E * F
+            F = F * s[6]
+        if done == full:
+            break
+    for k in range(nx):
+        x = x0 + k
+        Tk = T[k]
+        rgb[y, x, 0] = Cr[k] + Tk * background[0]
+        rgb[y, x, 1] = Cg[k] + Tk * background[1]
+        rgb[y, x, 2] = Cb[k] + Tk * background[2]
+        depth[y, x] = D[k]
+        alpha[y, x] = 1.0 - Tk
+        T_final[y, x] = Tk
+        n_contrib[y, x] = last[k]
+
+
+@wp.kernel
+def rasterize_alpha(
+    offset: int,
+    cam: Camera,
+    seg: int,  # pixels per thread
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    splats: wp.array(dtype=vec8),  # [M] packed, sorted
+    alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
+):
+    tr = tile_row(offset + wp.tid(), cam, seg)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
+        return
+    fy = float(y)
+    T = vec16(1.0)
+    done = int(0)
+    full = (1 << nx) - 1
+    for j in range(ranges[tile, 0], ranges[tile, 1]):
+        s = splats[j]
+        dy = fy - s[1]
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
+            continue
+        bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
+        if done & bits == bits:
+            continue
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        for k in range(span[0], span[1] + 1):
+            if (done >> k) & 1 == 0:
+                a = wp.min(ALPHA_MAX, s[5] * E)
+                if a >= ALPHA_MIN:
+                    Tn = T[k] * (1.0 - a)
+                    if Tn < T_MIN:
+                        done = done | (1 << k)
+                    else:
+                        T[k] = Tn
+            E = E * F
+            F = F * s[6]
+        if done == full:
+            break
+    for k in range(nx):
+        alpha[y, x0 + k] = 1.0 - T[k]
+
+
+# ------------------------------------------------------------------------------------------------- launchers
+def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats, splat_rgbz, device: str,
+                       threads: int | None = None, min_chunk: int = 4096) -> None:
+    """Copy the sorted pairs' Gaussian data into contiguous arrays (``rgbz_g=None``: alpha-only)."""
+    from ..runtime import launch_split
+
+    if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
+        raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
+    if n_pairs == 0:
+        return
+    with_color = 0 if rgbz_g is None else 1
+    rgbz_g = rgbz_g if rgbz_g is not None else _dummy_vec4(device)
+    launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, with_color, splats, splat_rgbz], device,
+                 threads=threads, min_chunk=min_chunk)
+
+
+_dummies: dict = {}
+
+
+def _dummy_vec4(device):
+    key = ("vec4", str(device))
+    if key not in _dummies:
+        _dummies[key] = wp.zeros(1, dtype=wp.vec4, device=device)
+    return _dummies[key]
+
+
+def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
+                             n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096,
+                             seg: int = TILE_SIZE) -> None:
+    """Blend every pixel; outputs (H, W[, 3]) are fully overwritten. ``seg``: pixels per thread; ``min_chunk``:
+    fewest pixels per CPU chunk."""
+    from ..runtime import launch_split
+    from ._checks import check_array
+
+    H, W = cam.height, cam.width
+    check_array(rgb, "rgb", wp.float32, (H, W, 3), device)
+    for name, a in (("depth", depth), ("alpha", alpha), ("T_final", T_final)):
+        check_array(a, name, wp.float32, (H, W), device)
+    check_array(n_contrib, "n_contrib", wp.int32, (H, W), device)
+    if ranges.shape[0] < cam.tiles_x * cam.tiles_y:
+        raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_forward, dim, [cam, seg, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
+                                          alpha, T_final, n_contrib],
+                 device, threads=threads, min_chunk=max(1, min_chunk // seg), align=per_tile)
+
+
+def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None,
+                           min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
+    """Accumulated alpha only (H, W): the cheap path for coverage tests."""
+    from ..runtime import launch_split
+    from ._checks import check_array
+
+    check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_alpha, dim, [cam, seg, ranges, splats, alpha], device, threads=threads,
+                 min_chunk=max(1, min_chunk // seg), align=per_tile)

@@ -1,0 +1,276 @@
+"""Tile-sorted alpha blending, hand-written backward (Warp module).
+
+Warp's ``wp.Tape`` is silently wrong for the blending loop (a runtime-bounded loop carrying ``T``), so this adjoint
+is written by hand, as 3DGS and gsplat do: per pixel, back to front from the last accumulated Gaussian
+(``n_contrib``), rebuilding the transmittance from ``T_final`` (``T_i = T_{i+1} / (1 - alpha_i)``) and keeping the
+sum of what lies behind. With ``G = v_rgb``, ``g_i = c_i . G + z_i v_depth`` and ``S_i = sum_{j > i} w_j g_j``:
+
+    v_alpha_i = T_i g_i - (S_i + T_final (background . G) - T_final v_alpha) / (1 - alpha_i)
+    v_c_i = w_i G,   v_z_i = w_i v_depth
+
+then through ``alpha = min(0.99, opacity exp(power))`` (zero where the clamp is active) to the opacity, the conic
+and the 2D mean. Threads are tile rows as in :mod:`mgso_kernels.splat.raster`, with the same row spans and the same
+``exp`` recurrence, so the skip decisions are the forward's bit for bit.
+
+**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 12-vector
+``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|)`` of each Gaussian and adds it once
+into that pair's *slot* (one per (tile, Gaussian) pair, see :mod:`mgso_kernels.splat.bin`). All rows of a tile run
+on one CPU thread (chunks are whole tiles), so the adds are never concurrent on the CPU; on CUDA
+``wp.atomic_add`` is atomic. Then :func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU
+result is bitwise identical however the launch is split. The last two components are the AbsGS statistic: the sum
+over pixels of the absolute per-pixel 2D-mean gradient.
+
+Twin: :func:`mgso_kernels.reference.splat.render_vjp`.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .camera import TILE_SIZE, Camera
+from .common import ALPHA_MAX, ALPHA_MIN, vec8
+from .raster import row_span, segment_threads, span_exp_start, tile_row, vec16, vec16i
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["rasterize_backward", "gather_gaussian_grads", "accumulate_densify_stats", "vec12"]
+
+vec12 = wp.types.vector(length=12, dtype=wp.float32)
+
+
+@wp.kernel
+def rasterize_backward(
+    offset: int,
+    cam: Camera,
+    seg: int,  # pixels per thread, as the forward
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    splats: wp.array(dtype=vec8),  # [M] packed, sorted (forward's)
+    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] r, g, b, depth
+    slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
+    background: wp.vec3,
+    T_final: wp.array2d(dtype=float),  # [H, W] forward's
+    n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] forward's
+    v_rgb: wp.array3d(dtype=float),  # [H, W, 3] upstream
+    v_depth: wp.array2d(dtype=float),  # [H, W] upstream
+    v_alpha: wp.array2d(dtype=float),  # [H, W] upstream
+    use_depth: int,  # 0: v_depth ignored (may be a dummy)
+    use_alpha: int,  # 0: v_alpha ignored
+    pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
+):
+    tr = tile_row(offset + wp.tid(), cam, seg)
+    tile = tr[0]
+    x0 = tr[1]
+    y = tr[2]
+    nx = tr[3]
+    if nx <= 0:
+        return
+    start = ranges[tile, 0]
+    fy = float(y)
+    T = vec16(0.0)
+    S = vec16(0.0)  # sum over the Gaussians behind of w g, plus the background's and alpha's share
+    Gr = vec16(0.0)
+    Gg = vec16(0.0)
+    Gb = vec16(0.0)
+    VD = vec16(0.0)
+    nc = vec16i(0)
+    n_max = int(0)
+    for k in range(nx):
+        x = x0 + k
+        Tf = T_final[y, x]
+        T[k] = Tf
+        Gr[k] = v_rgb[y, x, 0]
+        Gg[k] = v_rgb[y, x, 1]
+        Gb[k] = v_rgb[y, x, 2]
+        vA = float(0.0)
+        if use_depth != 0:
+            VD[k] = v_depth[y, x]
+        if use_alpha != 0:
+            vA = v_alpha[y, x]
+        # the background's and alpha's share of d loss / d alpha_i, times (1 - alpha_i)
+        S[k] = Tf * (background[0] * Gr[k] + background[1] * Gg[k] + background[2] * Gb[k] - vA)
+        nc[k] = n_contrib[y, x]
+        n_max = wp.max(n_max, nc[k])
+    # pixels in decreasing n_contrib order, so the set of pixels a list position can reach (n_contrib > i) grows
+    # by a pointer as i goes down
+    order = vec16i(0)
+    for k in range(nx):
+        order[k] = k
+    for k in range(1, nx):
+        kk = order[k]
+        q = k
+        while q > 0 and nc[order[q - 1]] < nc[kk]:
+            order[q] = order[q - 1]
+            q -= 1
+        order[q] = kk
+    active = int(0)
+    ptr = int(0)
+    for jj in range(n_max):
+        i = n_max - 1 - jj  # position in the tile list, back to front
+        while ptr < nx and nc[order[ptr]] > i:
+            active = active | (1 << order[ptr])
+            ptr += 1
+        j = start + i
+        s = splats[j]
+        dy = fy - s[1]
+        span = row_span(s, dy, x0, nx)
+        if span[0] > span[1]:
+            continue
+        if active & (((1 << (span[1] - span[0] + 1)) - 1) << span[0]) == 0:
+            continue
+        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+        E = e[0]
+        F = e[1]
+        col = splat_rgbz[j]
+        # per-span sums; dy is constant along the row and dx steps by 1, so the conic and mean gradients factor:
+        # sum_px (a dx + b dy) v_pow = a P1 + b dy P0, sum_px -0.5 dx^2 v_pow = -0.5 P2, ...
+        P0 = float(0.0)  # sum v_pow
+        P1 = float(0.0)  # sum dx v_pow
+        P2 = float(0.0)  # sum dx^2 v_pow
+        v_op = float(0.0)
+        v_cr = float(0.0)
+        v_cg = float(0.0)
+        v_cb = float(0.0)
+        v_z = float(0.0)
+        abs_x = float(0.0)
+        abs_y = float(0.0)
+        hit = int(0)
+        dx = float(x0 + span[0]) - s[0]
+        for k in range(span[0], span[1] + 1):
+            if (active >> k) & 1 != 0:
+                r = s[5] * E
+                a = wp.min(ALPHA_MAX, r)
+                if a >= ALPHA_MIN:
+                    hit = 1
+                    inv = 1.0 / (1.0 - a)
+                    Tk = T[k] * inv  # transmittance in front of this Gaussian
+                    T[k] = Tk
+                    w = a * Tk
+                    gi = col[0] * Gr[k] + col[1] * Gg[k] + col[2] * Gb[k] + col[3] * VD[k]
+                    v_a = Tk * gi - S[k] * inv
+                    S[k] = S[k] + w * gi
+                    v_r = float(0.0)
+                    if r <= ALPHA_MAX:  # no gradient through the 0.99 clamp
+                        v_r = v_a
+                    v_pow = v_r * r
+                    P0 += v_pow
+                    P1 += dx * v_pow
+                    P2 += dx * dx * v_pow
+                    m = wp.abs(v_pow)
+                    abs_x += wp.abs(s[2] * dx + s[3] * dy) * m
+                    abs_y += wp.abs(s[3] * dx + s[4] * dy) * m
+                    v_op += v_r * E
+                    v_cr += w * Gr[k]
+                    v_cg += w * Gg[k]
+                    v_cb += w * Gb[k]
+                    v_z += w * VD[k]
+            E = E * F
+            F = F * s[6]
+            dx = dx + 1.0
+        acc = vec12(s[2] * P1 + s[3] * dy * P0, s[3] * P1 + s[4] * dy * P0, -0.5 * P2, -dy * P1, -0.5 * dy * dy * P0,
+                    v_op, v_cr, v_cg, v_cb, v_z, abs_x, abs_y)
+        if hit != 0:
+            wp.atomic_add(pair_grads, slots[j], acc)
+
+
+@wp.kernel
+def gather_gaussian_grads(
+    offset: int,
+    pair_offsets: wp.array(dtype=wp.int32),  # [N] first slot of each Gaussian
+    tiles_touched: wp.array(dtype=wp.int32),  # [N] number of slots
+    pair_grads: wp.array(dtype=vec12),  # [M] by slot
+    v_means2d: wp.array(dtype=wp.vec2),  # [N] out, d/d mean2d (pixels)
+    v_conics: wp.array(dtype=wp.vec3),  # [N] out
+    v_opacities: wp.array(dtype=float),  # [N] out, d/d opacity (after the sigmoid)
+    v_colors: wp.array(dtype=wp.vec3),  # [N] out
+    v_depths: wp.array(dtype=float),  # [N] out, through the depth output only
+    absgrad: wp.array(dtype=wp.vec2),  # [N] out, sum over pixels of |per-pixel v_mean2d|
+):
+    g = offset + wp.tid()
+    acc = vec12(0.0)
+    p0 = pair_offsets[g]
+    for p in range(p0, p0 + tiles_touched[g]):
+        acc += pair_grads[p]
+    v_means2d[g] = wp.vec2(acc[0], acc[1])
+    v_conics[g] = wp.vec3(acc[2], acc[3], acc[4])
+    v_opacities[g] = acc[5]
+    v_colors[g] = wp.vec3(acc[6], acc[7], acc[8])
+    v_depths[g] = acc[9]
+    absgrad[g] = wp.vec2(acc[10], acc[11])
+
+
+@wp.kernel
+def accumulate_densify_stats(
+    offset: int,
+    v_means2d: wp.array(dtype=wp.vec2),  # [N] this view's d/d mean2d, pixels
+    absgrad: wp.array(dtype=wp.vec2),  # [N] this view's AbsGS sums, pixels
+    radii: wp.array(dtype=wp.int32),  # [N] 0 = not visible in this view
+    scale: wp.vec2,  # multiplies the pixel gradients (W/2, H/2 gives 3DGS's NDC units)
+    grad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * v_mean2d|
+    absgrad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * absgrad|
+    count: wp.array(dtype=wp.int32),  # [N] in/out: views in which the Gaussian was visible
+    max_radii: wp.array(dtype=float),  # [N] in/out: max over views of radii (pixels)
+):
+    g = offset + wp.tid()
+    r = radii[g]
+    if r == 0:
+        return
+    v = v_means2d[g]
+    a = absgrad[g]
+    grad2d_sum[g] = grad2d_sum[g] + wp.length(wp.vec2(v[0] * scale[0], v[1] * scale[1]))
+    absgrad2d_sum[g] = absgrad2d_sum[g] + wp.length(wp.vec2(a[0] * scale[0], a[1] * scale[1]))
+    count[g] = count[g] + 1
+    max_radii[g] = wp.max(max_radii[g], float(r))
+
+
+# ------------------------------------------------------------------------------------------------- launchers
+def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
+                              v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
+                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
+    """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
+
+    ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output).
+    """
+    from ..runtime import launch_split
+    from ._checks import check_array
+    H, W = cam.height, cam.width
+    check_array(v_rgb, "v_rgb", wp.float32, (H, W, 3), device)
+    use_depth = 0 if v_depth is None else 1
+    use_alpha = 0 if v_alpha is None else 1
+    if v_depth is not None:
+        check_array(v_depth, "v_depth", wp.float32, (H, W), device)
+    else:
+        v_depth = T_final  # never read
+    if v_alpha is not None:
+        check_array(v_alpha, "v_alpha", wp.float32, (H, W), device)
+    else:
+        v_alpha = T_final
+    if pair_grads.shape[0] < n_pairs:
+        raise ValueError(f"rasterize_backward: pair_grads holds {pair_grads.shape[0]}, need {n_pairs}")
+    pair_grads[:n_pairs].zero_()
+    dim, per_tile = segment_threads(cam, seg)
+    launch_split(rasterize_backward, dim,
+                 [cam, seg, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
+                  v_depth, v_alpha, use_depth, use_alpha, pair_grads], device,
+                 threads=threads, min_chunk=max(1, min_chunk // seg), align=per_tile)
+
+
+def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,
+                                 v_depths, absgrad, device: str, threads: int | None = None,
+                                 min_chunk: int = 4096) -> None:
+    """Sum each Gaussian's slot range into per-Gaussian screen-space gradients (all outputs overwritten)."""
+    from ..runtime import launch_split
+
+    n = v_means2d.shape[0]
+    launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
+                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads,
+                 min_chunk=min_chunk)
+
+
+def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum, absgrad2d_sum, count, max_radii,
+                                    device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
+    from ..runtime import launch_split
+
+    n = v_means2d.shape[0]
+    launch_split(accumulate_densify_stats, n, [v_means2d, absgrad, radii, wp.vec2(*scale), grad2d_sum,
+                                               absgrad2d_sum, count, max_radii], device, threads=threads,
+                 min_chunk=min_chunk)

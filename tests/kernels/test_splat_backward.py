@@ -1,0 +1,234 @@
+"""Backward pass: the twin's analytic gradients against central differences (cut-offs off), and the Warp backward
+against the twin's analytic gradients under random upstream gradients (cut-offs on, gsplat's test_basic habit)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+
+from mgso.geometry import se3_exp
+from mgso_kernels.reference import splat as ref
+from mgso_kernels.splat import DensifyStats, Rasterizer, make_camera
+
+PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
+GRAD_OF = {"means": "v_means", "log_scales": "v_log_scales", "quats": "v_quats",
+           "opacity_logits": "v_opacity_logits", "sh": "v_sh"}
+
+
+def _camera(rng, width, height, f=40.0):
+    return ref.RefCamera(fx=f, fy=f * 0.95, cx=width / 2 + 0.3, cy=height / 2 - 0.6, width=width, height=height,
+                         world_to_cam=se3_exp(rng.normal(size=6) * 0.2))
+
+
+def _wcam(c):
+    return make_camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.world_to_cam, near=c.near, far=c.far)
+
+
+def _upstream(rng, cam, which):
+    H, W = cam.height, cam.width
+    v_rgb = rng.normal(size=(H, W, 3)) if "rgb" in which else np.zeros((H, W, 3))
+    v_depth = rng.normal(size=(H, W)) if "depth" in which else None
+    v_alpha = rng.normal(size=(H, W)) if "alpha" in which else None
+    return v_rgb, v_depth, v_alpha
+
+
+def _loss(scene, cam, bg, ups, degree, antialiased=False):
+    out = ref.render(*(scene[k] for k in PARAMS), cam, bg, degree, cutoffs=False, antialiased=antialiased)
+    v_rgb, v_depth, v_alpha = ups
+    total = np.sum(out["rgb"] * v_rgb)
+    if v_depth is not None:
+        total += np.sum(out["depth"] * v_depth)
+    if v_alpha is not None:
+        total += np.sum(out["alpha"] * v_alpha)
+    return total
+
+
+@pytest.mark.parametrize("degree,seed,aa", [(0, 0, False), (1, 1, False), (3, 2, False), (1, 5, True)])
+def test_twin_gradients_match_finite_differences(degree, seed, aa):
+    rng = np.random.default_rng(seed)
+    cam = _camera(rng, 20, 16)
+    scene = ref.random_scene(rng, 8, cam, degree, px_range=(1.0, 4.0))
+    bg = np.array([0.3, 0.1, 0.6])
+    ups = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    g = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, *ups, sh_degree=degree, cutoffs=False, antialiased=aa)
+    eps = 1e-6
+    for name in PARAMS:
+        x = scene[name]
+        fd = np.zeros_like(x)
+        for idx in np.ndindex(x.shape):
+            hi, lo = dict(scene), dict(scene)
+            hi[name] = x.copy()
+            hi[name][idx] += eps
+            lo[name] = x.copy()
+            lo[name][idx] -= eps
+            fd[idx] = (_loss(hi, cam, bg, ups, degree, aa) - _loss(lo, cam, bg, ups, degree, aa)) / (2 * eps)
+        an = g[GRAD_OF[name]]
+        assert np.abs(fd).max() > 1e-3, name  # something depends on it
+        np.testing.assert_allclose(an, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max(), err_msg=name)
+    # pose: world_to_cam <- exp(delta) world_to_cam, delta = (v, w)
+    fd = np.zeros(6)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        hi = dataclasses.replace(cam, world_to_cam=se3_exp(d) @ cam.world_to_cam)
+        lo = dataclasses.replace(cam, world_to_cam=se3_exp(-d) @ cam.world_to_cam)
+        fd[k] = (_loss(scene, hi, bg, ups, degree, aa) - _loss(scene, lo, bg, ups, degree, aa)) / (2 * eps)
+    np.testing.assert_allclose(g["v_pose"], fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def test_twin_gradients_with_cutoffs_match_finite_differences():
+    # with the cut-offs on the image jumps where a Gaussian crosses 1/255 or a pixel's early stop moves; a tiny
+    # step (1e-7, float64) crosses none of those here, so this checks how the analytic backward treats the 0.99
+    # clamp, the skips and the early stop (the scene must exercise them)
+    rng = np.random.default_rng(4)
+    cam = _camera(rng, 16, 12)
+    scene = ref.random_scene(rng, 14, cam, 0, px_range=(1.5, 4.0), hard_cases=False)
+    scene["opacity_logits"][:7] = 6.0  # opacity 0.9975: alpha clamps at 0.99 near the centres
+    bg = np.array([0.3, 0.1, 0.6])
+    ups = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    fw = ref.render(*(scene[k] for k in PARAMS), cam, bg, 0)
+    assert (~fw["unclamped"]).any()  # clamped somewhere
+    assert (fw["T_final"] < 1e-3).any()  # some pixels stopped early
+    g = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, *ups, sh_degree=0)
+
+    def loss(sc):
+        out = ref.render(*(sc[k] for k in PARAMS), cam, bg, 0)
+        return np.sum(out["rgb"] * ups[0]) + np.sum(out["depth"] * ups[1]) + np.sum(out["alpha"] * ups[2])
+
+    eps = 1e-7
+    for name in PARAMS:
+        x = scene[name]
+        fd = np.zeros_like(x)
+        for idx in np.ndindex(x.shape):
+            hi, lo = dict(scene), dict(scene)
+            hi[name], lo[name] = x.copy(), x.copy()
+            hi[name][idx] += eps
+            lo[name][idx] -= eps
+            fd[idx] = (loss(hi) - loss(lo)) / (2 * eps)
+        np.testing.assert_allclose(g[GRAD_OF[name]], fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max(), err_msg=name)
+
+
+def test_twin_cutoffs_switch_changes_the_image():
+    # the switch must really remove the cut-offs (else the FD test above would test the jumpy function)
+    rng = np.random.default_rng(9)
+    cam = _camera(rng, 24, 20)
+    scene = ref.random_scene(rng, 30, cam, 0)
+    on = ref.render(*(scene[k] for k in PARAMS), cam, (0, 0, 0), cutoffs=True)
+    off = ref.render(*(scene[k] for k in PARAMS), cam, (0, 0, 0), cutoffs=False)
+    assert np.abs(on["rgb"] - off["rgb"]).max() > 1e-3
+
+
+def _close(a, b, name, tol=5e-3):
+    scale = max(np.abs(b).max(), 1e-8)
+    np.testing.assert_allclose(a, b, rtol=tol, atol=tol * scale, err_msg=name)
+
+
+@pytest.mark.parametrize("which,degree,seed", [(("rgb",), 0, 10), (("depth",), 0, 11), (("alpha",), 0, 12),
+                                               (("rgb", "depth", "alpha"), 1, 13), (("rgb",), 3, 14)])
+def test_warp_backward_matches_twin(wp_device, which, degree, seed):
+    rng = np.random.default_rng(seed)
+    cam = _camera(rng, 48, 40)
+    scene = ref.random_scene(rng, 45, cam, degree)
+    bg = (0.2, 0.5, 0.1)
+    v_rgb, v_depth, v_alpha = _upstream(rng, cam, which)
+    rast = Rasterizer(wp_device)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    grads = rast.backward(out, v_rgb.astype(np.float32),
+                          None if v_depth is None else v_depth.astype(np.float32),
+                          None if v_alpha is None else v_alpha.astype(np.float32))
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha, sh_degree=degree)
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
+        a = getattr(grads, name).numpy()
+        assert a.shape == r[name].shape, name
+        assert np.abs(r[name]).max() > 0 or name == "v_sh" and "rgb" not in which, name
+        _close(a, r[name], name)
+
+
+def test_warp_antialiased_matches_twin(wp_device):
+    rng = np.random.default_rng(15)
+    cam = _camera(rng, 48, 40)
+    scene = ref.random_scene(rng, 45, cam, 1)
+    bg = (0.2, 0.5, 0.1)
+    v_rgb, v_depth, v_alpha = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    rast = Rasterizer(wp_device, antialiased=True)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha, antialiased=True)
+    plain = ref.render(*(scene[k] for k in PARAMS), cam, bg)
+    assert np.abs(plain["rgb"] - r["forward"]["rgb"]).max() > 1e-2  # the compensation changes the image
+    for key in ("rgb", "depth", "alpha"):
+        _close(getattr(out, key).numpy(), r["forward"][key], key, tol=1e-4)
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d"):
+        _close(getattr(grads, name).numpy(), r[name], name)
+
+
+@pytest.mark.parametrize("seg", [1, 2, 8])
+def test_pixels_per_thread_variants_match_twin(wp_device, seg):
+    # 16 pixels per thread is the CPU default (every other test); 1 is the CUDA default: same rules, same results
+    rng = np.random.default_rng(20 + seg)
+    cam = _camera(rng, 40, 36)
+    scene = ref.random_scene(rng, 40, cam, 1)
+    bg = (0.3, 0.3, 0.3)
+    v_rgb, v_depth, v_alpha = _upstream(rng, cam, ("rgb", "depth", "alpha"))
+    rast = Rasterizer(wp_device, pixels_per_thread=seg, threads=3, min_chunk=64)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha)
+    for key in ("rgb", "depth", "alpha"):
+        _close(getattr(out, key).numpy(), r["forward"][key], key, tol=1e-4)
+    alpha_only = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), _wcam(cam)).alpha.numpy().copy()
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)  # render_alpha invalidated the first one
+    assert np.array_equal(alpha_only, out.alpha.numpy())
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
+        _close(getattr(grads, name).numpy(), r[name], name)
+    with pytest.raises(ValueError, match="pixels_per_thread"):
+        Rasterizer(wp_device, pixels_per_thread=3)
+
+
+def test_split_backward_is_bitwise_identical(wp_device):
+    if not wp.get_device(wp_device).is_cpu:
+        pytest.skip("splitting only applies to CPU launches")
+    rng = np.random.default_rng(21)
+    cam = _camera(rng, 80, 56)
+    scene = ref.random_scene(rng, 300, cam, 1)
+    ups = [u.astype(np.float32) for u in _upstream(rng, cam, ("rgb", "depth", "alpha"))]
+    res = []
+    for kw in ({"threads": 1}, {"threads": 3, "min_chunk": 16}):
+        rast = Rasterizer(wp_device, **kw)
+        out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+        g = rast.backward(out, *ups)
+        res.append({f.name: getattr(g, f.name).numpy().copy() for f in dataclasses.fields(g)})
+    for name, a in res[0].items():
+        assert np.array_equal(a, res[1][name]), name
+
+
+def test_densify_stats_accumulate_over_views(wp_device):
+    rng = np.random.default_rng(31)
+    cams = [_camera(rng, 48, 32) for _ in range(2)]
+    scene = ref.random_scene(rng, 60, cams[0], 0)
+    n = 60
+    rast = Rasterizer(wp_device)
+    stats = DensifyStats.zeros(n, wp_device)
+    want_grad, want_abs, want_count = np.zeros(n), np.zeros(n), np.zeros(n, int)
+    want_rad = np.zeros(n)
+    for cam in cams:
+        v_rgb = rng.normal(size=(cam.height, cam.width, 3))
+        out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+        rast.backward(out, v_rgb.astype(np.float32), stats=stats)
+        r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, (0, 0, 0), v_rgb)
+        radii = out.radii.numpy()
+        vis = radii > 0
+        s = np.array([cam.width / 2, cam.height / 2])
+        want_grad += np.where(vis, np.linalg.norm(r["v_means2d"] * s, axis=1), 0)
+        want_abs += np.where(vis, np.linalg.norm(r["absgrad"] * s, axis=1), 0)
+        want_count += vis
+        want_rad = np.maximum(want_rad, radii)
+    assert want_count.max() == 2 and want_count.min() == 0
+    np.testing.assert_array_equal(stats.count.numpy(), want_count)
+    np.testing.assert_array_equal(stats.max_radii.numpy(), want_rad)
+    _close(stats.grad2d_sum.numpy(), want_grad, "grad2d")
+    _close(stats.absgrad2d_sum.numpy(), want_abs, "absgrad2d")
+    assert np.all(stats.absgrad2d_sum.numpy() >= stats.grad2d_sum.numpy() - 1e-4)
