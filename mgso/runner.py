@@ -7,6 +7,9 @@ by the stage's engine, which reports through observers and result values. Stages
 - ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end):
   a pose for every tracked frame (``trajectory.txt``), the keyframes (``keyframes.txt``), a per-frame log
   (``frames.csv``), the marginalised points (``points.ply``) and, with ground truth, ATE in ``metrics.json``.
+- ``full``: the whole MGSO system (:mod:`mgso.system`): the DSO odometry and the Gaussian mapper seeded from its
+  points, in deterministic or real-time mode; every output of docs/mgso.md (trajectories, ``map.ply``, ``points.ply``,
+  renders, ``metrics.json`` with ATE, PSNR/SSIM, memory and speed).
 """
 
 from __future__ import annotations
@@ -28,10 +31,12 @@ __all__ = ["STAGES", "STAGE_HELP", "DEFAULT_STAGE", "RunSummary", "run_sequence"
 
 log = logging.getLogger(__name__)
 
-STAGES = ("check", "tracking")
+STAGES = ("check", "tracking", "full")
 STAGE_HELP = {"check": "check = decode and check every frame, describe the sequence",
-              "tracking": "tracking = DSO front end: pose of every frame, keyframes, ATE with ground truth"}
-DEFAULT_STAGE = "check"
+              "tracking": "tracking = DSO front end: pose of every frame, keyframes, ATE with ground truth",
+              "full": "full = DSO odometry + Gaussian map seeded from its points (MGSO): trajectories, map.ply, "
+                      "renders, ATE/PSNR/SSIM"}
+DEFAULT_STAGE = "full"
 
 
 @dataclass
@@ -178,4 +183,12 @@ def run_sequence(seq, cfg: Config, out_dir: Path, *, stage: str | None = None,
         from .tracking.run import run_tracking
 
         run_tracking(seq, cfg, out_dir, summary, progress)
+    elif stage == "full":
+        from mgso_kernels import runtime
+        from .system import DsoOdometry
+
+        device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads)
+        odometry = DsoOdometry(seq.calibration.output, cfg, device=device)
+        run_system(seq, cfg, out_dir, odometry, odometry_name=odometry.name, progress=progress, summary=summary,
+                   device=device)
     return summary
