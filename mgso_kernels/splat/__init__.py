@@ -182,8 +182,9 @@ class Rasterizer:
     ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
     dilation of the 2D covariance (px^2, 3DGS's 0.3). ``antialiased``: also multiply each opacity by
     ``sqrt(det(J Sigma J^T) / det(J Sigma J^T + eps2d I))`` (Mip-Splatting's compensation, gsplat's ``antialiased`` mode);
-    off by default, as in the original 3DGS. ``pixels_per_thread``: pixels of a tile row a blending thread shades
-    (1, 2, 4, 8 or 16; default 16 on the CPU, where it shares the span work, and 1 on CUDA). ``threads``: CPU
+    off by default, as in the original 3DGS. ``pixels_per_thread``: pixels a blending thread shades: 256 = a whole
+    16x16 tile with the 16 pixels of a row in SIMD lanes (:mod:`~mgso_kernels.splat.raster_tile`, the CPU default),
+    or 1, 2, 4, 8, 16 pixels of a tile row (:mod:`~mgso_kernels.splat.raster`; 1 is the CUDA default). ``threads``: CPU
     threads for split launches (``None``: the runtime's setting); ``min_chunk``: fewest threads a CPU chunk gets (a
     launch smaller than two chunks stays on one core). ``profile=True`` synchronises after each stage
     and records seconds per stage in :attr:`timings` (for ``profiles/splat_raster.py``; slows the pipeline a little).
@@ -198,7 +199,7 @@ class Rasterizer:
         self.threads = threads
         self._split = {"threads": threads, "min_chunk": int(min_chunk)}
         if pixels_per_thread is None:
-            pixels_per_thread = TILE_SIZE if wp.get_device(self.device).is_cpu else 1
+            pixels_per_thread = TILE_SIZE * TILE_SIZE if wp.get_device(self.device).is_cpu else 1
         if pixels_per_thread not in _raster.SEGMENT_WIDTHS:
             raise ValueError(f"pixels_per_thread must be one of {_raster.SEGMENT_WIDTHS}, got {pixels_per_thread}")
         self.pixels_per_thread = int(pixels_per_thread)

@@ -1,4 +1,6 @@
-"""Tile-sorted alpha blending, hand-written backward (Warp module).
+"""Tile-sorted alpha blending, hand-written backward (Warp module): the row kernels (1-16 pixels per thread), the
+per-Gaussian gather of the per-pair gradients, and the densification statistics. (The CPU default backward blend is
+:func:`mgso_kernels.splat.raster_tile.rasterize_backward_tile`, dispatched by :func:`launch_rasterize_backward`.)
 
 Warp's ``wp.Tape`` is silently wrong for the blending loop (a runtime-bounded loop carrying ``T``), so this adjoint
 is written by hand, as 3DGS and gsplat do: per pixel, back to front from the last accumulated Gaussian
@@ -248,6 +250,14 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
         raise ValueError(f"rasterize_backward: pair_grads holds {pair_grads.shape[0]}, need {n_pairs}")
     pair_grads[:n_pairs].zero_()
     dim, per_tile = segment_threads(cam, seg)
+    if seg == TILE_SIZE * TILE_SIZE:
+        from .raster_tile import BWD_ACC_ROWS, rasterize_backward_tile
+
+        launch_split(rasterize_backward_tile, dim,
+                     [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
+                      v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads], device,
+                     threads=threads, min_chunk=max(1, min_chunk // seg))
+        return
     launch_split(rasterize_backward, dim,
                  [cam, seg, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
                   v_depth, v_alpha, use_depth, use_alpha, pair_grads], device,
