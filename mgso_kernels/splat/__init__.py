@@ -55,8 +55,8 @@ from . import sh as _sh
 from ._checks import as_float_array
 from .camera import TILE_SIZE, Camera, camera_centre, make_camera
 
-__all__ = ["Rasterizer", "RenderOutput", "AlphaOutput", "Gradients", "DensifyStats", "Camera", "make_camera",
-           "camera_centre", "TILE_SIZE"]
+__all__ = ["Rasterizer", "RenderOutput", "AlphaOutput", "Gradients", "Camera", "make_camera", "camera_centre",
+           "TILE_SIZE"]
 
 _GROWTH = 1.5
 
@@ -126,32 +126,6 @@ class Gradients:
     v_means2d: wp.array
     absgrad: wp.array
     radii: wp.array
-
-
-@dataclass
-class DensifyStats:
-    """Per-Gaussian densification statistics accumulated over views by :meth:`Rasterizer.backward`.
-
-    ``grad2d_sum`` / ``absgrad2d_sum`` (N,) float32: sums over views of the norm of the 2D-mean gradient (AbsGS:
-    of the per-pixel absolute gradient), each scaled by ``(W/2, H/2)`` into 3DGS's NDC units (3DGS's densify
-    threshold 0.0002 applies to ``grad2d_sum / count``); ``count`` (N,) int32 views in which the Gaussian was
-    visible; ``max_radii`` (N,) float32 largest screen radius seen (pixels). The owner of the Gaussians (the map)
-    reorders / resets these when it densifies or prunes.
-    """
-
-    grad2d_sum: wp.array
-    absgrad2d_sum: wp.array
-    count: wp.array
-    max_radii: wp.array
-
-    @classmethod
-    def zeros(cls, n: int, device: str) -> "DensifyStats":
-        return cls(wp.zeros(n, dtype=wp.float32, device=device), wp.zeros(n, dtype=wp.float32, device=device),
-                   wp.zeros(n, dtype=wp.int32, device=device), wp.zeros(n, dtype=wp.float32, device=device))
-
-    def reset(self) -> None:
-        for a in (self.grad2d_sum, self.absgrad2d_sum, self.count, self.max_radii):
-            a.zero_()
 
 
 class _Buffer:
@@ -403,14 +377,13 @@ class Rasterizer:
         return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
 
     # -------------------------------------------------------------------------------------------- backward
-    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *,
-                 stats: DensifyStats | None = None, stats_ndc: bool = True) -> Gradients:
+    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None) -> Gradients:
         """Gradients of ``sum(v_rgb * rgb) + sum(v_depth * depth) + sum(v_alpha * alpha)`` (see :class:`Gradients`).
 
         ``v_rgb`` (H, W, 3), ``v_depth`` (H, W) or None, ``v_alpha`` (H, W) or None: float32, NumPy or Warp.
-        ``out`` must be the latest :meth:`forward` result of this rasteriser. ``stats``: if given, this view's
-        2D-mean gradient norms, visibility count and max radii are accumulated into it (``stats_ndc``: scale pixel
-        gradients by (W/2, H/2) into 3DGS's NDC units first).
+        ``out`` must be the latest :meth:`forward` result of this rasteriser. Densification statistics are the
+        owner's: ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed
+        :func:`mgso_kernels.adam.accumulate_stats` (``GaussianMap.accumulate_stats``).
         """
         if out.generation != self._generation or out.T_final is None:
             raise RuntimeError("backward: this RenderOutput is stale: the rasteriser ran forward/render_alpha since "
@@ -462,14 +435,6 @@ class Rasterizer:
         _sh.launch_evaluate_sh_backward(sh, means, out.num_bases, cam, radii, v_colors, v_sh, v_means,
                                         v_pose_partial, dev, **sp)
         _project.launch_reduce_pose(v_pose_partial, self.pose_blocks_.full, self.v_pose, dev, **sp)
-        if stats is not None:
-            scale = (0.5 * W, 0.5 * H) if stats_ndc else (1.0, 1.0)
-            for name in ("grad2d_sum", "absgrad2d_sum", "count", "max_radii"):
-                a = getattr(stats, name)
-                if a.shape[0] != n or str(a.device) != str(wp.get_device(dev)):
-                    raise ValueError(f"stats.{name}: expected ({n},) on {dev}, got {a.shape} on {a.device}")
-            _raster_bwd.launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, stats.grad2d_sum,
-                                                        stats.absgrad2d_sum, stats.count, stats.max_radii, dev, **sp)
         self._stage("backward_project", t)
         return Gradients(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                          v_sh=v_sh, v_pose=self.v_pose, v_means2d=v_means2d.view(wp.float32),

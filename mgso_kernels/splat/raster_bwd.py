@@ -1,5 +1,5 @@
 """Tile-sorted alpha blending, hand-written backward (Warp module): the row kernels (1-16 pixels per thread), the
-per-Gaussian gather of the per-pair gradients, and the densification statistics. (The CPU default backward blend is
+per-Gaussian gather of the per-pair gradients. (The CPU default backward blend is
 :func:`mgso_kernels.splat.raster_tile.rasterize_backward_tile`, dispatched by :func:`launch_rasterize_backward`.)
 
 Warp's ``wp.Tape`` is silently wrong for the blending loop (a runtime-bounded loop carrying ``T``), so this adjoint
@@ -35,7 +35,7 @@ from .raster import row_span, segment_threads, span_exp_start, tile_row, vec16, 
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["rasterize_backward", "gather_gaussian_grads", "accumulate_densify_stats", "vec12"]
+__all__ = ["rasterize_backward", "gather_gaussian_grads", "vec12"]
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
@@ -200,30 +200,6 @@ def gather_gaussian_grads(
     absgrad[g] = wp.vec2(acc[10], acc[11])
 
 
-@wp.kernel
-def accumulate_densify_stats(
-    offset: int,
-    v_means2d: wp.array(dtype=wp.vec2),  # [N] this view's d/d mean2d, pixels
-    absgrad: wp.array(dtype=wp.vec2),  # [N] this view's AbsGS sums, pixels
-    radii: wp.array(dtype=wp.int32),  # [N] 0 = not visible in this view
-    scale: wp.vec2,  # multiplies the pixel gradients (W/2, H/2 gives 3DGS's NDC units)
-    grad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * v_mean2d|
-    absgrad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * absgrad|
-    count: wp.array(dtype=wp.int32),  # [N] in/out: views in which the Gaussian was visible
-    max_radii: wp.array(dtype=float),  # [N] in/out: max over views of radii (pixels)
-):
-    g = offset + wp.tid()
-    r = radii[g]
-    if r == 0:
-        return
-    v = v_means2d[g]
-    a = absgrad[g]
-    grad2d_sum[g] = grad2d_sum[g] + wp.length(wp.vec2(v[0] * scale[0], v[1] * scale[1]))
-    absgrad2d_sum[g] = absgrad2d_sum[g] + wp.length(wp.vec2(a[0] * scale[0], a[1] * scale[1]))
-    count[g] = count[g] + 1
-    max_radii[g] = wp.max(max_radii[g], float(r))
-
-
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
@@ -273,14 +249,4 @@ def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_mean
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
                                             v_opacities, v_colors, v_depths, absgrad], device, threads=threads,
-                 min_chunk=min_chunk)
-
-
-def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum, absgrad2d_sum, count, max_radii,
-                                    device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
-    from ..runtime import launch_split
-
-    n = v_means2d.shape[0]
-    launch_split(accumulate_densify_stats, n, [v_means2d, absgrad, radii, wp.vec2(*scale), grad2d_sum,
-                                               absgrad2d_sum, count, max_radii], device, threads=threads,
                  min_chunk=min_chunk)

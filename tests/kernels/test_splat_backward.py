@@ -10,8 +10,9 @@ import pytest
 import warp as wp
 
 from mgso.geometry import se3_exp
+from mgso_kernels import adam as kadam
 from mgso_kernels.reference import splat as ref
-from mgso_kernels.splat import DensifyStats, Rasterizer, make_camera
+from mgso_kernels.splat import Rasterizer, make_camera
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD_OF = {"means": "v_means", "log_scales": "v_log_scales", "quats": "v_quats",
@@ -207,18 +208,25 @@ def test_split_backward_is_bitwise_identical(wp_device):
 
 
 def test_densify_stats_accumulate_over_views(wp_device):
+    # the one statistics mechanism: the backward's v_means2d / absgrad / radii into the map's DensifyStats
+    # (mgso_kernels.adam.accumulate_stats, what GaussianMap.accumulate_stats runs), in 3DGS's NDC units
     rng = np.random.default_rng(31)
     cams = [_camera(rng, 48, 32) for _ in range(2)]
     scene = ref.random_scene(rng, 60, cams[0], 0)
     n = 60
     rast = Rasterizer(wp_device)
-    stats = DensifyStats.zeros(n, wp_device)
+    stats = kadam.DensifyStats()
+    for name, dt in (("grad2d_sum", wp.float32), ("absgrad2d_sum", wp.float32), ("vis_count", wp.int32),
+                     ("max_radius_px", wp.float32), ("views_seen", wp.int32)):
+        setattr(stats, name, wp.zeros(n, dtype=dt, device=wp_device))
     want_grad, want_abs, want_count = np.zeros(n), np.zeros(n), np.zeros(n, int)
     want_rad = np.zeros(n)
     for cam in cams:
         v_rgb = rng.normal(size=(cam.height, cam.width, 3))
         out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
-        rast.backward(out, v_rgb.astype(np.float32), stats=stats)
+        g = rast.backward(out, v_rgb.astype(np.float32))
+        kadam.accumulate_stats(stats, g.v_means2d.view(wp.vec2), g.radii, cam.width, cam.height,
+                               g.absgrad.view(wp.vec2), device=wp_device)
         r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, (0, 0, 0), v_rgb)
         radii = out.radii.numpy()
         vis = radii > 0
@@ -228,8 +236,9 @@ def test_densify_stats_accumulate_over_views(wp_device):
         want_count += vis
         want_rad = np.maximum(want_rad, radii)
     assert want_count.max() == 2 and want_count.min() == 0
-    np.testing.assert_array_equal(stats.count.numpy(), want_count)
-    np.testing.assert_array_equal(stats.max_radii.numpy(), want_rad)
+    np.testing.assert_array_equal(stats.vis_count.numpy(), want_count)
+    np.testing.assert_array_equal(stats.views_seen.numpy(), want_count)
+    np.testing.assert_array_equal(stats.max_radius_px.numpy(), want_rad)
     _close(stats.grad2d_sum.numpy(), want_grad, "grad2d")
     _close(stats.absgrad2d_sum.numpy(), want_abs, "absgrad2d")
     assert np.all(stats.absgrad2d_sum.numpy() >= stats.grad2d_sum.numpy() - 1e-4)
