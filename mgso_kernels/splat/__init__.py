@@ -258,6 +258,18 @@ class Rasterizer:
                                  f"{sh.shape[1]}")
         return means, log_scales, quats, opacity_logits, sh
 
+    def _into_arrays(self, into, n: int, k: int):
+        from ._checks import check_array
+
+        out = []
+        for name, shape in (("means", (n, 3)), ("log_scales", (n, 3)), ("quats", (n, 4)), ("opacity_logits", (n,)),
+                            ("sh", (n, k, 3))):
+            a = getattr(into, name, None)
+            if a is None:
+                raise TypeError(f"backward(into=...): {type(into).__name__} has no array '{name}'")
+            out.append(check_array(a, f"into.{name}", wp.float32, shape, self.device))
+        return out
+
     def _check_camera(self, camera) -> None:
         if not isinstance(camera, Camera.cls):
             raise TypeError(f"camera: expected mgso_kernels.splat.Camera (use make_camera), got "
@@ -377,13 +389,17 @@ class Rasterizer:
         return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
 
     # -------------------------------------------------------------------------------------------- backward
-    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None) -> Gradients:
+    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *, into=None) -> Gradients:
         """Gradients of ``sum(v_rgb * rgb) + sum(v_depth * depth) + sum(v_alpha * alpha)`` (see :class:`Gradients`).
 
         ``v_rgb`` (H, W, 3), ``v_depth`` (H, W) or None, ``v_alpha`` (H, W) or None: float32, NumPy or Warp.
-        ``out`` must be the latest :meth:`forward` result of this rasteriser. Densification statistics are the
-        owner's: ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed
-        :func:`mgso_kernels.adam.accumulate_stats` (``GaussianMap.accumulate_stats``).
+        ``out`` must be the latest :meth:`forward` result of this rasteriser. ``into``: optional object with float32
+        Warp arrays ``means`` (N, 3), ``log_scales`` (N, 3), ``quats`` (N, 4), ``opacity_logits`` (N,) and ``sh``
+        (N, K, 3) on this device (e.g. ``GaussianMap.float_grads()``): the parameter gradients are written there
+        (overwritten) instead of into the rasteriser's buffers, which saves the copy; the returned
+        :class:`Gradients` then holds those arrays. Densification statistics are the owner's:
+        ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed :func:`mgso_kernels.adam.accumulate_stats`
+        (``GaussianMap.accumulate_stats``).
         """
         if out.generation != self._generation or out.T_final is None:
             raise RuntimeError("backward: this RenderOutput is stale: the rasteriser ran forward/render_alpha since "
@@ -429,6 +445,8 @@ class Rasterizer:
         v_means, v_log_scales = self.v_means_.view(n), self.v_log_scales_.view(n)
         v_quats, v_logits = self.v_quats_.view(n), self.v_opacity_logits_.view(n)
         v_pose_partial, v_sh = self.v_pose_partial_.view(n), self.v_sh_.view(n)
+        if into is not None:
+            v_means, v_log_scales, v_quats, v_logits, v_sh = self._into_arrays(into, n, sh.shape[1])
         _project.launch_project_backward(means, log_scales, quats, opacity_logits, cam, self.eps2d,
                                          self.antialiased, radii, v_means2d, v_conics, v_depths, v_opac, v_means,
                                          v_log_scales, v_quats, v_logits, v_pose_partial, dev, **sp)

@@ -242,3 +242,33 @@ def test_densify_stats_accumulate_over_views(wp_device):
     _close(stats.grad2d_sum.numpy(), want_grad, "grad2d")
     _close(stats.absgrad2d_sum.numpy(), want_abs, "absgrad2d")
     assert np.all(stats.absgrad2d_sum.numpy() >= stats.grad2d_sum.numpy() - 1e-4)
+
+
+def test_backward_into_given_arrays_is_identical(wp_device):
+    # into=: the parameter gradients land in the caller's buffers (a Gaussian map's), bit for bit the same
+    rng = np.random.default_rng(41)
+    cam = _camera(rng, 40, 32)
+    scene = ref.random_scene(rng, 50, cam, 1)
+    v_rgb = rng.normal(size=(cam.height, cam.width, 3)).astype(np.float32)
+    rast = Rasterizer(wp_device)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    g = rast.backward(out, v_rgb)
+    want = {k: getattr(g, "v_" + k).numpy().copy() for k in PARAMS}
+    n, k = scene["sh"].shape[:2]
+
+    class Into:
+        means = wp.full((n, 3), 7.0, dtype=wp.float32, device=wp_device)   # overwritten, not added to
+        log_scales = wp.zeros((n, 3), dtype=wp.float32, device=wp_device)
+        quats = wp.zeros((n, 4), dtype=wp.float32, device=wp_device)
+        opacity_logits = wp.zeros(n, dtype=wp.float32, device=wp_device)
+        sh = wp.zeros((n, k, 3), dtype=wp.float32, device=wp_device)
+
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    g2 = rast.backward(out, v_rgb, into=Into)
+    for name in PARAMS:
+        assert np.array_equal(getattr(Into, name).numpy(), want[name]), name
+        assert getattr(g2, "v_" + name).ptr == getattr(Into, name).ptr
+    Into.quats = wp.zeros((n, 3), dtype=wp.float32, device=wp_device)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    with pytest.raises(ValueError, match="into.quats"):
+        rast.backward(out, v_rgb, into=Into)
