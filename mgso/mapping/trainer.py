@@ -120,6 +120,9 @@ class TrainStep:
         self.strategy = strategy if strategy is not None else DefaultStrategy(cfg.densify)
         # ONLY changed by __call__ (through the strategy's hooks).
         self.strategy_state: StrategyState = self.strategy.initialize_state(seed)
+        # AbsGS statistics only when the strategy reads them (DefaultStrategy's grad_mode "absgrad" / "absgs"; a
+        # strategy without that setting gets them)
+        self._wants_absgrad = getattr(getattr(self.strategy, "cfg", None), "grad_mode", "absgrad") != "grad"
         self.timing = bool(timing)
         self._sync = timing and not wp.get_device(self.device).is_cpu
         self._losses: dict[tuple[int, int], L1SSIMLoss] = {}
@@ -181,9 +184,11 @@ class TrainStep:
         psnr = _psnr(out.rgb.numpy(), image_np, exposure, mask_np) if with_psnr else None
         t = self._clock(t, times, "loss")
 
-        g = self.rasterizer.backward(out, res.v_rendered_hw3, into=gmap.float_grads())   # into the map's buffers
+        g = self.rasterizer.backward(out, res.v_rendered_hw3, into=gmap.float_grads(),   # into the map's buffers
+                                     absgrad=want_stats and self._wants_absgrad)
         if want_stats:
-            gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H, g.absgrad.view(wp.vec2))
+            gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H,
+                                  g.absgrad.view(wp.vec2) if self._wants_absgrad else None)
         radii = g.radii.numpy()
         num_visible = int(np.count_nonzero(radii))
         v_pose = g.v_pose.numpy().astype(np.float64) if tc.refine_poses else None

@@ -203,10 +203,12 @@ def gather_gaussian_grads(
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
-                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
+                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE,
+                              absgrad: bool = True) -> None:
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
 
-    ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output).
+    ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output). ``absgrad=False`` lets the tile
+    kernel (``seg`` 256) skip the AbsGS sums (components 10, 11 stay 0); the row kernels compute them anyway.
     """
     from ..runtime import launch_split
     from ._checks import check_array
@@ -227,9 +229,9 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     pair_grads[:n_pairs].zero_()
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import BWD_ACC_ROWS, rasterize_backward_tile
+        from .raster_tile import BWD_ACC_ROWS, rasterize_backward_tile, rasterize_backward_tile_noabs
 
-        launch_split(rasterize_backward_tile, dim,
+        launch_split(rasterize_backward_tile if absgrad else rasterize_backward_tile_noabs, dim,
                      [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
                       v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads], device,
                      threads=threads, min_chunk=max(1, min_chunk // seg))

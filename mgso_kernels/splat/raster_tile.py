@@ -51,7 +51,7 @@ wp.set_module_options({
 })
 
 __all__ = ["TILE_PIXELS", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_backward_tile",
-           "BWD_ACC_ROWS"]
+           "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE  # ``pixels_per_thread`` value that selects these kernels
 
@@ -321,154 +321,164 @@ def rasterize_alpha_tile(
             alpha[y0 + r, x0 + k] = 1.0 - T[r, k]
 
 
-@wp.kernel
-def rasterize_backward_tile(
-    offset: int,
-    cam: Camera,
-    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
-    splats: wp.array(dtype=vec8),  # [M] packed, sorted (forward's)
-    splat_rgbz: wp.array(dtype=wp.vec4),  # [M] r, g, b, depth
-    slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
-    background: wp.vec3,
-    T_final: wp.array2d(dtype=float),  # [H, W] forward's
-    n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] forward's
-    v_rgb: wp.array3d(dtype=float),  # [H, W, 3] upstream
-    v_depth: wp.array2d(dtype=float),  # [H, W] upstream
-    v_alpha: wp.array2d(dtype=float),  # [H, W] upstream
-    use_depth: int,  # 0: v_depth ignored (may be a dummy)
-    use_alpha: int,  # 0: v_alpha ignored
-    acc_rows: int,  # BWD_ACC_ROWS, passed at run time so that the running sums stay in (L1) memory
-    pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
-):
-    tl = tile_of(offset + wp.tid(), cam)
-    tile = tl[0]
-    x0 = tl[1]
-    y0 = tl[2]
-    nx = tl[3] % 32
-    ny = tl[3] // 32
-    start = ranges[tile, 0]
-    # per pixel: T (rebuilt back to front from T_final), S (sum over the Gaussians behind of w g, plus the
-    # background's and alpha's share), upstream gradients, n_contrib
-    T = mat16(0.0)
-    S = mat16(0.0)
-    GR = mat16(0.0)
-    GG = mat16(0.0)
-    GB = mat16(0.0)
-    VD = mat16(0.0)
-    NC = mat16(0.0)
-    row_max = vec16i(0)  # largest n_contrib of each row
-    n_max = int(0)
-    for r in range(ny):
-        y = y0 + r
-        rm = int(0)
-        for k in range(nx):
-            x = x0 + k
-            Tf = T_final[y, x]
-            T[r, k] = Tf
-            gr = v_rgb[y, x, 0]
-            gg = v_rgb[y, x, 1]
-            gb = v_rgb[y, x, 2]
-            GR[r, k] = gr
-            GG[r, k] = gg
-            GB[r, k] = gb
-            vA = float(0.0)
-            if use_depth != 0:
-                VD[r, k] = v_depth[y, x]
-            if use_alpha != 0:
-                vA = v_alpha[y, x]
-            S[r, k] = Tf * (background[0] * gr + background[1] * gg + background[2] * gb - vA)
-            nc = n_contrib[y, x]
-            NC[r, k] = float(nc)
-            rm = wp.max(rm, nc)
-        row_max[r] = rm
-        n_max = wp.max(n_max, rm)
-    # running sums of one Gaussian over the tile, per lane: 0 v_pow, 1 dy v_pow, 2 dy^2 v_pow, 3 v_alpha_raw E
-    # (opacity), 4-6 w G (colour), 7 w v_depth, 8-9 |per-pixel d/d mean2d| (AbsGS); rows acc_rows.. unused
-    ACC = mat16(0.0)
-    fy0 = float(y0)
-    fx0 = float(x0)
-    for jj in range(n_max):
-        i = n_max - 1 - jj  # position in the tile list, back to front
-        fi = float(i)
-        j = start + i
-        s = splats[j]
-        mx = s[0]
-        my = s[1]
-        a = s[2]
-        b = s[3]
-        c = s[4]
-        op = s[5]
-        r2 = s[7]
-        det = a * c - b * b
-        inv_a = 1.0 / a
-        rows = tile_rows(my, a, r2, det, fy0, ny)
-        col = splat_rgbz[j]
-        dx0 = fx0 - mx
-        for q in range(acc_rows):
-            ACC[q] = vec16(0.0)
-        hit = int(0)
-        for r in range(rows[0], rows[1] + 1):
-            if row_max[r] <= i:
-                continue
-            dy = fy0 + float(r) - my
-            m = row_span_mask(mx, a, b, r2, det, inv_a, dy, x0, nx)
-            if m == 0:
-                continue
-            hit = 1
-            cyy = -0.5 * c * dy * dy
-            bdy = b * dy
-            Tr = T[r]
-            Sr = S[r]
-            GRr = GR[r]
-            GGr = GG[r]
-            GBr = GB[r]
-            VDr = VD[r]
-            NCr = NC[r]
-            span = vec16(0.0)
-            for k in range(LANES):
-                span[k] = float((m >> k) & 1)
-            for k in range(LANES):
-                dx = dx0 + float(k)
-                e = exp_lane(lane_power(a, dx, cyy, bdy))
-                raw = op * e
-                al = wp.min(ALPHA_MAX, raw)
-                ok = wp.where(NCr[k] > fi, wp.where(al >= ALPHA_MIN, span[k], 0.0), 0.0)
-                inv = 1.0 / (1.0 - al)
-                Tk = Tr[k] * inv  # transmittance in front of this Gaussian
-                w = al * Tk
-                gi = col[0] * GRr[k] + col[1] * GGr[k] + col[2] * GBr[k] + col[3] * VDr[k]
-                v_al = Tk * gi - Sr[k] * inv
-                okb = ok > 0.0
-                Tr[k] = wp.where(okb, Tk, Tr[k])
-                Sr[k] = wp.where(okb, Sr[k] + w * gi, Sr[k])
-                v_raw = wp.where(raw <= ALPHA_MAX, v_al, 0.0) * ok  # no gradient through the 0.99 clamp
-                v_pow = v_raw * raw
-                wk = w * ok
-                ACC[0, k] = ACC[0, k] + v_pow
-                ACC[1, k] = ACC[1, k] + dy * v_pow
-                ACC[2, k] = ACC[2, k] + dy * dy * v_pow
-                ACC[3, k] = ACC[3, k] + v_raw * e
-                ACC[4, k] = ACC[4, k] + wk * GRr[k]
-                ACC[5, k] = ACC[5, k] + wk * GGr[k]
-                ACC[6, k] = ACC[6, k] + wk * GBr[k]
-                ACC[7, k] = ACC[7, k] + wk * VDr[k]
-                mp = wp.abs(v_pow)
-                ACC[8, k] = ACC[8, k] + wp.abs(a * dx + bdy) * mp
-                ACC[9, k] = ACC[9, k] + wp.abs(b * dx + c * dy) * mp
-            T[r] = Tr
-            S[r] = Sr
-        if hit != 0:
-            # sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow: dx is the lane's constant
-            dxv = vec16(0.0)
-            for k in range(LANES):
-                dxv[k] = dx0 + float(k)
-            V = ACC[0]
-            P1 = lane_sum(wp.cw_mul(dxv, V))
-            P2 = lane_sum(wp.cw_mul(wp.cw_mul(dxv, dxv), V))
-            Q1 = lane_sum(ACC[1])
-            Q2 = lane_sum(wp.cw_mul(dxv, ACC[1]))
-            Q3 = lane_sum(ACC[2])
-            g = vec12(
-                a * P1 + b * Q1, b * P1 + c * Q1, -0.5 * P2, -Q2, -0.5 * Q3, lane_sum(ACC[3]), lane_sum(ACC[4]),
-                lane_sum(ACC[5]), lane_sum(ACC[6]), lane_sum(ACC[7]), lane_sum(ACC[8]), lane_sum(ACC[9]))
-            wp.atomic_add(pair_grads, slots[j], g)
+def _backward_tile_kernel(with_absgrad: bool):
+    """The backward tile kernel, with or without the AbsGS sums (``wp.static``: two compiled variants)."""
+
+    @wp.kernel
+    def rasterize_backward_tile(
+        offset: int,
+        cam: Camera,
+        ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+        splats: wp.array(dtype=vec8),  # [M] packed, sorted (forward's)
+        splat_rgbz: wp.array(dtype=wp.vec4),  # [M] r, g, b, depth
+        slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
+        background: wp.vec3,
+        T_final: wp.array2d(dtype=float),  # [H, W] forward's
+        n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] forward's
+        v_rgb: wp.array3d(dtype=float),  # [H, W, 3] upstream
+        v_depth: wp.array2d(dtype=float),  # [H, W] upstream
+        v_alpha: wp.array2d(dtype=float),  # [H, W] upstream
+        use_depth: int,  # 0: v_depth ignored (may be a dummy)
+        use_alpha: int,  # 0: v_alpha ignored
+        acc_rows: int,  # BWD_ACC_ROWS, passed at run time so that the running sums stay in (L1) memory
+        pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
+    ):
+        tl = tile_of(offset + wp.tid(), cam)
+        tile = tl[0]
+        x0 = tl[1]
+        y0 = tl[2]
+        nx = tl[3] % 32
+        ny = tl[3] // 32
+        start = ranges[tile, 0]
+        # per pixel: T (rebuilt back to front from T_final), S (sum over the Gaussians behind of w g, plus the
+        # background's and alpha's share), upstream gradients, n_contrib
+        T = mat16(0.0)
+        S = mat16(0.0)
+        GR = mat16(0.0)
+        GG = mat16(0.0)
+        GB = mat16(0.0)
+        VD = mat16(0.0)
+        NC = mat16(0.0)
+        row_max = vec16i(0)  # largest n_contrib of each row
+        n_max = int(0)
+        for r in range(ny):
+            y = y0 + r
+            rm = int(0)
+            for k in range(nx):
+                x = x0 + k
+                Tf = T_final[y, x]
+                T[r, k] = Tf
+                gr = v_rgb[y, x, 0]
+                gg = v_rgb[y, x, 1]
+                gb = v_rgb[y, x, 2]
+                GR[r, k] = gr
+                GG[r, k] = gg
+                GB[r, k] = gb
+                vA = float(0.0)
+                if use_depth != 0:
+                    VD[r, k] = v_depth[y, x]
+                if use_alpha != 0:
+                    vA = v_alpha[y, x]
+                S[r, k] = Tf * (background[0] * gr + background[1] * gg + background[2] * gb - vA)
+                nc = n_contrib[y, x]
+                NC[r, k] = float(nc)
+                rm = wp.max(rm, nc)
+            row_max[r] = rm
+            n_max = wp.max(n_max, rm)
+        # running sums of one Gaussian over the tile, per lane: 0 v_pow, 1 dy v_pow, 2 dy^2 v_pow, 3 v_alpha_raw E
+        # (opacity), 4-6 w G (colour), 7 w v_depth, 8-9 |per-pixel d/d mean2d| (AbsGS); rows acc_rows.. unused
+        ACC = mat16(0.0)
+        fy0 = float(y0)
+        fx0 = float(x0)
+        for jj in range(n_max):
+            i = n_max - 1 - jj  # position in the tile list, back to front
+            fi = float(i)
+            j = start + i
+            s = splats[j]
+            mx = s[0]
+            my = s[1]
+            a = s[2]
+            b = s[3]
+            c = s[4]
+            op = s[5]
+            r2 = s[7]
+            det = a * c - b * b
+            inv_a = 1.0 / a
+            rows = tile_rows(my, a, r2, det, fy0, ny)
+            col = splat_rgbz[j]
+            dx0 = fx0 - mx
+            for q in range(acc_rows):
+                ACC[q] = vec16(0.0)
+            hit = int(0)
+            for r in range(rows[0], rows[1] + 1):
+                if row_max[r] <= i:
+                    continue
+                dy = fy0 + float(r) - my
+                m = row_span_mask(mx, a, b, r2, det, inv_a, dy, x0, nx)
+                if m == 0:
+                    continue
+                hit = 1
+                cyy = -0.5 * c * dy * dy
+                bdy = b * dy
+                Tr = T[r]
+                Sr = S[r]
+                GRr = GR[r]
+                GGr = GG[r]
+                GBr = GB[r]
+                VDr = VD[r]
+                NCr = NC[r]
+                span = vec16(0.0)
+                for k in range(LANES):
+                    span[k] = float((m >> k) & 1)
+                for k in range(LANES):
+                    dx = dx0 + float(k)
+                    e = exp_lane(lane_power(a, dx, cyy, bdy))
+                    raw = op * e
+                    al = wp.min(ALPHA_MAX, raw)
+                    ok = wp.where(NCr[k] > fi, wp.where(al >= ALPHA_MIN, span[k], 0.0), 0.0)
+                    inv = 1.0 / (1.0 - al)
+                    Tk = Tr[k] * inv  # transmittance in front of this Gaussian
+                    w = al * Tk
+                    gi = col[0] * GRr[k] + col[1] * GGr[k] + col[2] * GBr[k] + col[3] * VDr[k]
+                    v_al = Tk * gi - Sr[k] * inv
+                    okb = ok > 0.0
+                    Tr[k] = wp.where(okb, Tk, Tr[k])
+                    Sr[k] = wp.where(okb, Sr[k] + w * gi, Sr[k])
+                    v_raw = wp.where(raw <= ALPHA_MAX, v_al, 0.0) * ok  # no gradient through the 0.99 clamp
+                    v_pow = v_raw * raw
+                    wk = w * ok
+                    ACC[0, k] = ACC[0, k] + v_pow
+                    ACC[1, k] = ACC[1, k] + dy * v_pow
+                    ACC[2, k] = ACC[2, k] + dy * dy * v_pow
+                    ACC[3, k] = ACC[3, k] + v_raw * e
+                    ACC[4, k] = ACC[4, k] + wk * GRr[k]
+                    ACC[5, k] = ACC[5, k] + wk * GGr[k]
+                    ACC[6, k] = ACC[6, k] + wk * GBr[k]
+                    ACC[7, k] = ACC[7, k] + wk * VDr[k]
+                    if wp.static(with_absgrad):
+                        mp = wp.abs(v_pow)
+                        ACC[8, k] = ACC[8, k] + wp.abs(a * dx + bdy) * mp
+                        ACC[9, k] = ACC[9, k] + wp.abs(b * dx + c * dy) * mp
+                T[r] = Tr
+                S[r] = Sr
+            if hit != 0:
+                # sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow: dx is the lane's constant
+                dxv = vec16(0.0)
+                for k in range(LANES):
+                    dxv[k] = dx0 + float(k)
+                V = ACC[0]
+                P1 = lane_sum(wp.cw_mul(dxv, V))
+                P2 = lane_sum(wp.cw_mul(wp.cw_mul(dxv, dxv), V))
+                Q1 = lane_sum(ACC[1])
+                Q2 = lane_sum(wp.cw_mul(dxv, ACC[1]))
+                Q3 = lane_sum(ACC[2])
+                g = vec12(
+                    a * P1 + b * Q1, b * P1 + c * Q1, -0.5 * P2, -Q2, -0.5 * Q3, lane_sum(ACC[3]), lane_sum(ACC[4]),
+                    lane_sum(ACC[5]), lane_sum(ACC[6]), lane_sum(ACC[7]), lane_sum(ACC[8]), lane_sum(ACC[9]))
+                wp.atomic_add(pair_grads, slots[j], g)
+
+    return rasterize_backward_tile
+
+
+rasterize_backward_tile = _backward_tile_kernel(True)
+rasterize_backward_tile_noabs = _backward_tile_kernel(False)   # AbsGS sums skipped (absgrad = 0)

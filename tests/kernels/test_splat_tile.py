@@ -82,3 +82,20 @@ def test_tile_kernels_agree_with_row_kernels(wp_device, size):
         scale = np.abs(a[name]).max()
         assert scale > 0, name
         np.testing.assert_allclose(b[name], a[name], atol=2e-5 * scale, rtol=0, err_msg=name)  # measured <= 4e-6
+
+
+def test_backward_without_absgrad_changes_nothing_else(wp_device):
+    rng, scene, cam = _scene(4, 300, 64, 48)
+    v_rgb = rng.normal(size=(48, 64, 3)).astype(np.float32)
+    rast = Rasterizer(wp_device)
+    res = []
+    for absgrad in (True, False):
+        out = rast.forward(*(scene[k] for k in PARAMS), cam)
+        g = rast.backward(out, v_rgb, absgrad=absgrad)
+        res.append({f: getattr(g, f).numpy().copy() for f in ("v_means", "v_log_scales", "v_quats",
+                                                              "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
+                                                              "absgrad")})
+    assert res[0]["absgrad"].max() > 0 and not res[1]["absgrad"].any()
+    for name in res[0]:
+        if name != "absgrad":
+            assert np.array_equal(res[0][name], res[1][name]), name
