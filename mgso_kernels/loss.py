@@ -541,15 +541,17 @@ class L1SSIMLoss:
             runtime.launch_split(stage_chunks, H * self._nch,
                                  [img.rendered, img.target, img.weight, img.use_weight, img.gain, img.bias,
                                   self._nch, int(not in_place), ci.x, ci.y, ci.weight], d, min_chunk=1024)
+        sums = self._sums.reshape((self._nthreads, 1))
         runtime.launch_split(ssim_forward_chunks, self._nthreads,
-                             [ci, self._band, self.c1, self.c2, self._adj, self._sums], d, min_chunk=8)
+                             [ci, self._band, self.c1, self.c2, self._adj, sums], d, min_chunk=8)
         self._reduce(0)
         if compute_grad:
             v_in_place = in_place and self.v_rendered.is_contiguous
             runtime.launch_split(ssim_backward_chunks, self._nthreads,
-                                 [ci, self._band, self._adj, self._totals, self.lambda_dssim, img.gain, img.bias,
+                                 [ci, self._band, self._adj, self._totals.reshape((2, 1)), self.lambda_dssim,
+                                  img.gain, img.bias,
                                   self._v_chunks if v_in_place else self._dummy_chunks, self._v_flat,
-                                  int(v_in_place), self._sums], d, min_chunk=8)
+                                  int(v_in_place), sums], d, min_chunk=8)
             self._reduce(1)
 
 
