@@ -136,18 +136,134 @@ class TrackingConfig:
     trace_min_improvement_factor: float = opt(2.0, "skip tracing when the error bound would not shrink the "
                                                    "interval by this factor (setting_trace_minImprovementFactor)")
 
+    # coarse tracker (DSO CoarseTracker::trackNewestCoarse, FullSystem::trackNewCoarse)
+    coarse_max_iterations: tuple[int, ...] = opt((10, 20, 50, 50, 50, 50), "Levenberg-Marquardt iterations per "
+                                                 "pyramid level, finest first (trackNewestCoarse maxIterations)")
+    coarse_lambda: float = opt(0.01, "initial Levenberg-Marquardt damping of each level (trackNewestCoarse)")
+    coarse_lambda_extrapolation_limit: float = opt(0.001, "below this damping the step is extrapolated by "
+                                                          "(limit/lambda)^(1/4) (lambdaExtrapolationLimit)")
+    coarse_min_step: float = opt(1e-3, "a level stops when the scaled step is shorter than this (inc.norm())")
+    coarse_saturated_ratio: float = opt(0.6, "the cutoff doubles while more than this share of residuals "
+                                             "saturates, and the level is repeated once (trackNewestCoarse)")
+    coarse_max_cutoff_repeat: float = opt(50.0, "largest cutoff multiplier (levelCutoffRepeat < 50)")
+    coarse_abort_factor: float = opt(1.5, "a motion hypothesis is abandoned on a level whose RMSE exceeds this x "
+                                          "the best so far (trackNewestCoarse minResForAbort)")
+    retrack_threshold: float = opt(1.5, "try the next motion hypothesis until the RMSE is below this x the last "
+                                        "frame's (setting_reTrackThreshold)")
+    coarse_rotation_hypotheses: bool = opt(True, "after constant/double/half/zero motion also try 26 small "
+                                                 "rotations of the constant-motion guess (trackNewCoarse)")
+    coarse_rotation_delta: float = opt(0.02, "quaternion component of those rotations, about 2.3 degrees "
+                                             "(rotDelta)")
+    affine_opt_a: float = opt(0.0, "affine brightness a: -1 fixes it, >= 0 estimates it (a > 0 is the window's "
+                                   "prior weight). DSO setting_affineOptModeA; mgso defaults to DSO mode=1 (no "
+                                   "photometric calibration, a and b free); DSO mode=0 uses 1e12")
+    affine_opt_b: float = opt(0.0, "as affine_opt_a for the offset b (setting_affineOptModeB; DSO mode=0: 1e8)")
+    affine_fixed_with_exposure: bool = opt(False, "fix a and b (DSO mode=2, 'perfect images') whenever both frames "
+                                                  "carry exposure times; otherwise affine_opt_a/b decide")
+    # keyframe decision (DSO FullSystem::addActiveFrame)
+    kf_global_weight: float = opt(1.0, "scales all keyframe thresholds; 2 = about twice as many keyframes "
+                                       "(setting_kfGlobalWeight)")
+    kf_max_shift_t: float = opt(0.04, "weight of the translation-only mean flow, as DSO: x (640+480) / (w+h) "
+                                      "(setting_maxShiftWeightT = 0.04 (640+480))")
+    kf_max_shift_r: float = opt(0.0, "weight of the rotation-only flow; DSO does not compute it "
+                                     "(setting_maxShiftWeightR = 0)")
+    kf_max_shift_rt: float = opt(0.02, "weight of the full (rotation and translation) mean flow "
+                                       "(setting_maxShiftWeightRT = 0.02 (640+480))")
+    kf_max_affine_weight: float = opt(2.0, "weight of |log a_rel|, the brightness change to the reference "
+                                           "(setting_maxAffineWeight)")
+    kf_rmse_factor: float = opt(2.0, "new keyframe when the tracking RMSE exceeds this x the first RMSE against "
+                                     "the reference (DSO: 2 * firstCoarseRMSE)")
+    kf_max_interval: int = opt(0, "new keyframe at the latest after this many frames since the last one; 0 = no "
+                                  "limit (DSO has none)")
+    # point activation (DSO FullSystem::activatePointsMT, optimizeImmaturePoint)
+    point_density: float = opt(2000.0, "active points aimed at in the window; the activation distance adapts "
+                                       "(setting_desiredPointDensity)")
+    activation_max_pixel_interval: float = opt(8.0, "a traced point may activate when its last interval is "
+                                                    "shorter than this, pixels (lastTracePixelInterval < 8)")
+    min_idepth_h_act: float = opt(100.0, "an activated point needs this much inverse-depth Hessian "
+                                         "(setting_minIdepthH_act)")
+    activation_gn_iterations: int = opt(3, "Gauss-Newton steps on a new point's inverse depth "
+                                           "(setting_GNItsOnPointActivation)")
+    # fixed-window depth refinement (the stand-in for the window bundle adjustment)
+    refine_iterations: int = opt(3, "Gauss-Newton steps on the active points' inverse depths after each "
+                                    "keyframe, poses fixed (until the window optimisation replaces it)")
+    refine_pose: bool = opt(False, "also refine the newest keyframe's pose against the points after the depths")
+    # monocular initialisation (DSO CoarseInitializer)
+    init_densities: tuple[float, ...] = opt((0.03, 0.05, 0.15, 0.5, 1.0), "points of the first frame per level "
+                                            "as a fraction of w*h at level 0 (CoarseInitializer::setFirst)")
+    init_max_iterations: tuple[int, ...] = opt((5, 5, 10, 30, 50, 50), "iterations per level, finest first "
+                                               "(CoarseInitializer::trackFrame maxIterations)")
+    init_alpha_k: float = opt(2.5 ** 2, "regulariser energy cap per point: above it the scale is free "
+                                        "(alphaK = 2.5^2)")
+    init_alpha_w: float = opt(150.0 ** 2, "weight pulling inverse depths to 1 and translation to 0 before enough "
+                                          "parallax (alphaW = 150^2)")
+    init_reg_weight: float = opt(0.8, "weight of the neighbours' median inverse depth in the smoothed depth "
+                                      "(regWeight)")
+    init_coupling_weight: float = opt(1.0, "weight coupling each inverse depth to its smoothed value after "
+                                           "snapping (couplingWeight)")
+    init_frames_after_snap: int = opt(5, "frames tracked after enough parallax before initialising "
+                                         "(trackFrame: frameID > snappedAt + 5)")
+    init_done_translation: float = opt(0.1, "the initialisation also ends, before init_frames_after_snap, once the "
+                                            "translation reaches this (scene units: mean inverse depth 1), so fast "
+                                            "motion (a car) does not lose the overlap; handheld motion rarely gets "
+                                            "there first (mgso; DSO only counts frames)")
+    init_max_frames: int = opt(40, "give up an initialisation attempt after this many frames without enough "
+                                   "parallax and retry from a newer first frame (DSO waits forever)")
+    init_min_points: int = opt(50, "a first frame with fewer selected points (level 0) is not used")
+    init_max_rmse: float = opt(25.0, "give up an initialisation attempt when the level-0 RMSE exceeds this (the "
+                                     "first frame does not match the others: a frame of noise gives 30-35; KITTI "
+                                     "initialises at 14-17; DSO resets when the first window's RMSE exceeds 20)")
+    # tracking loss
+    lost_rmse_factor: float = opt(3.0, "tracking is lost when the RMSE exceeds this x the reference's first RMSE "
+                                       "(DSO only detects non-finite results)")
+    lost_min_rmse: float = opt(6.0, "... but never below this RMSE (intensity units), so a very clean reference "
+                                    "does not make small residuals a loss")
+    lost_min_inlier_ratio: float = opt(0.25, "tracking is lost when fewer than this share of the reference's "
+                                             "level-0 points project into the frame within the cutoff")
+    lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
+                                     "that has lost its points leaves the pose unconstrained however small the RMSE)")
+    lost_max_speed_factor: float = opt(10.0, "tracking is lost when a frame moves more than this x the segment's "
+                                             "median motion per frame (at least 1 % of its median depth), after 5 "
+                                             "tracked frames: a sudden jump of the estimate, not of the camera")
+    lost_max_translation: float = opt(2.0, "tracking is lost when the frame is farther from its reference keyframe "
+                                           "than this x the median depth (the reference's, or the segment's first "
+                                           "points' when smaller: a map drifted towards infinity leaves the "
+                                           "translation free to run away)")
+
     def __post_init__(self):
         if self.pyramid_size_mode not in ("crop", "pad"):
             raise ConfigError(f"tracking.pyramid_size_mode must be 'crop' or 'pad', got {self.pyramid_size_mode!r}")
         if self.pyramid_levels < 0 or self.pyramid_max_levels < 1:
             raise ConfigError("tracking.pyramid_levels must be >= 0 and tracking.pyramid_max_levels >= 1")
+        if not self.coarse_max_iterations or min(self.coarse_max_iterations) < 0:
+            raise ConfigError("tracking.coarse_max_iterations needs at least one value, all >= 0")
+        if not self.init_max_iterations or min(self.init_max_iterations) < 0:
+            raise ConfigError("tracking.init_max_iterations needs at least one value, all >= 0")
+        if not self.init_densities or min(self.init_densities) <= 0:
+            raise ConfigError("tracking.init_densities needs at least one value, all > 0")
+        if self.point_density <= 0 or self.immature_density <= 0:
+            raise ConfigError("tracking.point_density and tracking.immature_density must be > 0")
+        if self.kf_max_interval < 0 or self.init_max_frames < 2 or self.init_frames_after_snap < 0:
+            raise ConfigError("tracking.kf_max_interval must be >= 0, init_max_frames >= 2, "
+                              "init_frames_after_snap >= 0")
 
 
 @dataclass(frozen=True)
 class WindowConfig:
     """DSO sliding-window bundle adjustment."""
 
-    max_frames: int = opt(7, "keyframes in the sliding window (DSO setting_maxFrames = 7)")
+    max_frames: int = opt(7, "keyframes in the sliding window (DSO setting_maxFrames = 7); the window has one "
+                             "more slot, for the new keyframe before marginalisation")
+    point_capacity: int = opt(8000, "active points the window can hold (buffers preallocated; DSO aims at 2000 "
+                                    "and activation never exceeds the free capacity)")
+    immature_capacity: int = opt(16000, "immature points the window can hold (about 1500 a keyframe; buffers "
+                                        "preallocated; a keyframe's selection is cut to the free capacity)")
+
+    def __post_init__(self):
+        if not 2 <= self.max_frames <= 16:
+            raise ConfigError(f"window.max_frames must be in [2, 16], got {self.max_frames}")
+        if self.point_capacity < 100 or self.immature_capacity < 100:
+            raise ConfigError("window.point_capacity and window.immature_capacity must be >= 100")
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,9 @@
 by the stage's engine, which reports through observers and result values. Stages, in order of how far they go:
 
 - ``check``: decode and undistort every frame, check it, and describe the sequence (no tracking).
+- ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end):
+  a pose for every tracked frame (``trajectory.txt``), the keyframes (``keyframes.txt``), a per-frame log
+  (``frames.csv``), the marginalised points (``points.ply``) and, with ground truth, ATE in ``metrics.json``.
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ __all__ = ["STAGES", "STAGE_HELP", "DEFAULT_STAGE", "RunSummary", "run_sequence"
 
 log = logging.getLogger(__name__)
 
-STAGES = ("check",)
-STAGE_HELP = {"check": "check = decode and check every frame, describe the sequence"}
+STAGES = ("check", "tracking")
+STAGE_HELP = {"check": "check = decode and check every frame, describe the sequence",
+              "tracking": "tracking = DSO front end: pose of every frame, keyframes, ATE with ground truth"}
 DEFAULT_STAGE = "check"
 
 
@@ -105,4 +109,8 @@ def run_sequence(seq, cfg: Config, out_dir: Path, *, stage: str | None = None,
 
     if stage == "check":
         _check_frames(seq, summary, progress)
+    elif stage == "tracking":
+        from .tracking.run import run_tracking
+
+        run_tracking(seq, cfg, out_dir, summary, progress)
     return summary

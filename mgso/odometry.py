@@ -1,0 +1,690 @@
+"""The DSO odometry loop: frames in one by one, a pose for every frame out (DSO ``FullSystem::addActiveFrame``,
+``deliverTrackedFrame``, ``makeKeyFrame``, ``makeNonKeyFrame``, ``initializeFromInitializer``).
+
+:class:`Odometry` holds the coarse tracker, the keyframe policy, the window, the initialiser, the pixel selector and
+point activator, and a back end (:class:`WindowBackEnd`; by default :class:`~mgso.window.depth_refine.
+FixedWindowBackEnd`, the stand-in until the window optimisation exists). Work is split as DSO splits it between its
+tracking and mapping threads, with typed messages between the halves:
+
+- :meth:`Odometry.track` (tracking side): builds the frame's pyramid, runs the initialiser or the coarse tracker,
+  decides keyframe or not, detects tracking loss, and returns a :class:`TrackedFrame` (the frame's pyramid travels
+  with it).
+- :meth:`Odometry.map` (mapping side): for a keyframe, traces the immature points, lets the back end flag frames,
+  adds the keyframe, activates points, optimises, builds the next tracking reference, marginalises points, selects new
+  immature points and drops flagged keyframes; for other frames, traces. The new :class:`~mgso.tracking.
+  coarse_tracker.TrackingReference` is handed to the tracking side whole (:meth:`_offer_reference`; the tracker
+  swaps it in at the start of its next frame, DSO's ``coarseTracker_forNewKF``).
+
+:meth:`Odometry.process` runs both in order (deterministic and single-threaded, for tests and evaluation); a
+real-time system can run :meth:`map` on its own thread with a queue of :class:`TrackedFrame` between them.
+
+**Poses.** Every frame keeps (DSO ``FrameShell``) its ``cam_to_tracking_ref`` and the keyframe it was tracked
+against; its ``cam_to_world`` is the reference keyframe's pose times ``cam_to_tracking_ref``, refreshed when the frame
+is mapped and again by :meth:`finish` with the keyframes' final poses. Frames before initialisation and lost frames
+have no pose.
+
+**Segments.** After a tracking loss the window is emptied (its points go to the point cloud), the initialiser starts
+again, and a new segment begins. Inside the odometry every segment lives in its own frame, as DSO's does after a
+reset: the segment's first keyframe at the origin, inverse depths of mean 1 (DSO's thresholds assume that scale).
+For output the segments are chained: segment ``k > 0`` is mapped into the common world by a similarity
+(:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last reliable pose of segment ``k - 1``
+(inlier ratio at least 0.5 and RMSE within ``kf_rmse_factor`` x the first RMSE; the frames just before a loss are
+often already wrong; the camera is assumed not to have moved since) and sets its scale, which monocular odometry cannot know, so that the
+median depth of its first points equals the median depth of the previous segment's last tracking reference.
+:attr:`FrameRecord.cam_to_world` and :attr:`KeyframeRecord.cam_to_world` are in the segment's frame; the
+trajectories, :class:`FrameResult`, the observer events and :meth:`Odometry.point_cloud_world` are in the common
+world. Every frame carries its segment number.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any, Protocol
+
+import numpy as np
+
+from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinhole
+from mgso_kernels.photometric import affine_from_to, extract_patterns
+
+from .config import Config
+from .geometry import se3_exp, se3_inverse, se3_log
+from .io.trajectory import Trajectory
+from .observers import Observer
+from .tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
+                                      motion_hypotheses)
+from .tracking.immature_points import (ActivationResult, PointActivator, TraceCounts, make_immature_points,
+                                       trace_immature_points, trace_params_from_config)
+from .tracking.initializer import CoarseInitializer, InitResult, InitStatus
+from .tracking.keyframe_policy import KeyframeDecision, KeyframePolicy, KeyframeReason
+from .tracking.pixel_selector import PixelSelector
+from .window.depth_refine import FixedWindowBackEnd, FixedWindowSettings
+from .window.window import MarginalizedPoints, Window
+
+__all__ = [
+    "Odometry", "FrameStatus", "FrameResult", "FrameRecord", "KeyframeRecord", "TrackedFrame", "TrackingLost",
+    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "geometry_for",
+]
+
+log = logging.getLogger(__name__)
+
+
+class FrameStatus(str, Enum):
+    FIRST_FRAME = "first_frame"  # became the initialiser's first frame (pose: the segment's origin once initialised)
+    INITIALIZING = "initializing"  # aligned by the initialiser, no pose kept (as DSO)
+    INITIALIZED = "initialized"  # the initialiser finished on this frame: the second keyframe
+    TRACKED = "tracked"
+    LOST = "lost"  # tracking failed on this frame; a new segment starts
+    INIT_FAILED = "init_failed"  # the initialiser gave up; it restarts from this frame
+
+
+class LossReason(str, Enum):
+    NON_FINITE = "non_finite"  # pose, affine or RMSE not finite
+    NO_HYPOTHESIS = "no_hypothesis"  # no motion hypothesis converged within the checks
+    RESIDUAL = "residual"  # RMSE above lost_rmse_factor x the reference's first RMSE
+    INLIERS = "inliers"  # too few reference points within the cutoff
+    JUMP = "jump"  # moved farther from the reference than lost_max_translation x its median depth
+
+
+@dataclass
+class FrameRecord:
+    """Per frame (DSO ``FrameShell``). ``cam_to_world`` (in its segment's frame) is None while the frame has no
+    pose."""
+
+    index: int
+    timestamp: float
+    segment: int
+    status: FrameStatus
+    cam_to_world: np.ndarray | None = None
+    cam_to_tracking_ref: np.ndarray | None = None
+    tracking_ref: int = -1  # keyframe id it was tracked against (-1: none)
+    affine: tuple[float, float] = (0.0, 0.0)
+    keyframe_id: int = -1  # its own keyframe id when it is a keyframe
+
+    @property
+    def pose_valid(self) -> bool:
+        return self.cam_to_world is not None
+
+
+@dataclass
+class KeyframeRecord:
+    """Per keyframe; ``cam_to_world`` in its segment's frame (the window's estimate while in the window)."""
+
+    keyframe_id: int
+    frame_index: int
+    timestamp: float
+    segment: int
+    cam_to_world: np.ndarray
+    in_window: bool = True
+
+
+@dataclass
+class TrackingLost:
+    """What ``Observer.on_tracking_lost`` gets."""
+
+    frame_index: int
+    timestamp: float
+    segment: int  # the segment that ended
+    reason: LossReason
+    rmse: float
+    first_rmse: float  # the RMSE it was compared with (TrackResult.baseline_rmse)
+    inlier_ratio: float
+    message: str = ""
+
+
+@dataclass
+class KeyframeEvent:
+    """What ``Observer.on_keyframe`` gets."""
+
+    keyframe_id: int
+    frame_index: int
+    timestamp: float
+    segment: int
+    cam_to_world: np.ndarray
+    reason: str
+    activation: ActivationResult | None
+    new_immature: int
+    window: dict  # Window.describe()
+
+
+@dataclass
+class WindowUpdate:
+    """What ``Observer.on_window_optimized`` gets: the window's keyframes after the back end ran."""
+
+    keyframe_ids: list[int]
+    cam_to_world: np.ndarray  # [k, 4, 4]
+    active_points: np.ndarray  # [n, 3] world positions
+    active_colors: np.ndarray  # [n, 3]
+    optimization: Any  # the back end's result value
+
+
+@dataclass
+class FrameResult:
+    """What :meth:`Odometry.process` returns for a frame (and ``Observer.on_frame`` gets)."""
+
+    index: int
+    timestamp: float
+    status: FrameStatus
+    segment: int
+    cam_to_world: np.ndarray | None  # pose at tracking time in the common world (refined later; Odometry.frames)
+    is_keyframe: bool
+    keyframe_reason: str = ""
+    track: TrackResult | None = None
+    init: InitResult | None = None
+    lost: TrackingLost | None = None
+    trace: TraceCounts | None = None
+    time_track_s: float = 0.0
+    time_map_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.cam_to_world is not None
+
+
+@dataclass
+class TrackedFrame:
+    """The message from the tracking half to the mapping half (DSO ``deliverTrackedFrame``)."""
+
+    record: FrameRecord
+    pyramid: ImagePyramid  # owned by the message until mapped
+    exposure: float
+    rgb: Any  # callable or array giving the frame's RGB (only read for keyframes)
+    need_keyframe: bool
+    reason: str
+    result: FrameResult
+    initialize: InitResult | None = None  # the initialiser finished on this frame: map() starts the window
+
+
+class WindowBackEnd(Protocol):
+    """What the odometry asks of the window's back end on every keyframe (in this order)."""
+
+    def flag_frames_for_marginalization(self, window: Window) -> list[int]:
+        """Before the new keyframe is added: set ``window.flagged_`` for keyframes to remove."""
+
+    def optimize(self, window: Window) -> Any:
+        """After the new keyframe and the activation: optimise, update residual states, drop outliers."""
+
+    def marginalize_points(self, window: Window) -> MarginalizedPoints:
+        """Remove points that leave (to the point cloud or dropped)."""
+
+    def marginalize_frames(self, window: Window) -> list[int]:
+        """Remove the flagged keyframes; returns their keyframe ids."""
+
+
+def geometry_for(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                 config: Config) -> PyramidGeometry:
+    """The pyramid geometry (level count, crop, shifted intrinsics) the odometry uses for this camera."""
+    t = config.tracking
+    return plan_pyramid(width, height, Pinhole(fx, fy, cx, cy), levels=t.pyramid_levels,
+                        max_levels=t.pyramid_max_levels, min_area=t.pyramid_min_area, mode=t.pyramid_size_mode)
+
+
+class _PyramidPool:
+    """Pyramids for frames in flight (a frame owns one from ``track`` until it is mapped)."""
+
+    def __init__(self, geometry: PyramidGeometry, device: str):
+        self.geometry, self.device = geometry, device
+        self._free: list[ImagePyramid] = []
+        self._lock = threading.Lock()
+
+    def acquire(self) -> ImagePyramid:
+        with self._lock:
+            if self._free:
+                return self._free.pop()
+        return ImagePyramid(self.geometry, device=self.device)
+
+    def release(self, pyr: ImagePyramid) -> None:
+        with self._lock:
+            self._free.append(pyr)
+
+
+class Odometry:
+    """DSO-style odometry over a sequence (see the module text). ``geometry`` from :func:`geometry_for`."""
+
+    def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str = "cpu",
+                 observer: Observer | None = None, back_end: WindowBackEnd | None = None):
+        self.config = config or Config()
+        cfg = self.config
+        t = cfg.tracking
+        self.geometry = geometry
+        self.device = device
+        self.observer = observer or Observer()
+        self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
+                             immature_capacity=cfg.window.immature_capacity, device=device)
+        self.back_end: WindowBackEnd = back_end or FixedWindowBackEnd(FixedWindowSettings(
+            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=cfg.window.max_frames,
+            huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
+            overall_energy_th_weight=t.overall_energy_th_weight))
+        self.tracker = CoarseTracker(geometry, t, device=device)
+        self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
+        self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed)
+        self.selector = PixelSelector(geometry.width, geometry.height, min_grad_hist_cut=t.min_grad_hist_cut,
+                                      min_grad_hist_add=t.min_grad_hist_add,
+                                      grad_downweight_per_level=t.grad_downweight_per_level,
+                                      select_direction_distribution=t.select_direction_distribution,
+                                      initial_potential=t.selector_initial_potential, seed=cfg.runtime.seed)
+        self.activator = PointActivator(t)
+        self.trace_params = trace_params_from_config(geometry.width, geometry.height, t, seed=cfg.runtime.seed)
+        self._pool = _PyramidPool(geometry, device)
+        self._rng = np.random.default_rng(cfg.runtime.seed)
+        self.frames: list[FrameRecord] = []
+        self.keyframes: dict[int, KeyframeRecord] = {}
+        self.segment = 0
+        self.initialized = False
+        self.num_lost = 0
+        self._ref_lock = threading.Lock()
+        self._pending_reference: TrackingReference | None = None
+        self._last_good: FrameRecord | None = None  # last reliably tracked frame (chaining segments)
+        self._last_median_depth = float("nan")  # of the last tracking reference, in its segment's units
+        self._segment_sim: dict[int, np.ndarray] = {0: np.eye(4)}  # segment frame -> common world (Sim3 4x4)
+        self._frames_since_kf = 0
+        self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
+        self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
+        self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
+        self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
+        self._prev_pose: np.ndarray | None = None  # the previous tracked frame's cam_to_world (this segment)
+
+    # ------------------------------------------------------------------------------------------ public
+    def process(self, frame) -> FrameResult:
+        """Track and map one frame (deterministic order). ``frame``: :class:`mgso.io.Frame`-like (``index``,
+        ``timestamp``, ``gray [H, W]`` 0-255, ``rgb``, ``exposure_ms``)."""
+        tracked = self.track(frame)
+        t0 = time.perf_counter()
+        self.map(tracked)
+        tracked.result.time_map_s = time.perf_counter() - t0
+        return tracked.result
+
+    def track(self, frame) -> TrackedFrame:
+        """The tracking half: returns the message for :meth:`map`."""
+        t0 = time.perf_counter()
+        gray = np.asarray(frame.gray)
+        if gray.ndim != 2 or (gray.shape[1], gray.shape[0]) != (self.geometry.input_width,
+                                                                 self.geometry.input_height):
+            raise ValueError(f"frame {getattr(frame, 'index', '?')}: gray image is {gray.shape}, the odometry was set "
+                             f"up for {self.geometry.input_width}x{self.geometry.input_height}")
+        pyr = self._pool.acquire()
+        img = self.geometry.adjust(gray)
+        img = np.where(np.isfinite(img), img, 0.0).astype(np.float32)
+        pyr.build(img)
+        exposure = float(getattr(frame, "exposure_ms", None) or 0.0)
+        rec = FrameRecord(int(frame.index), float(frame.timestamp), self.segment, FrameStatus.INITIALIZING)
+        self.frames.append(rec)
+        rgb = (lambda f=frame: f.rgb)
+        if not self.initialized:
+            tf = self._track_initializer(rec, pyr, exposure, rgb)
+        else:
+            tf = self._track_coarse(rec, pyr, exposure, rgb)
+        tf.result.time_track_s = time.perf_counter() - t0
+        self.observer.on_frame(tf.result)
+        return tf
+
+    def map(self, tracked: TrackedFrame) -> None:
+        """The mapping half (DSO ``makeKeyFrame`` / ``makeNonKeyFrame``)."""
+        try:
+            if tracked.initialize is not None:
+                self._start_window(tracked)
+            elif tracked.record.status == FrameStatus.TRACKED:
+                if tracked.need_keyframe:
+                    self._make_keyframe(tracked)
+                else:
+                    self._make_non_keyframe(tracked)
+        finally:
+            self._pool.release(tracked.pyramid)
+
+    def finish(self) -> None:
+        """End of the sequence: keyframes still in the window get their final pose, and every frame is re-chained to
+        its reference keyframe's final pose (DSO prints the trajectory this way)."""
+        w = self.window
+        for s in w.order:
+            kid = int(w.keyframe_id_[s])
+            if kid in self.keyframes:
+                self.keyframes[kid].cam_to_world = w.cam_to_world(s)
+        self._rechain_frames()
+
+    def segment_similarity(self, segment: int) -> np.ndarray:
+        """4x4 similarity ``[[s R, t], [0, 1]]`` from a segment's frame to the common world (identity for 0)."""
+        return self._segment_sim.get(int(segment), np.eye(4))
+
+    def to_world(self, segment: int, cam_to_world: np.ndarray) -> np.ndarray:
+        """A camera pose of ``segment`` in the common world (a rigid pose: the similarity's scale moves the camera
+        centre only)."""
+        S = self.segment_similarity(segment)
+        if segment == 0 or np.allclose(S, np.eye(4)):
+            return np.asarray(cam_to_world, dtype=np.float64).copy()
+        sc = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        R = S[:3, :3] / sc
+        out = np.eye(4)
+        out[:3, :3] = R @ cam_to_world[:3, :3]
+        out[:3, 3] = S[:3, :3] @ cam_to_world[:3, 3] + S[:3, 3]
+        return out
+
+    def trajectory(self) -> Trajectory:
+        """Every frame with a pose, camera-to-world in the common world (segments chained)."""
+        good = [f for f in self.frames if f.pose_valid]
+        if not good:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array([f.timestamp for f in good]),
+                          np.stack([self.to_world(f.segment, f.cam_to_world) for f in good]))
+
+    def keyframe_trajectory(self) -> Trajectory:
+        """The keyframes, camera-to-world in the common world."""
+        kfs = sorted(self.keyframes.values(), key=lambda k: k.keyframe_id)
+        if not kfs:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array([k.timestamp for k in kfs]),
+                          np.stack([self.to_world(k.segment, k.cam_to_world) for k in kfs]))
+
+    @property
+    def point_cloud(self):
+        """The window's marginalised points (each in its segment's frame; see :meth:`point_cloud_world`)."""
+        return self.window.cloud
+
+    def point_cloud_world(self, include_active: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions [M, 3], colours [M, 3])`` of the marginalised points (and, by default, the active ones) in
+        the common world."""
+        cloud = self.window.cloud
+        pos, col, seg = cloud.positions.astype(np.float64), cloud.colors, cloud.segments
+        if include_active and self.window.active.n:
+            pos = np.concatenate([pos, self.window.points_world()])
+            col = np.concatenate([col, self.window.active.rgb])
+            seg = np.concatenate([seg, np.full(self.window.active.n, self.segment)])
+        out = pos.copy()
+        for sg in np.unique(seg):
+            S = self.segment_similarity(int(sg))
+            m = seg == sg
+            out[m] = pos[m] @ S[:3, :3].T + S[:3, 3]
+        return out.astype(np.float32), col
+
+    # ------------------------------------------------------------------------------------ initialisation
+    def _track_initializer(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
+        ini = self.initializer
+        if not ini.has_first:
+            return self._set_first(rec, pyr, exposure, rgb)
+        res = ini.track_frame(pyr, exposure)
+        if res.status == InitStatus.FAILED:
+            log.info("initialisation failed at frame %d: %s; restarting from it", rec.index, res.message)
+            out = self._set_first(rec, pyr, exposure, rgb)
+            out.result.status = rec.status = FrameStatus.INIT_FAILED
+            out.result.init = res
+            return out
+        if res.status == InitStatus.INITIALIZED:
+            rec.status = FrameStatus.INITIALIZED
+            result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment, None, True, "first", init=res)
+            return TrackedFrame(rec, pyr, exposure, rgb, True, KeyframeReason.FIRST.value, result, initialize=res)
+        rec.status = FrameStatus.INITIALIZING
+        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment, None, False, init=res)
+        return TrackedFrame(rec, pyr, exposure, rgb, False, "", result)
+
+    def _set_first(self, rec, pyr, exposure, rgb) -> TrackedFrame:
+        res = self.initializer.set_first(pyr, exposure, frame=(rec, rgb))
+        rec.status = FrameStatus.FIRST_FRAME if res.status == InitStatus.FIRST_FRAME else FrameStatus.INIT_FAILED
+        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment, None, False, init=res)
+        return TrackedFrame(rec, pyr, exposure, rgb, False, "", result)
+
+    def _start_window(self, tracked: TrackedFrame) -> None:
+        """DSO ``initializeFromInitializer`` + ``makeKeyFrame`` of the second frame."""
+        ini = self.initializer
+        cfg = self.config.tracking
+        w = self.window
+        first_rec, first_rgb = ini.first_frame
+        xy, iR, typ = ini.level0_points()
+        rescale = 1.0 / ((float(np.sum(iR)) + 1e-5) / (len(iR) + 1e-5))
+        idepth = iR * rescale
+        # a new segment lives in its own frame; its chaining similarity is computed here
+        if self.segment > 0 and self.segment not in self._segment_sim:
+            self._segment_sim[self.segment] = self._chain_segment(idepth)
+        first_to_new = tracked.initialize.first_to_new.copy()
+        first_to_new[:3, 3] /= rescale
+        # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
+        # the identity there, which fails at car speed)
+        n_frames = max(int(tracked.initialize.frames), 1)
+        self._init_rmse = float(tracked.initialize.rmse) if np.isfinite(tracked.initialize.rmse) else -1.0
+        self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
+        pos = idepth > 0
+        self._segment_median_depth = float(np.median(1.0 / idepth[pos])) if pos.any() else float("inf")
+        self._segment_steps = []
+        self._prev_pose = None
+        keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
+        xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
+        g = self.geometry
+        inside = (xy[:, 0] >= 3) & (xy[:, 0] < g.width - 4) & (xy[:, 1] >= 3) & (xy[:, 1] < g.height - 4)
+        xy, idepth, typ = xy[inside], idepth[inside], typ[inside]
+        c2w_first = np.eye(4)  # each segment starts at its own origin (see the module text)
+        first_rec.cam_to_world = c2w_first
+        first_rec.status = FrameStatus.FIRST_FRAME
+        first_rec.segment = self.segment
+        slot0 = w.add_keyframe(frame_index=first_rec.index, timestamp=first_rec.timestamp,
+                               world_to_cam=se3_inverse(c2w_first), affine=(0.0, 0.0), exposure=ini.first_exposure,
+                               pyramid=ini.first_pyramid, rgb=self._adjusted_rgb(first_rgb), segment=self.segment)
+        kid0 = int(w.keyframe_id_[slot0])
+        first_rec.keyframe_id = kid0
+        self.keyframes[kid0] = KeyframeRecord(kid0, first_rec.index, first_rec.timestamp, self.segment, c2w_first)
+        pat = extract_patterns(w.pyramids[slot0].dI[0], xy.astype(np.float32), grad_c2=cfg.outlier_th_sum_component)
+        ok = pat.valid
+        w.add_active_points(host=np.full(int(ok.sum()), slot0), uv=xy[ok], idepth=idepth[ok], color=pat.color[ok],
+                            weight=pat.weight[ok], type=typ[ok], has_depth_prior=True)
+        self.observer.on_keyframe(KeyframeEvent(kid0, first_rec.index, first_rec.timestamp, self.segment,
+                                                self.to_world(self.segment, c2w_first), KeyframeReason.FIRST.value,
+                                                None, 0, w.describe()))
+        rec = tracked.record
+        rec.cam_to_tracking_ref = se3_inverse(first_to_new)
+        rec.tracking_ref = kid0
+        rec.cam_to_world = c2w_first @ rec.cam_to_tracking_ref
+        rec.affine = (0.0, 0.0)
+        tracked.result.cam_to_world = self.to_world(self.segment, rec.cam_to_world)
+        self.initialized = True
+        self._make_keyframe(tracked)
+
+    def _chain_segment(self, idepth: np.ndarray) -> np.ndarray:
+        """The similarity of a new segment: its origin at the previous segment's last reliable pose (common world),
+        its scale matching that segment's last median depth (clamped to [0.05, 20] against a broken reference)."""
+        last = self._last_good
+        if last is None or last.cam_to_world is None:
+            return np.eye(4)
+        anchor = self.to_world(last.segment, last.cam_to_world)
+        prev = self.segment_similarity(last.segment)
+        s_prev = float(np.cbrt(np.linalg.det(prev[:3, :3])))
+        med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
+        s = 1.0
+        if np.isfinite(self._last_median_depth) and np.isfinite(med_new) and med_new > 0:
+            s = float(np.clip(s_prev * self._last_median_depth / med_new, 0.05, 20.0))
+        S = np.eye(4)
+        S[:3, :3] = s * anchor[:3, :3]
+        S[:3, 3] = anchor[:3, 3]
+        return S
+
+    # ---------------------------------------------------------------------------------------- tracking
+    def _offer_reference(self, ref: TrackingReference) -> None:
+        with self._ref_lock:
+            self._pending_reference = ref
+
+    def _swap_reference(self) -> None:
+        with self._ref_lock:
+            ref, self._pending_reference = self._pending_reference, None
+        if ref is not None:
+            self.tracker.set_reference(ref)
+
+    def _ref_cam_to_world(self, keyframe_id: int) -> np.ndarray:
+        w = self.window
+        try:
+            return w.cam_to_world(w.slot_of_keyframe(keyframe_id))
+        except KeyError:
+            return self.keyframes[keyframe_id].cam_to_world
+
+    def _track_coarse(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
+        self._swap_reference()
+        cfg = self.config.tracking
+        ref = self.tracker.reference
+        ref_c2w = self._ref_cam_to_world(ref.keyframe_id)
+        prev = self.frames[-2] if len(self.frames) >= 2 else None
+        prev2 = self.frames[-3] if len(self.frames) >= 3 else None
+        last = prev.cam_to_world if prev is not None and prev.pose_valid and prev.segment == self.segment else None
+        prelast = (prev2.cam_to_world if prev2 is not None and prev2.pose_valid and prev2.segment == self.segment
+                   else None)
+        if last is not None and prelast is None and self._init_step is not None:
+            prelast = last @ se3_inverse(self._init_step)  # right after initialisation: its mean motion
+        hyps = motion_hypotheses(ref_c2w, last, prelast, rotations=cfg.coarse_rotation_hypotheses,
+                                 rotation_delta=cfg.coarse_rotation_delta)
+        aff0 = prev.affine if (prev is not None and prev.pose_valid) else (0.0, 0.0)
+        tr = self.tracker.track_frame(pyr, exposure, hyps, aff0)
+        reason = self._loss(tr)
+        if reason is not None:
+            return self._lose(rec, pyr, exposure, rgb, tr, reason)
+        rec.status = FrameStatus.TRACKED
+        rec.cam_to_tracking_ref = tr.cam_to_ref
+        rec.tracking_ref = ref.keyframe_id
+        rec.affine = tr.affine
+        rec.cam_to_world = ref_c2w @ tr.cam_to_ref
+        if self._prev_pose is not None:
+            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose[:3, 3])))
+        self._prev_pose = rec.cam_to_world.copy()
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
+        if tr.inlier_ratio >= 0.5 and (baseline <= 0 or tr.rmse0 <= cfg.kf_rmse_factor * baseline):
+            self._last_good = rec  # a reliable pose: where a later segment would be chained
+        a_rel, _ = affine_from_to(ref.affine[0], ref.affine[1], tr.affine[0], tr.affine[1], ref.exposure, exposure)
+        self._frames_since_kf += 1
+        dec: KeyframeDecision = self.policy.decide(tr.flow, a_rel, tr.rmse0, ref.first_rmse, self._frames_since_kf)
+        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment,
+                             self.to_world(rec.segment, rec.cam_to_world), dec.need,
+                             dec.reason.value if dec.need else "", track=tr)
+        return TrackedFrame(rec, pyr, exposure, rgb, dec.need, dec.reason.value, result)
+
+    def _loss(self, tr: TrackResult) -> LossReason | None:
+        cfg = self.config.tracking
+        if not (np.all(np.isfinite(tr.ref_to_new)) and np.all(np.isfinite(tr.affine))):
+            return LossReason.NON_FINITE
+        if not tr.ok:
+            return LossReason.NO_HYPOTHESIS
+        if not np.isfinite(tr.rmse0):
+            return LossReason.NON_FINITE
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse  # a new segment: the init's
+        base = max(baseline, cfg.lost_min_rmse)
+        if tr.rmse0 > cfg.lost_rmse_factor * base:
+            return LossReason.RESIDUAL
+        if tr.inlier_ratio < cfg.lost_min_inlier_ratio or tr.num_inliers < cfg.lost_min_inliers:
+            return LossReason.INLIERS
+        ref = self.tracker.reference
+        depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
+        if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
+            return LossReason.JUMP
+        if len(self._segment_steps) >= 5 and self._prev_pose is not None:
+            step = float(np.linalg.norm((self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)[:3, 3]
+                                        - self._prev_pose[:3, 3]))
+            typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
+            if step > cfg.lost_max_speed_factor * typical:
+                return LossReason.JUMP
+        return None
+
+    def _lose(self, rec, pyr, exposure, rgb, tr: TrackResult, reason: LossReason) -> TrackedFrame:
+        baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
+        ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, baseline,
+                          tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
+                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f})")
+        log.warning(ev.message)
+        self.num_lost += 1
+        rec.status = FrameStatus.LOST
+        self.observer.on_tracking_lost(ev)
+        self._end_segment()
+        self.segment += 1
+        rec.segment = self.segment
+        out = self._set_first(rec, pyr, exposure, rgb)
+        out.result.status = FrameStatus.LOST
+        rec.status = FrameStatus.LOST
+        out.result.lost = ev
+        out.result.track = tr
+        return out
+
+    def _end_segment(self) -> None:
+        """Close the window: keyframes keep their last poses, active points go to the point cloud."""
+        w = self.window
+        ref = self.tracker.reference
+        if ref is not None:
+            self._last_median_depth = ref.median_depth
+        for s in w.order:
+            kid = int(w.keyframe_id_[s])
+            if kid in self.keyframes:
+                self.keyframes[kid].cam_to_world = w.cam_to_world(s)
+                self.keyframes[kid].in_window = False
+        if w.active.n:
+            pts = w.marginalize_points(np.ones(w.active.n, bool))
+            self.observer.on_points_marginalized(pts)
+        w.clear()
+        self.tracker.set_reference(None)
+        with self._ref_lock:
+            self._pending_reference = None
+        self.initialized = False
+        self._frames_since_kf = 0
+
+    # ------------------------------------------------------------------------------------------ mapping
+    @staticmethod
+    def _rgb(rgb) -> np.ndarray | None:
+        try:
+            return rgb() if callable(rgb) else rgb
+        except Exception:  # a frame without colour: points get gray
+            log.debug("no RGB for the keyframe", exc_info=True)
+            return None
+
+    def _adjusted_rgb(self, rgb) -> np.ndarray | None:
+        img = self._rgb(rgb)
+        return None if img is None else self.geometry.adjust(np.asarray(img, dtype=np.float32))
+
+    def _make_non_keyframe(self, tracked: TrackedFrame) -> None:
+        rec = tracked.record
+        rec.cam_to_world = self._ref_cam_to_world(rec.tracking_ref) @ rec.cam_to_tracking_ref
+        tracked.result.trace = trace_immature_points(self.window, tracked.pyramid, se3_inverse(rec.cam_to_world),
+                                                     rec.affine, tracked.exposure, self.trace_params)
+
+    def _make_keyframe(self, tracked: TrackedFrame) -> None:
+        w = self.window
+        cfg = self.config.tracking
+        rec = tracked.record
+        rec.cam_to_world = self._ref_cam_to_world(rec.tracking_ref) @ rec.cam_to_tracking_ref
+        w2c = se3_inverse(rec.cam_to_world)
+        tracked.result.trace = trace_immature_points(w, tracked.pyramid, w2c, rec.affine, tracked.exposure,
+                                                     self.trace_params)
+        self.back_end.flag_frames_for_marginalization(w)
+        slot = w.add_keyframe(frame_index=rec.index, timestamp=rec.timestamp, world_to_cam=w2c, affine=rec.affine,
+                              exposure=tracked.exposure, pyramid=tracked.pyramid,
+                              rgb=self._adjusted_rgb(tracked.rgb), segment=self.segment)
+        kid = int(w.keyframe_id_[slot])
+        rec.keyframe_id = kid
+        self.keyframes[kid] = KeyframeRecord(kid, rec.index, rec.timestamp, self.segment, rec.cam_to_world.copy())
+        self._frames_since_kf = 0
+        act = self.activator.activate(w)
+        opt = self.back_end.optimize(w)
+        for s in w.order:  # the back end may have moved keyframes
+            self.keyframes[int(w.keyframe_id_[s])].cam_to_world = w.cam_to_world(s)
+        ref = make_tracking_reference(w, cfg, self.device)
+        self._last_median_depth = ref.median_depth
+        self._offer_reference(ref)
+        marg = self.back_end.marginalize_points(w)
+        if len(marg):
+            self.observer.on_points_marginalized(marg)
+        n_new = make_immature_points(w, slot, self.selector, cfg.immature_density,
+                                     grad_c2=cfg.outlier_th_sum_component, recursions=cfg.selector_recursions)
+        removed = self.back_end.marginalize_frames(w)
+        for kid_r in removed:
+            if kid_r in self.keyframes:
+                self.keyframes[kid_r].in_window = False
+        self.observer.on_keyframe(KeyframeEvent(kid, rec.index, rec.timestamp, self.segment,
+                                                self.to_world(self.segment, rec.cam_to_world), tracked.reason, act,
+                                                n_new, w.describe()))
+        S = self.segment_similarity(self.segment)
+        self.observer.on_window_optimized(WindowUpdate(
+            [int(w.keyframe_id_[s]) for s in w.order],
+            np.stack([self.to_world(self.segment, w.cam_to_world(s)) for s in w.order]),
+            (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
+        if self.tracker.reference is None:  # the very first reference: nothing to wait for
+            self._swap_reference()
+
+    def _rechain_frames(self) -> None:
+        for f in self.frames:
+            if not f.pose_valid:
+                continue
+            if f.keyframe_id >= 0 and f.keyframe_id in self.keyframes:
+                f.cam_to_world = self.keyframes[f.keyframe_id].cam_to_world.copy()
+            elif f.tracking_ref >= 0 and f.tracking_ref in self.keyframes and f.cam_to_tracking_ref is not None:
+                f.cam_to_world = self.keyframes[f.tracking_ref].cam_to_world @ f.cam_to_tracking_ref

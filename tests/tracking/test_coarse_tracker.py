@@ -1,0 +1,138 @@
+"""Coarse tracker: DSO's depth-map construction and motion hypotheses, and on a synthetic sequence with true depths
+the recovered poses and affine brightness."""
+
+import numpy as np
+import pytest
+
+from mgso.config import TrackingConfig
+from mgso.geometry import make_pose, se3_exp, se3_inverse, se3_log, so3_exp
+from mgso.tracking.coarse_tracker import (CoarseTracker, coarse_depth_maps, make_tracking_reference,
+                                          motion_hypotheses)
+from mgso.tracking.pixel_selector import PixelSelector
+from mgso.window.window import Window
+from mgso_kernels.image import ImagePyramid, Pinhole, plan_pyramid
+from mgso_kernels.photometric import extract_patterns
+
+from tracking_helpers import gray_of
+
+
+def test_depth_map_sums_and_dilation():
+    geo = plan_pyramid(32, 32, Pinhole(30.0, 30.0, 15.5, 15.5), levels=3)
+    uv = np.array([[10.0, 10.0], [10.2, 9.8], [24.0, 4.0]])
+    idepth = np.array([0.5, 1.0, 2.0])
+    weight = np.array([1.0, 3.0, 1.0])
+    ids, wss = coarse_depth_maps(geo, uv, idepth, weight)
+    d0 = ids[0] / np.where(wss[0] > 0, wss[0], 1)
+    assert d0[10, 10] == pytest.approx((0.5 + 3.0) / 4.0)  # Hessian-weighted mean in one pixel
+    for dy, dx in [(1, 1), (-1, -1), (1, -1), (-1, 1)]:  # levels 0-1: diagonal neighbours are filled ...
+        assert wss[0][10 + dy, 10 + dx] > 0 and d0[10 + dy, 10 + dx] == pytest.approx(d0[10, 10])
+    for dy, dx in [(0, 1), (1, 0), (0, -1), (-1, 0)]:  # ... 4-neighbours are not
+        assert wss[0][10 + dy, 10 + dx] == 0
+    assert wss[1][5, 5] == pytest.approx(4.0) and wss[1][6, 6] > 0 and wss[1][5, 6] == 0
+    assert wss[2][2, 2] == pytest.approx(4.0)  # summed over the 4x4 block (before dilation)
+    for dy, dx in [(0, 1), (1, 0), (0, -1), (-1, 0)]:  # coarser levels: 4-neighbours
+        assert wss[2][2 + dy, 2 + dx] > 0
+    assert wss[2][3, 3] == 0
+    assert ids[2][1, 6] / wss[2][1, 6] == pytest.approx(2.0)
+
+
+def test_motion_hypotheses_order():
+    ref = make_pose(so3_exp([0.0, 0.1, 0.0]), [0.0, 0.0, 0.0])
+    prelast = make_pose(so3_exp([0.0, 0.12, 0.01]), [0.1, 0.0, 0.2])
+    last = make_pose(so3_exp([0.0, 0.14, 0.02]), [0.2, 0.0, 0.4])
+    hyps = motion_hypotheses(ref, last, prelast)
+    assert len(hyps) == 5 + 26
+    # constant motion: the new frame is the last one moved again by (prelast -> last)
+    new = last @ se3_inverse(prelast) @ last
+    np.testing.assert_allclose(hyps[0], se3_inverse(new) @ ref, atol=1e-12)
+    np.testing.assert_allclose(hyps[3], se3_inverse(last) @ ref, atol=1e-12)  # zero motion since the last frame
+    np.testing.assert_allclose(hyps[4], np.eye(4))  # zero motion since the reference
+    angles = [np.linalg.norm(se3_log(se3_inverse(hyps[0]) @ h)[3:]) for h in hyps[5:]]
+    assert min(angles) == pytest.approx(2 * np.arctan(0.02), rel=1e-6)  # DSO's quaternion (1, 0.02, 0, 0)
+    assert [np.allclose(h, np.eye(4)) for h in motion_hypotheses(ref, last, None)] == [True]
+
+
+def reference_from_true_depth(seq, config, frame=0, density=2000):
+    """A window whose newest keyframe is ``frame`` and whose points (from the true depth) are hosted in a copy of
+    it, so that the tracking reference holds exact inverse depths."""
+    k = seq.intrinsics
+    geo = plan_pyramid(k.width, k.height, Pinhole(k.fx, k.fy, k.cx, k.cy))
+    win = Window(geo, max_frames=3)
+    pyr = ImagePyramid(geo).build(gray_of(seq.images[frame]))
+    w2c = se3_inverse(seq.cam_to_world[frame])
+    host = win.add_keyframe(frame_index=frame, timestamp=0.0, world_to_cam=w2c, pyramid=pyr)
+    sel = PixelSelector(geo.width, geo.height).select([pyr.numpy(lvl) for lvl in range(3)], density)
+    pat = extract_patterns(pyr.dI[0], sel.xy.astype(np.float32))
+    ok = pat.valid
+    xy = sel.xy[ok]
+    idepth = 1.0 / seq.depths[frame][xy[:, 1], xy[:, 0]]
+    win.add_active_points(host=np.full(len(xy), host), uv=xy, idepth=idepth, color=pat.color[ok],
+                          weight=pat.weight[ok], idepth_hessian=1000.0)
+    win.add_keyframe(frame_index=frame, timestamp=0.0, world_to_cam=w2c, pyramid=pyr)
+    return geo, make_tracking_reference(win, config)
+
+
+def track_sequence(seq, geo, ref, config, images, frames):
+    tracker = CoarseTracker(geo, config)
+    tracker.set_reference(ref)
+    pyr = ImagePyramid(geo)
+    c2w = [seq.cam_to_world[0]]  # the estimate so far (exact at the reference)
+    out = []
+    for i in frames:
+        pyr.build(gray_of(images[i]))
+        hyps = motion_hypotheses(c2w[0], c2w[-1], c2w[-2] if len(c2w) > 1 else None)
+        r = tracker.track_frame(pyr, 0.0, hyps)
+        c2w.append(seq.cam_to_world[0] @ r.cam_to_ref)
+        out.append(r)
+    return out, c2w[1:]
+
+
+def test_tracker_with_true_depth_recovers_poses(wp_device, seq320):
+    cfg = TrackingConfig()
+    geo, ref = reference_from_true_depth(seq320, cfg)
+    assert ref.levels[0].n > 2000 and ref.num_points_l0 == ref.levels[0].n
+    results, c2w = track_sequence(seq320, geo, ref, cfg, seq320.images, range(1, 12))
+    for i, (r, est) in enumerate(zip(results, c2w), start=1):
+        err = se3_log(se3_inverse(seq320.cam_to_world[i]) @ est)
+        assert r.ok and r.hypotheses_tried >= 1
+        np.testing.assert_allclose(se3_inverse(r.world_to_cam), est, atol=1e-9)  # the reference is at frame 0
+        assert np.linalg.norm(err[:3]) < 0.003, f"frame {i}: translation error {np.linalg.norm(err[:3]):.4f} m"
+        assert np.linalg.norm(err[3:]) < 0.002, f"frame {i}: rotation error {np.linalg.norm(err[3:]):.5f} rad"
+        assert r.rmse0 < 6.0 and r.inlier_ratio > 0.7
+    assert ref.first_rmse == pytest.approx(results[0].rmse0)
+    moved = np.linalg.norm(seq320.cam_to_world[11][:3, 3] - seq320.cam_to_world[0][:3, 3])
+    assert moved > 0.1  # the camera really moved (10 cm and more)
+    assert results[-1].flow[0] > results[0].flow[0]  # the flow indicators grow with the distance
+
+
+def test_tracker_finds_affine_brightness(wp_device, seq320):
+    """Frames with I' = 0.8 I + 20 (and the unchanged sequence for comparison): the tracker's affine relative to the
+    reference changes by exactly that, and the poses do not move."""
+    cfg = TrackingConfig()
+    geo, ref = reference_from_true_depth(seq320, cfg)
+    frames = range(1, 5)
+    plain, c_plain = track_sequence(seq320, geo, ref, cfg, seq320.images, frames)
+    changed = np.clip(seq320.images * 0.8 + 20.0 / 255.0, 0.0, 1.0)
+    assert changed.max() < 1.0  # no clipping: the affine model holds exactly
+    scaled, c_scaled = track_sequence(seq320, geo, ref, cfg, changed, frames)
+    for p, s, cp, cs in zip(plain, scaled, c_plain, c_scaled):
+        a_p, a_s = np.exp(p.affine[0]), np.exp(s.affine[0])  # the reference has a = b = 0
+        assert a_s / a_p == pytest.approx(0.8, rel=0.01)
+        assert s.affine[1] == pytest.approx(0.8 * p.affine[1] + 20.0, abs=1.0)
+        d = se3_log(se3_inverse(cp) @ cs)
+        assert np.linalg.norm(d[:3]) < 1e-3 and np.linalg.norm(d[3:]) < 1e-3
+    cfg_fixed = TrackingConfig(affine_opt_a=-1.0, affine_opt_b=-1.0)
+    fixed, _ = track_sequence(seq320, geo, ref, cfg_fixed, seq320.images, range(1, 3))
+    assert all(r.affine == (0.0, 0.0) for r in fixed)
+
+
+def test_tracker_reports_failure_on_a_black_frame(wp_device, seq320):
+    cfg = TrackingConfig()
+    geo, ref = reference_from_true_depth(seq320, cfg)
+    tracker = CoarseTracker(geo, cfg)
+    tracker.set_reference(ref)
+    pyr = ImagePyramid(geo).build(np.zeros((geo.height, geo.width), np.float32))
+    r = tracker.track_frame(pyr, 0.0, [np.eye(4), se3_exp([0.01, 0, 0, 0, 0, 0])])
+    assert not r.ok or r.inlier_ratio < 0.25 or r.rmse0 > 20  # whichever way, the odometry will see a loss
+    with pytest.raises(RuntimeError, match="reference"):
+        CoarseTracker(geo, cfg).track_frame(pyr, 0.0, [np.eye(4)])

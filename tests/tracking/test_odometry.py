@@ -1,0 +1,132 @@
+"""The odometry loop on synthetic sequences: initialisation, tracking, keyframes, observer events, and bad inputs
+(a black frame, a frame of noise, a sudden jump) reported as tracking loss with recovery in a new segment."""
+
+import numpy as np
+import pytest
+
+from mgso import synthetic
+from mgso.config import Config
+from mgso.eval import compute_ate
+from mgso.observers import Observer
+from mgso.odometry import FrameStatus, LossReason, Odometry, geometry_for
+from tracking_helpers import frames_of
+
+
+class Recorder(Observer):
+    def __init__(self):
+        self.frames, self.keyframes, self.lost, self.windows, self.marginalized = [], [], [], [], []
+
+    def on_frame(self, r):
+        self.frames.append(r)
+
+    def on_keyframe(self, k):
+        self.keyframes.append(k)
+
+    def on_tracking_lost(self, e):
+        self.lost.append(e)
+
+    def on_window_optimized(self, u):
+        self.windows.append(u)
+
+    def on_points_marginalized(self, p):
+        self.marginalized.append(p)
+
+
+def run(seq, frames, config=None):
+    k = seq.intrinsics
+    cfg = config or Config()
+    rec = Recorder()
+    odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, observer=rec)
+    results = [odo.process(f) for f in frames]
+    odo.finish()
+    return odo, rec, results
+
+
+@pytest.fixture(scope="module")
+def clean_run(seq160):
+    return run(seq160, frames_of(seq160))
+
+
+def test_odometry_tracks_a_synthetic_sequence(wp_device, seq160, clean_run):
+    odo, rec, results = clean_run
+    statuses = [r.status for r in results]
+    assert statuses[0] == FrameStatus.FIRST_FRAME
+    first_tracked = statuses.index(FrameStatus.INITIALIZED)
+    assert 3 <= first_tracked <= 15
+    assert all(s == FrameStatus.TRACKED for s in statuses[first_tracked + 1:])
+    assert not rec.lost and odo.segment == 0
+    traj = odo.trajectory()
+    assert len(traj) == len(results) - first_tracked + 1  # the first frame, the initialised one, and all after
+    ate = compute_ate(traj, seq160.trajectory)
+    path = np.sum(np.linalg.norm(np.diff(seq160.cam_to_world[:, :3, 3], axis=0), axis=1))
+    assert ate.rmse < 0.02 * path, ate.summary()  # under 2 % of the 50 cm path
+    kfs = odo.keyframe_trajectory()
+    assert len(kfs) >= 4 and len(rec.keyframes) == len(kfs)
+    assert compute_ate(kfs, seq160.trajectory).rmse < 0.02 * path
+    assert len(rec.frames) == len(results) and len(rec.windows) == len(kfs) - 1
+    assert odo.window.active.n > 100 and odo.window.num_keyframes >= 2
+    assert all(r.cam_to_world is None for r in results[1:first_tracked])  # initialising frames have no pose
+    assert all(r.track is not None and r.track.ok for r in results[first_tracked + 1:])
+
+
+def test_frame_poses_are_chained_to_their_keyframes(wp_device, clean_run):
+    odo, _, _ = clean_run
+    for f in odo.frames:
+        if f.pose_valid and f.keyframe_id < 0:
+            kf = odo.keyframes[f.tracking_ref]
+            np.testing.assert_allclose(f.cam_to_world, kf.cam_to_world @ f.cam_to_tracking_ref, atol=1e-9)
+        if f.keyframe_id >= 0:
+            np.testing.assert_allclose(f.cam_to_world, odo.keyframes[f.keyframe_id].cam_to_world, atol=1e-9)
+
+
+def bad_frames(kind, seq160, seq_jump):
+    frames = frames_of(seq160)
+    bad_at = 15
+    img = seq160.images[bad_at]
+    if kind == "black":
+        frames[bad_at] = frames_of(seq160, images=[np.zeros_like(img)], start=bad_at)[0]
+    elif kind == "noise":
+        noise = np.random.default_rng(3).uniform(0, 1, img.shape).astype(np.float32)
+        frames[bad_at] = frames_of(seq160, images=[noise], start=bad_at)[0]
+    else:  # a jump: from frame 15 on, the camera is elsewhere on its path
+        frames[bad_at:] = frames_of(seq_jump, images=seq_jump.images[: len(frames) - bad_at], start=bad_at)
+    return frames, bad_at
+
+
+@pytest.fixture(scope="module")
+def seq_jump():
+    return synthetic.make_sequence(seed=0, num_frames=25, width=160, height=120, phase=2.5)
+
+
+@pytest.mark.parametrize("kind", ["black", "noise", "jump"])
+def test_bad_input_is_a_reported_loss_with_recovery(wp_device, seq160, seq_jump, kind):
+    frames, bad_at = bad_frames(kind, seq160, seq_jump)
+    odo, rec, results = run(seq160, frames)
+    assert len(rec.lost) >= 1, [r.status.value for r in results]
+    lost = rec.lost[0]
+    assert lost.frame_index == bad_at and lost.segment == 0
+    assert lost.reason in (LossReason.RESIDUAL, LossReason.INLIERS, LossReason.NO_HYPOTHESIS)
+    assert results[bad_at].status == FrameStatus.LOST and results[bad_at].cam_to_world is None
+    # recovery: a new segment is initialised and tracked to the end
+    seg1 = [f for f in odo.frames if f.segment >= 1 and f.pose_valid]
+    assert len(seg1) >= 8 and results[-1].status == FrameStatus.TRACKED
+    assert odo.segment >= 1 and results[-1].segment == odo.segment
+    # each segment lives in its own frame (origin at its first keyframe) ...
+    last_good = [f for f in odo.frames if f.segment == 0 and f.pose_valid][-1]
+    first_new = min(seg1, key=lambda f: f.index)
+    assert first_new.status == FrameStatus.FIRST_FRAME
+    np.testing.assert_allclose(first_new.cam_to_world, np.eye(4), atol=1e-12)
+    # ... and is chained, for output, to where the old one ended (the last good pose)
+    np.testing.assert_allclose(odo.to_world(first_new.segment, first_new.cam_to_world),
+                               odo.to_world(0, last_good.cam_to_world), atol=1e-9)
+    S = odo.segment_similarity(first_new.segment)
+    scale = np.cbrt(np.linalg.det(S[:3, :3]))
+    assert 0.05 <= scale <= 20 and np.isfinite(S).all()
+    traj = odo.trajectory()
+    assert len(traj) == sum(f.pose_valid for f in odo.frames)
+    R = traj.cam_to_world[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-6)
+    if kind != "jump":  # same scene, same path: the whole trajectory is still consistent after a Sim(3)
+        gt = seq160.trajectory
+        ate = compute_ate(odo.trajectory(), gt)
+        assert ate.rmse < 0.05, ate.summary()

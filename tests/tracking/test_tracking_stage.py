@@ -1,0 +1,35 @@
+"""``mgso run PATH --stage tracking``: the files a user gets and the figures in metrics.json."""
+
+import json
+
+import pytest
+
+from mgso import synthetic
+from mgso.cli import main
+from mgso.io.trajectory import read_tum
+from mgso.runner import STAGE_HELP, STAGES
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return synthetic.write_tum_rgbd(tmp_path_factory.mktemp("syn") / "room", seed=0, num_frames=30, width=160,
+                                    height=120)
+
+
+def test_tracking_stage_writes_trajectory_and_ate(wp_device, folder, tmp_path, capsys):
+    assert "tracking" in STAGES and "tracking" in STAGE_HELP
+    out = tmp_path / "run"
+    assert main(["run", str(folder), "--out", str(out), "--stage", "tracking", "-q"]) == 0
+    traj = read_tum(out / "trajectory.txt")
+    kfs = read_tum(out / "keyframes.txt")
+    metrics = json.loads((out / "metrics.json").read_text())
+    t = metrics["tracking"]
+    assert t["frames"] == 30 and t["frames_with_pose"] == len(traj) and 15 <= len(traj) <= 30
+    assert t["fraction_tracked"] == pytest.approx(len(traj) / 30)
+    assert t["keyframes"] == len(kfs) >= 3 and t["tracking_lost"] == 0
+    labels = [a["label"] for a in metrics["ate"]]
+    assert labels == ["all frames", "keyframes"]
+    assert metrics["ate"][0]["align"] == "sim3" and metrics["ate"][0]["translation_m"]["rmse"] < 0.02
+    lines = (out / "frames.csv").read_text().splitlines()
+    assert lines[0].startswith("index,timestamp,status") and len(lines) == 31
+    assert (out / "points.ply").is_file() and (out / "groundtruth.txt").is_file()
