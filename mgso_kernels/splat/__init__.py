@@ -399,7 +399,7 @@ class Rasterizer:
         (N, K, 3) on this device (e.g. ``GaussianMap.float_grads()``): the parameter gradients are written there
         (overwritten) instead of into the rasteriser's buffers, which saves the copy; the returned
         :class:`Gradients` then holds those arrays. ``absgrad=False``: skip the AbsGS sums where that saves time
-        (the CPU tile kernels: 5-10% of the blend); ``Gradients.absgrad`` is then zero. Densification statistics
+        (the CPU tile kernels: 5-10% of the blend); ``Gradients.absgrad`` is then zero on every path. Densification statistics
         are the owner's:
         ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed :func:`mgso_kernels.adam.accumulate_stats`
         (``GaussianMap.accumulate_stats``).
@@ -439,10 +439,12 @@ class Rasterizer:
         t = self._stage("backward_blend", t)
         v_means2d, v_conics = self.v_means2d_.view(n), self.v_conics_.view(n)
         v_opac, v_colors, v_depths = self.v_opacities_.view(n), self.v_colors_.view(n), self.v_depths_.view(n)
-        absgrad = self.absgrad_.view(n)
+        want_absgrad, absgrad = absgrad, self.absgrad_.view(n)
         _raster_bwd.launch_gather_gaussian_grads(self.pair_offsets_.view(n), self.tiles_touched_.view(n),
                                                  self.pair_grads_.full, v_means2d, v_conics, v_opac, v_colors,
                                                  v_depths, absgrad, dev, **sp)
+        if not want_absgrad and self.pixels_per_thread != TILE_SIZE * TILE_SIZE:
+            absgrad.zero_()  # the row kernels sum it anyway: same contract on every path
         t = self._stage("backward_gather", t)
         radii = self.radii_.view(n)
         v_means, v_log_scales = self.v_means_.view(n), self.v_log_scales_.view(n)

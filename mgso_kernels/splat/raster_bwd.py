@@ -208,7 +208,8 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
 
     ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output). ``absgrad=False`` lets the tile
-    kernel (``seg`` 256) skip the AbsGS sums (components 10, 11 stay 0); the row kernels compute them anyway.
+    kernel (``seg`` 256) skip the AbsGS sums (components 10, 11 stay 0); the row kernels compute them anyway
+    (``Rasterizer.backward`` zeroes them after the gather, so that the result is the same on every path).
     """
     from ..runtime import launch_split
     from ._checks import check_array

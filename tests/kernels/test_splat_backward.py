@@ -166,10 +166,10 @@ def test_warp_antialiased_matches_twin(wp_device):
         _close(getattr(grads, name).numpy(), r[name], name)
 
 
-@pytest.mark.parametrize("seg", [1, 2, 8, 16])
+@pytest.mark.parametrize("seg", [1, 2, 8, 16, 256])
 def test_pixels_per_thread_variants_match_twin(wp_device, seg):
-    # a tile per thread (256) is the CPU default (every other test); 1 is the CUDA default; 16 was the CPU row kernel:
-    # same rules, same results
+    # a tile per thread (256) is the CPU default; 1 is the CUDA default; 16 was the CPU row kernel: same rules, same
+    # results; absgrad=False (the tile path's second compiled kernel) changes nothing but the AbsGS sums (zero)
     rng = np.random.default_rng(20 + seg)
     cam = _camera(rng, 40, 36)
     scene = ref.random_scene(rng, 40, cam, 1)
@@ -186,6 +186,13 @@ def test_pixels_per_thread_variants_match_twin(wp_device, seg):
     grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
     for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
         _close(getattr(grads, name).numpy(), r[name], name)
+    assert np.abs(r["absgrad"]).max() > 0
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32),
+                          absgrad=False)
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d"):
+        _close(getattr(grads, name).numpy(), r[name], name)
+    assert not grads.absgrad.numpy().any()
     with pytest.raises(ValueError, match="pixels_per_thread"):
         Rasterizer(wp_device, pixels_per_thread=3)
 
