@@ -51,7 +51,7 @@ from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinh
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 
 from .config import Config
-from .geometry import se3_exp, se3_inverse, se3_log
+from .geometry import se3_exp, se3_inverse, se3_log, se3_renormalize
 from .io.trajectory import Trajectory
 from .observers import Observer
 from .tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
@@ -534,10 +534,10 @@ class Odometry:
         if reason is not None:
             return self._lose(rec, pyr, exposure, rgb, tr, reason)
         rec.status = FrameStatus.TRACKED
-        rec.cam_to_tracking_ref = tr.cam_to_ref
+        rec.cam_to_tracking_ref = se3_renormalize(tr.cam_to_ref)
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
-        rec.cam_to_world = ref_c2w @ tr.cam_to_ref
+        rec.cam_to_world = se3_renormalize(ref_c2w @ rec.cam_to_tracking_ref)
         if self._prev_pose is not None:
             self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose[:3, 3])))
         self._prev_pose = rec.cam_to_world.copy()

@@ -61,6 +61,7 @@ import warp as wp
 
 from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry
 from mgso_kernels.photometric import PATTERN_NP, affine_from_to
+from ..geometry import se3_renormalize
 
 __all__ = [
     "Window", "WindowFullError", "PointBuffer", "Field", "ImmaturePoints", "ActivePoints", "PointCloud",
@@ -476,6 +477,7 @@ class Window:
         self.timestamp_[s] = float(timestamp)
         self.exposure_[s] = float(exposure or 0.0)
         self.segment_[s] = int(segment)
+        T = se3_renormalize(T)
         self.world_to_cam_[s] = T
         self.world_to_cam_zero_[s] = T
         self.affine_[s] = affine
@@ -535,7 +537,7 @@ class Window:
             T = np.asarray(world_to_cam, dtype=np.float64)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 raise ValueError("set_keyframe_state: world_to_cam must be a finite 4x4 matrix")
-            self.world_to_cam_[slot] = T
+            self.world_to_cam_[slot] = se3_renormalize(T)
         if affine is not None:
             self.affine_[slot] = affine
 
