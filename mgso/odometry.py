@@ -48,6 +48,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinhole
+from mgso_kernels import runtime
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 
 from .config import Config
@@ -244,21 +245,21 @@ class _PyramidPool:
 class Odometry:
     """DSO-style odometry over a sequence (see the module text). ``geometry`` from :func:`geometry_for`."""
 
-    def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str = "cpu",
+    def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str | None = None,
                  observer: Observer | None = None, back_end: WindowBackEnd | None = None):
         self.config = config or Config()
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
-        self.device = device
+        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
         self.observer = observer or Observer()
         self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
-                             immature_capacity=cfg.window.immature_capacity, device=device)
+                             immature_capacity=cfg.window.immature_capacity, device=self.device)
         self.back_end: WindowBackEnd = back_end or FixedWindowBackEnd(FixedWindowSettings(
             iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=cfg.window.max_frames,
             huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
             overall_energy_th_weight=t.overall_energy_th_weight))
-        self.tracker = CoarseTracker(geometry, t, device=device)
+        self.tracker = CoarseTracker(geometry, t, device=self.device)
         self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
         self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed)
         self.selector = PixelSelector(geometry.width, geometry.height, min_grad_hist_cut=t.min_grad_hist_cut,
@@ -268,7 +269,7 @@ class Odometry:
                                       initial_potential=t.selector_initial_potential, seed=cfg.runtime.seed)
         self.activator = PointActivator(t)
         self.trace_params = trace_params_from_config(geometry.width, geometry.height, t, seed=cfg.runtime.seed)
-        self._pool = _PyramidPool(geometry, device)
+        self._pool = _PyramidPool(geometry, self.device)
         self._rng = np.random.default_rng(cfg.runtime.seed)
         self.frames: list[FrameRecord] = []
         self.keyframes: dict[int, KeyframeRecord] = {}

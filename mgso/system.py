@@ -50,6 +50,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence as TSeq
 
 import cv2
 import numpy as np
+from mgso_kernels import runtime
 
 from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_inverse
@@ -603,7 +604,7 @@ class DsoOdometry:
     ``observer``: also gets the odometry's own events (tracking loss, ...).
     """
 
-    def __init__(self, camera, config: Config, *, device: str = "cpu", observer: Observer | None = None):
+    def __init__(self, camera, config: Config, *, device: str | None = None, observer: Observer | None = None):
         from mgso.camera import PinholeCamera
         from mgso.odometry import Odometry as _Dso, geometry_for
 
