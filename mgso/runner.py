@@ -188,7 +188,8 @@ def run_sequence(seq, cfg: Config, out_dir: Path, *, stage: str | None = None,
         from .system import DsoOdometry
 
         device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads)
-        odometry = DsoOdometry(seq.calibration.output, cfg, device=device)
+        odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
+        odometry = DsoOdometry(seq.calibration.output, cfg, device=odo_device)
         run_system(seq, cfg, out_dir, odometry, odometry_name=odometry.name, progress=progress, summary=summary,
                    device=device)
     return summary

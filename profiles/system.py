@@ -66,7 +66,8 @@ def _one(args) -> dict:
     if args.odometry == "dso":
         from mgso.system import DsoOdometry
 
-        odo = DsoOdometry(seq.calibration.output, cfg, device=device)
+        odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
+        odo = DsoOdometry(seq.calibration.output, cfg, device=odo_device)
     else:
         try:
             odo = OracleOdometry.from_sequence(seq, keyframe_every=args.keyframe_every, points=args.points,
