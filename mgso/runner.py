@@ -150,6 +150,9 @@ def run_system(seq, cfg: Config, out_dir: Path, odometry, *, odometry_name: str 
     m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s, mapping {metrics['mapping_iterations_per_s']:.2f} "
              f"it/s ({result.mapper.steps} steps), end to end {metrics['end_to_end_fps']:.2f} frames/s "
              f"({cfg.system.mode})")
+    if metrics["frames"]["in_trajectory"] == 0 and result.frames_processed:
+        m.append("no frame got a pose: the odometry never initialised (a monocular start needs the camera to "
+                 "translate; see the log for the initialiser's reasons)")
     for a in metrics["ate"]:
         m.append(f"ATE {a['translation_m']['rmse']:.4f} m RMSE ({a['label']}, Sim(3) aligned, "
                  f"{a['num_pairs']} poses)")
