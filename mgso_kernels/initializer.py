@@ -397,6 +397,7 @@ def init_system(ws: InitWorkspace, dI_t: wp.array, params: InitParams, *, idepth
     if not ws.is_cpu:
         for name in _OUTPUTS:
             wp.copy(bound[name], dev_arrays[name])
+        wp.synchronize_device(ws.device)  # the caller reads the NumPy arrays next
     s = ws.partials_.numpy()[:blocks].sum(axis=0)
     return InitSystem(H=s[SLOT_H:SLOT_H + 64].reshape(8, 8).copy(), b=s[SLOT_B:SLOT_B + 8].copy(),
                       Hsc=s[SLOT_HSC:SLOT_HSC + 64].reshape(8, 8).copy(), bsc=s[SLOT_BSC:SLOT_BSC + 8].copy(),
