@@ -50,7 +50,8 @@ from .photometric import PATTERN, huber_weight, in_margins, vec8f
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "INIT_BORDER_LO", "INIT_BORDER_HI", "InitParams", "InitSystem",
-    "InitWorkspace", "make_init_params", "accumulate_init_system", "init_system",
+    "InitWorkspace", "make_init_params", "accumulate_init_system", "init_system", "NUM_NEIGHBOURS",
+    "smooth_inverse_depths", "smooth_idepths",
 ]
 
 wp.set_module_options({"enable_backward": False})
@@ -238,6 +239,50 @@ def accumulate_init_system(offset: int,
     partials[blk, SLOT_NUM_GOOD] = wp.float64(n_good)
 
 
+NUM_NEIGHBOURS = 10  # DSO makeNN: neighbours per point
+SMOOTH_MIN_CHUNK = 16384  # smooth_idepths is ~0.1 us a point: split over CPU cores only from 32k points
+vec10f = wp.types.vector(length=NUM_NEIGHBOURS, dtype=wp.float32)
+
+
+@wp.kernel
+def smooth_inverse_depths(offset: int,
+                          neighbours: wp.array2d(dtype=wp.int32),  # [N, 10] indices on this level, -1 none
+                          is_good: wp.array(dtype=wp.bool),  # [N]
+                          iR: wp.array(dtype=float),  # [N] smoothed inverse depths (read)
+                          idepth: wp.array(dtype=float),  # [N] current inverse depths
+                          w_self: float,  # 1 - reg_weight
+                          w_nb: float,  # reg_weight
+                          iR_out: wp.array(dtype=float)):  # [N] out (a separate buffer: neighbours read iR)
+    i = offset + wp.tid()
+    # branch-free, every index static (the loops unroll): a slot that is not a good neighbour holds +inf
+    inf = float(wp.inf)
+    vals = vec10f()
+    cnt = int(0)
+    for k in range(NUM_NEIGHBOURS):
+        j = neighbours[i, k]
+        ok = False
+        if j >= 0:
+            ok = is_good[j]
+        vals[k] = wp.where(ok, iR[wp.max(j, 0)], inf)
+        cnt += wp.where(ok, 1, 0)
+    # the (cnt // 2)-th smallest of the good neighbours' values (DSO: nth_element at size / 2): the value with at
+    # most kth values below it and more than kth at or below it
+    kth = cnt // 2
+    med = float(0.0)
+    for a in range(NUM_NEIGHBOURS):
+        x = vals[a]
+        less = int(0)
+        leq = int(0)
+        for b in range(NUM_NEIGHBOURS):
+            less += wp.where(vals[b] < x, 1, 0)
+            leq += wp.where(vals[b] <= x, 1, 0)
+        med = wp.where(x < inf and less <= kth and kth < leq, x, med)
+    out = iR[i]
+    if is_good[i] and cnt > 2:
+        out = w_self * idepth[i] + w_nb * med
+    iR_out[i] = out
+
+
 # ---------------------------------------------------------------------------------------------- launchers
 @dataclass
 class InitSystem:
@@ -288,7 +333,7 @@ class InitWorkspace:
     """
 
     def __init__(self, uv: np.ndarray, ref_color: np.ndarray, device: str | None = None,
-                 points_per_block: int = POINTS_PER_BLOCK):
+                 points_per_block: int = POINTS_PER_BLOCK, neighbours: np.ndarray | None = None):
         self.device = device or runtime.default_device()
         uv = np.ascontiguousarray(uv, dtype=np.float32)
         col = np.ascontiguousarray(ref_color, dtype=np.float32)
@@ -306,6 +351,16 @@ class InitWorkspace:
         self.ref_color = wp.array(col if self.n else np.zeros((1, 8), np.float32), dtype=float,
                                   device=self.device)[:self.n]
         self.partials_ = wp.zeros((max(self.num_blocks, 1), NUM_SLOTS), dtype=wp.float64, device=self.device)
+        self.neighbours = None  # [N, 10] int32, for smooth_idepths
+        if neighbours is not None:
+            nb = np.asarray(neighbours)
+            if nb.shape != (self.n, NUM_NEIGHBOURS):
+                raise ValueError(f"neighbours: expected [{self.n}, {NUM_NEIGHBOURS}], got {nb.shape}")
+            if self.n and (nb.max() >= self.n or nb.min() < -1):
+                raise ValueError(f"neighbours: indices must be -1 or in [0, {self.n}), got {nb.min()}..{nb.max()}")
+            nb = nb.astype(np.int32) if self.n else np.full((1, NUM_NEIGHBOURS), -1, np.int32)
+            self.neighbours = wp.array(nb, dtype=wp.int32, device=self.device)[:self.n]
+        self.iR_out_ = wp.zeros(cap, dtype=float, device=self.device)
         self._mirror: dict[str, wp.array] = {}
         self._aliases: dict[tuple[str, int], tuple[np.ndarray, wp.array]] = {}  # (name, id) -> (array, CPU alias)
         if not self.is_cpu:
@@ -402,3 +457,38 @@ def init_system(ws: InitWorkspace, dI_t: wp.array, params: InitParams, *, idepth
     return InitSystem(H=s[SLOT_H:SLOT_H + 64].reshape(8, 8).copy(), b=s[SLOT_B:SLOT_B + 8].copy(),
                       Hsc=s[SLOT_HSC:SLOT_HSC + 64].reshape(8, 8).copy(), bsc=s[SLOT_BSC:SLOT_BSC + 8].copy(),
                       energy=float(s[SLOT_ENERGY]), num_good=int(round(s[SLOT_NUM_GOOD])))
+
+
+def smooth_idepths(ws: InitWorkspace, *, is_good: np.ndarray, iR: np.ndarray, idepth: np.ndarray,
+                   reg_weight: float) -> None:
+    """DSO ``optReg`` over the workspace's points, all at once from the previous values: for every good point
+    with more than 2 good neighbours, ``iR <- (1 - reg_weight) idepth + reg_weight median(iR of the good
+    neighbours)`` (the median is the ``(count // 2)``-th smallest). ``is_good [N] bool``, ``iR [N] f32`` (updated in
+    place), ``idepth [N] f32``: the initialiser's NumPy arrays. Needs a workspace made with ``neighbours``."""
+    if ws.neighbours is None:
+        raise ValueError("smooth_idepths: this InitWorkspace was made without neighbours")
+    n = ws.n
+    bound = {}
+    for name, a in (("is_good", is_good), ("iR", iR), ("idepth", idepth)):
+        dt, wdt, _ = _SPECS[name]
+        if not isinstance(a, np.ndarray) or a.dtype != dt or a.shape != (n,) or not a.flags.c_contiguous:
+            got = f"{a.dtype} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+            raise TypeError(f"smooth_idepths: {name} must be a C-contiguous {np.dtype(dt).name} array of shape "
+                            f"({n},), got {got}")
+        bound[name] = ws._alias(name, a, wdt) if n else None
+    if n == 0:
+        return
+    if ws.is_cpu:
+        good_d, iR_d, id_d = bound["is_good"], bound["iR"], bound["idepth"]
+    else:
+        good_d, iR_d, id_d = ws._mirror["is_good"][:n], ws._mirror["iR"][:n], ws._mirror["idepth"][:n]
+        wp.copy(good_d, bound["is_good"])
+        wp.copy(iR_d, bound["iR"])
+        wp.copy(id_d, bound["idepth"])
+    out = ws.iR_out_[:n]
+    runtime.launch_split(smooth_inverse_depths, n, [ws.neighbours, good_d, iR_d, id_d, float(1.0 - reg_weight),
+                                                   float(reg_weight), out], ws.device,
+                         min_chunk=SMOOTH_MIN_CHUNK)
+    wp.copy(bound["iR"], out)
+    if not ws.is_cpu:
+        wp.synchronize_device(ws.device)

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from mgso_kernels import runtime
 from mgso_kernels.image import ImagePyramid, PyramidGeometry
-from mgso_kernels.initializer import InitWorkspace, init_system, make_init_params
+from mgso_kernels.initializer import InitWorkspace, init_system, make_init_params, smooth_idepths
 from mgso_kernels.photometric import PATTERN_NP
 
 from ..config import TrackingConfig
@@ -268,8 +268,8 @@ class CoarseInitializer:
             self.reset()
             return InitResult(InitStatus.FAILED, 0, False, np.eye(4), (0.0, 0.0), float("nan"), n0, 0, msg)
         self._make_nn()
-        self._workspaces = [InitWorkspace(np.stack([p.u, p.v], axis=1), p.ref_color, self.device)
-                            for p in self.points]
+        self._workspaces = [InitWorkspace(np.stack([p.u, p.v], axis=1), p.ref_color, self.device,
+                                          neighbours=p.neighbours) for p in self.points]
         self.frame_id = 0
         self.snapped_at = 0
         return InitResult(InitStatus.FIRST_FRAME, 0, False, np.eye(4), (0.0, 0.0), float("nan"), n0, n0)
@@ -431,21 +431,14 @@ class CoarseInitializer:
                 self.coupling_weight * float(np.sum(r_new * r_new)), float(g.sum()))
 
     def _opt_reg(self, lvl: int) -> None:
-        """DSO ``optReg`` (all points at once from the previous values; see the module text)."""
+        """DSO ``optReg`` (all points at once from the previous values; see the module text):
+        :func:`mgso_kernels.initializer.smooth_idepths`."""
         p = self.points[lvl]
         if not self.snapped:
             p.iR[:] = 1.0
             return
-        nb = p.neighbours
-        valid = nb >= 0
-        nbc = np.where(valid, nb, 0)
-        nb_good = valid & p.is_good[nbc]
-        vals = np.where(nb_good, p.iR[nbc], np.nan)
-        cnt = nb_good.sum(axis=1)
-        srt = np.sort(vals, axis=1)
-        med = np.take_along_axis(srt, np.minimum(cnt // 2, NN - 1)[:, None], axis=1)[:, 0]
-        upd = p.is_good & (cnt > 2)
-        p.iR[upd] = (1.0 - self.reg_weight) * p.idepth[upd] + self.reg_weight * med[upd]
+        smooth_idepths(self._workspaces[lvl], is_good=p.is_good, iR=p.iR, idepth=p.idepth,
+                       reg_weight=self.reg_weight)
 
     def _propagate_up(self, src: int) -> None:
         ps, pt = self.points[src], self.points[src + 1]

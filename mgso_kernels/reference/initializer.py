@@ -12,7 +12,7 @@ import numpy as np
 
 from .image import sample_dI
 
-__all__ = ["PATTERN", "init_system"]
+__all__ = ["PATTERN", "init_system", "smooth_idepths"]
 
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]], dtype=np.float32)
 
@@ -115,3 +115,20 @@ def init_system(uv, ref_color, dI_t, first_to_new, affine, fx, fy, cx, cy, *, id
     Hsc = (jbn[:, :8] * jbn[:, 9:10]).T @ jbn[:, :8]
     bsc = (jbn[:, :8] * jbn[:, 9:10]).T @ jbn[:, 8]
     return dict(H=H, b=b, Hsc=Hsc, bsc=bsc, energy=E_sum, num_good=len(gn))
+
+
+def smooth_idepths(neighbours, is_good, iR, idepth, reg_weight) -> np.ndarray:
+    """DSO ``optReg`` for all points at once from the previous values (the initialiser's former NumPy code).
+    Returns the new ``iR``."""
+    nn = neighbours.shape[1]
+    valid = neighbours >= 0
+    nbc = np.where(valid, neighbours, 0)
+    nb_good = valid & is_good[nbc]
+    vals = np.where(nb_good, iR[nbc], np.nan)
+    cnt = nb_good.sum(axis=1)
+    srt = np.sort(vals, axis=1)
+    med = np.take_along_axis(srt, np.minimum(cnt // 2, nn - 1)[:, None], axis=1)[:, 0]
+    upd = is_good & (cnt > 2)
+    out = iR.copy()
+    out[upd] = (1.0 - reg_weight) * idepth[upd] + reg_weight * med[upd]
+    return out

@@ -151,3 +151,27 @@ def test_bad_arguments_are_named(wp_device):
     with pytest.raises(ValueError, match="dI_t is"):
         ik.init_system(ws, wp.zeros((H, W + 2), dtype=wp.vec3, device=wp_device), params, **state,
                        **outputs(n, lh))
+
+
+def test_smooth_idepths_matches_twin(wp_device):
+    """DSO optReg: median of the good neighbours (ties, -1 slots, too few good neighbours, points not good)."""
+    rng = np.random.default_rng(8)
+    n = 3000
+    nb = rng.integers(0, n, (n, ik.NUM_NEIGHBOURS)).astype(np.int64)
+    nb[:, 0] = np.arange(n)  # the point itself, as nanoflann returns it
+    nb[rng.random(nb.shape) < 0.1] = -1
+    nb[:50, 3:] = -1  # at most 3 neighbours: often too few good ones
+    is_good = rng.random(n) > 0.3
+    iR = rng.uniform(0.2, 3.0, n).astype(np.float32)
+    iR[rng.random(n) < 0.2] = 1.0  # ties
+    idepth = (iR * rng.uniform(0.8, 1.2, n)).astype(np.float32)
+    want = ref.smooth_idepths(nb, is_good, iR, idepth, 0.8)
+    ws = ik.InitWorkspace(np.zeros((n, 2), np.float32), np.zeros((n, 8), np.float32), wp_device, neighbours=nb)
+    got = iR.copy()
+    ik.smooth_idepths(ws, is_good=is_good, iR=got, idepth=idepth, reg_weight=0.8)
+    changed = want != iR
+    assert 0.3 * n < changed.sum() < 0.8 * n  # both kinds of points are there
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    np.testing.assert_array_equal(got[~changed], iR[~changed])
+    with pytest.raises(ValueError, match="neighbours"):
+        ik.InitWorkspace(np.zeros((n, 2), np.float32), np.zeros((n, 8), np.float32), wp_device, neighbours=nb[:, :5])
