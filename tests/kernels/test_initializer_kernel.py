@@ -175,3 +175,16 @@ def test_smooth_idepths_matches_twin(wp_device):
     np.testing.assert_array_equal(got[~changed], iR[~changed])
     with pytest.raises(ValueError, match="neighbours"):
         ik.InitWorkspace(np.zeros((n, 2), np.float32), np.zeros((n, 8), np.float32), wp_device, neighbours=nb[:, :5])
+
+
+def test_empty_level(wp_device):
+    """A pyramid level without points (possible on coarse levels of a flat image) gives an empty system."""
+    ws = ik.InitWorkspace(np.zeros((0, 2), np.float32), np.zeros((0, 8), np.float32), wp_device,
+                          neighbours=np.zeros((0, ik.NUM_NEIGHBOURS), np.int64))
+    state = dict(idepth=np.zeros(0, np.float32), is_good=np.zeros(0, bool), energy=np.zeros((0, 2), np.float32),
+                 iR=np.zeros(0, np.float32))
+    s = ik.init_system(ws, wp.zeros((H, W), dtype=wp.vec3, device=wp_device),
+                       ik.make_init_params(np.eye(4), (0, 0), **CAM, width=W, height=H), **state,
+                       **outputs(0, np.zeros(0, np.float32)))
+    assert s.num_good == 0 and s.energy == 0 and not np.any(s.H) and not np.any(s.Hsc)
+    ik.smooth_idepths(ws, is_good=state["is_good"], iR=state["iR"], idepth=state["idepth"], reg_weight=0.8)
