@@ -1,9 +1,10 @@
 """Monocular initialisation: DSO's ``CoarseInitializer``, vectorised over points.
 
-The residual pass over all points of a level (DSO ``calcResAndGS``: 90 % of the time) is the Warp kernel
-:func:`mgso_kernels.initializer.init_system` on the odometry's device; the per-point bookkeeping around it (steps,
-acceptance, regulariser, pyramid propagation) is NumPy on the level's arrays, which the kernel reads and writes in
-place on the CPU.
+The residual pass over all points of a level (DSO ``calcResAndGS``, 90 % of the time when it was NumPy) and the
+neighbours' median (DSO ``optReg``) are Warp kernels (:func:`mgso_kernels.initializer.init_system`,
+:func:`~mgso_kernels.initializer.smooth_idepths`) on the odometry's device; the rest of the per-point bookkeeping
+(steps, acceptance, pyramid propagation) is NumPy on the level's arrays, which the kernels read and write in place
+on the CPU (a GPU gets copies of the per-point state, not of the images).
 
 The first frame's points (several pyramid levels, each point with its 10 nearest neighbours on its level and its
 nearest "parent" on the next coarser level) start at inverse depth 1. Every following frame is aligned to the first
