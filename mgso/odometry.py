@@ -261,7 +261,7 @@ class Odometry:
             overall_energy_th_weight=t.overall_energy_th_weight))
         self.tracker = CoarseTracker(geometry, t, device=self.device)
         self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
-        self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed)
+        self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed, device=self.device)
         self.selector = PixelSelector(geometry.width, geometry.height, min_grad_hist_cut=t.min_grad_hist_cut,
                                       min_grad_hist_add=t.min_grad_hist_add,
                                       grad_downweight_per_level=t.grad_downweight_per_level,

@@ -1,4 +1,10 @@
-"""Monocular initialisation: DSO's ``CoarseInitializer``, vectorised over points in NumPy.
+"""Monocular initialisation: DSO's ``CoarseInitializer``, vectorised over points.
+
+The residual pass over all points of a level (DSO ``calcResAndGS``, 90 % of the time when it was NumPy) and the
+neighbours' median (DSO ``optReg``) are Warp kernels (:func:`mgso_kernels.initializer.init_system`,
+:func:`~mgso_kernels.initializer.smooth_idepths`) on the odometry's device; the rest of the per-point bookkeeping
+(steps, acceptance, pyramid propagation) is NumPy on the level's arrays, which the kernels read and write in place
+on the CPU (a GPU gets copies of the per-point state, not of the images).
 
 The first frame's points (several pyramid levels, each point with its 10 nearest neighbours on its level and its
 nearest "parent" on the next coarser level) start at inverse depth 1. Every following frame is aligned to the first
@@ -33,13 +39,15 @@ from enum import Enum
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mgso_kernels import runtime
 from mgso_kernels.image import ImagePyramid, PyramidGeometry
+from mgso_kernels.initializer import InitWorkspace, init_system, make_init_params, smooth_idepths
 from mgso_kernels.photometric import PATTERN_NP
 
 from ..config import TrackingConfig
 from ..geometry import se3_exp, se3_log
 from .pixel_selector import PixelSelector
-from .sampling import inside, sample_intensity, sample_level
+from .sampling import sample_intensity
 
 __all__ = ["CoarseInitializer", "InitStatus", "InitResult", "InitLevel", "grid_max_selection", "make_pixel_status"]
 
@@ -170,14 +178,17 @@ def _make_level(u, v, my_type, ref_dI, width, height) -> InitLevel:
 class CoarseInitializer:
     """DSO's monocular initialiser. Owner: the odometry. ``set_first`` then ``track_frame`` per frame."""
 
-    def __init__(self, geometry: PyramidGeometry, config: TrackingConfig | None = None, seed: int = 0):
+    def __init__(self, geometry: PyramidGeometry, config: TrackingConfig | None = None, seed: int = 0,
+                 device: str | None = None):
         if geometry.camera is None:
             raise ValueError("CoarseInitializer needs a PyramidGeometry with intrinsics")
         self.geometry = geometry
+        self.device = device or runtime.default_device()  # where the residual kernel runs (the frames' pyramids)
         self.config = config or TrackingConfig()
         self.seed = int(seed)
         self.levels_used = geometry.levels
         self.points: list[InitLevel] = []
+        self._workspaces: list[InitWorkspace] = []  # per level: the points' fixed data on the device
         self.first_pyramid: ImagePyramid | None = None  # owned copy of the first frame's pyramid
         self.first_frame = None  # the caller's record of the first frame (index, timestamp, exposure, rgb, ...)
         self.first_exposure = 0.0
@@ -198,6 +209,7 @@ class CoarseInitializer:
 
     def reset(self) -> None:
         self.points = []
+        self._workspaces = []
         self.first_frame = None
         self.frame_id = -1
         self.snapped = False
@@ -212,7 +224,7 @@ class CoarseInitializer:
         self.reset()
         g = self.geometry
         cfg = self.config
-        if self.first_pyramid is None:
+        if self.first_pyramid is None or str(self.first_pyramid.device) != str(pyramid.device):
             self.first_pyramid = ImagePyramid(g, device=pyramid.device)
         import warp as wp
         for lvl in range(g.levels):
@@ -257,6 +269,8 @@ class CoarseInitializer:
             self.reset()
             return InitResult(InitStatus.FAILED, 0, False, np.eye(4), (0.0, 0.0), float("nan"), n0, 0, msg)
         self._make_nn()
+        self._workspaces = [InitWorkspace(np.stack([p.u, p.v], axis=1), p.ref_color, self.device,
+                                          neighbours=p.neighbours) for p in self.points]
         self.frame_id = 0
         self.snapped_at = 0
         return InitResult(InitStatus.FIRST_FRAME, 0, False, np.eye(4), (0.0, 0.0), float("nan"), n0, n0)
@@ -378,115 +392,34 @@ class CoarseInitializer:
                           int(p0.is_good.sum()), msg)
 
     # ---------------------------------------------------------------------------------- DSO's internals
-    def _calc_res_and_gs(self, lvl: int, dI_new: np.ndarray, T: np.ndarray, aff: np.ndarray):
-        """DSO ``calcResAndGS``: energies, the 8x8 pose system and its Schur part, per-point ``jb_new``."""
+    def _calc_res_and_gs(self, lvl: int, dI_new, T: np.ndarray, aff: np.ndarray):
+        """DSO ``calcResAndGS``: energies, the 8x8 pose system and its Schur part, per-point ``jb_new``
+        (:func:`mgso_kernels.initializer.init_system`), plus the pose regulariser."""
         p = self.points[lvl]
         cam = self.geometry.level_camera(lvl)
         wl, hl = self.geometry.level_size(lvl)
-        n = p.n
-        R, t = T[:3, :3], T[:3, 3]
-        a_exp, b0 = math.exp(aff[0]), aff[1]
-        p.maxstep[:] = 1e10
-        good = p.is_good.copy()
-        gi = np.flatnonzero(good)
-        f32 = np.float32
-        px = p.u[gi, None] + PATTERN_NP[None, :, 0]
-        py = p.v[gi, None] + PATTERN_NP[None, :, 1]
-        hx = (px - f32(cam.cx)) * f32(1.0 / cam.fx)
-        hy = (py - f32(cam.cy)) * f32(1.0 / cam.fy)
-        idn = p.idepth_new[gi, None]
-        Rf, tf = R.astype(f32), t.astype(f32)
-        P0 = Rf[0, 0] * hx + Rf[0, 1] * hy + Rf[0, 2] + tf[0] * idn
-        P1 = Rf[1, 0] * hx + Rf[1, 1] * hy + Rf[1, 2] + tf[1] * idn
-        P2 = Rf[2, 0] * hx + Rf[2, 1] * hy + Rf[2, 2] + tf[2] * idn
-        with np.errstate(divide="ignore", invalid="ignore"):
-            iz = f32(1.0) / P2
-            uu = P0 * iz
-            vv = P1 * iz
-            new_id = idn * iz
-        ku = f32(cam.fx) * uu + f32(cam.cx)
-        kv = f32(cam.fy) * vv + f32(cam.cy)
-        okp = inside(ku, kv, wl, hl, 1.0, 2.0) & (new_id > 0)
-        hit = sample_level(dI_new, ku, kv)
-        rl = p.ref_color[gi]
-        okp &= np.isfinite(hit[..., 0]) & np.isfinite(rl)
-        ok_pt = okp.all(axis=1)
-        zero = f32(0.0)
-        hit = np.where(okp[..., None], hit, zero)
-        rl = np.where(okp, rl, zero)
-        uu = np.where(okp, uu, zero)  # invalid pixels: everything 0 below (no NaN/inf enters the sums)
-        vv = np.where(okp, vv, zero)
-        new_id = np.where(okp, new_id, zero)
-        iz = np.where(okp, iz, zero)
-        res = hit[..., 0] - f32(a_exp) * rl - f32(b0)
-        ar = np.abs(res)
-        hth = f32(self.config.huber_th)
-        hw = np.where(ar < hth, f32(1.0), hth / np.maximum(ar, f32(1e-12)))
-        energy = np.sum(hw * res * res * (f32(2.0) - hw), axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dxdd = (tf[0] - tf[2] * uu) * iz
-            dydd = (tf[1] - tf[2] * vv) * iz
-        hws = np.where(hw < 1.0, np.sqrt(hw), hw)
-        m = okp.astype(f32)
-        dxi = hws * hit[..., 1] * f32(cam.fx) * m
-        dyi = hws * hit[..., 2] * f32(cam.fy) * m
-        J = np.empty(dxi.shape + (8,), f32)  # [g, 8 pattern, 8 parameters]
-        J[..., 0] = new_id * dxi
-        J[..., 1] = new_id * dyi
-        J[..., 2] = -new_id * (uu * dxi + vv * dyi)
-        J[..., 3] = -uu * vv * dxi - (1 + vv * vv) * dyi
-        J[..., 4] = (1 + uu * uu) * dxi + uu * vv * dyi
-        J[..., 5] = -vv * dxi + uu * dyi
-        J[..., 6] = -hws * f32(a_exp) * rl * m
-        J[..., 7] = -hws * m
-        dd = (dxi * dxdd + dyi * dydd) * m
-        rr = hws * res * m
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ms = np.where(okp, f32(1.0) / np.hypot(dxdd * f32(cam.fx), dydd * f32(cam.fy)), np.inf)
-        p.maxstep[gi] = np.minimum(1e10, np.min(ms, axis=1))
-        jb = np.zeros((len(gi), 10))
-        jb[:, :8] = np.matmul(dd[:, None, :], J)[:, 0, :]
-        jb[:, 8] = np.sum(rr * dd, axis=1)
-        jb[:, 9] = np.sum(dd * dd, axis=1)
-        outlier_th = 8 * self.config.outlier_th
-        good_new_g = ok_pt & (energy <= outlier_th * 20) & np.isfinite(energy)
-        p.is_good_new[:] = False
-        p.is_good_new[gi[good_new_g]] = True
-        p.energy_new[:] = p.energy
-        p.energy_new[gi[good_new_g], 0] = energy[good_new_g]
-        p.jb_new[:] = 0.0
-        p.jb_new[gi] = jb
-        E_sum = float(np.sum(p.energy[~p.is_good_new, 0]) + np.sum(energy[good_new_g]))
-        Jg = J[good_new_g].reshape(-1, 8).astype(np.float64)
-        H = Jg.T @ Jg
-        b = Jg.T @ rr[good_new_g].reshape(-1).astype(np.float64)
+        npts = p.n
+        t = T[:3, 3]
         # regulariser (DSO: EAlpha is never filled, so its energy is alpha_w |t|^2 per point)
-        npts = n
         alpha_energy = self.alpha_w * (float(t @ t) * npts)
         if alpha_energy > self.alpha_k * npts:
             alpha_opt = 0.0
             alpha_energy = self.alpha_k * npts
         else:
             alpha_opt = self.alpha_w
-        gn = np.flatnonzero(p.is_good_new)
-        p.energy_new[gn, 1] = (p.idepth_new[gn] - 1.0) ** 2
-        jbn = p.jb_new[gn]
-        p.last_hessian_new[gn] = jbn[:, 9]
-        jbn[:, 8] += alpha_opt * (p.idepth_new[gn] - 1.0)
-        jbn[:, 9] += alpha_opt
-        if alpha_opt == 0:
-            jbn[:, 8] += self.coupling_weight * (p.idepth_new[gn] - p.iR[gn])
-            jbn[:, 9] += self.coupling_weight
-        jbn[:, 9] = 1.0 / (1.0 + jbn[:, 9])
-        p.jb_new[gn] = jbn
-        Hsc = (jbn[:, :8] * jbn[:, 9:10]).T @ jbn[:, :8]
-        bsc = (jbn[:, :8] * jbn[:, 9:10]).T @ jbn[:, 8]
+        params = make_init_params(T, aff, cam.fx, cam.fy, cam.cx, cam.cy, wl, hl, huber_th=self.config.huber_th,
+                                  max_energy=8 * self.config.outlier_th * 20, alpha_opt=alpha_opt,
+                                  coupling_weight=self.coupling_weight)
+        s = init_system(self._workspaces[lvl], dI_new, params, idepth=p.idepth_new, is_good=p.is_good,
+                        energy=p.energy, iR=p.iR, energy_new=p.energy_new, is_good_new=p.is_good_new,
+                        jb_new=p.jb_new, maxstep=p.maxstep, last_hessian_new=p.last_hessian_new)
+        H, b = s.H, s.b
         H[0, 0] += alpha_opt * npts
         H[1, 1] += alpha_opt * npts
         H[2, 2] += alpha_opt * npts
         tlog = se3_log(T)[:3]
         b[:3] += tlog * alpha_opt * npts
-        return (E_sum, alpha_energy, float(npts)), H, b, Hsc, bsc
+        return (s.energy, alpha_energy, float(npts)), H, b, s.Hsc, s.bsc
 
     def _calc_ec(self, lvl: int) -> tuple[float, float, float]:
         p = self.points[lvl]
@@ -499,21 +432,14 @@ class CoarseInitializer:
                 self.coupling_weight * float(np.sum(r_new * r_new)), float(g.sum()))
 
     def _opt_reg(self, lvl: int) -> None:
-        """DSO ``optReg`` (all points at once from the previous values; see the module text)."""
+        """DSO ``optReg`` (all points at once from the previous values; see the module text):
+        :func:`mgso_kernels.initializer.smooth_idepths`."""
         p = self.points[lvl]
         if not self.snapped:
             p.iR[:] = 1.0
             return
-        nb = p.neighbours
-        valid = nb >= 0
-        nbc = np.where(valid, nb, 0)
-        nb_good = valid & p.is_good[nbc]
-        vals = np.where(nb_good, p.iR[nbc], np.nan)
-        cnt = nb_good.sum(axis=1)
-        srt = np.sort(vals, axis=1)
-        med = np.take_along_axis(srt, np.minimum(cnt // 2, NN - 1)[:, None], axis=1)[:, 0]
-        upd = p.is_good & (cnt > 2)
-        p.iR[upd] = (1.0 - self.reg_weight) * p.idepth[upd] + self.reg_weight * med[upd]
+        smooth_idepths(self._workspaces[lvl], is_good=p.is_good, iR=p.iR, idepth=p.idepth,
+                       reg_weight=self.reg_weight)
 
     def _propagate_up(self, src: int) -> None:
         ps, pt = self.points[src], self.points[src + 1]
