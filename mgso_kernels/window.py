@@ -33,9 +33,11 @@ Reductions (no atomics; bitwise equal single, split over CPU cores or on a GPU):
   10x10 block ``H_cc = sum W J_c J_c^T`` and ``b_c = sum W J_c r`` in float64 and writes one row of a partial-sum
   buffer; per pair it writes ``H_cd = sum W J_c J_d`` (10), ``H_dd = sum W J_d^2`` and ``b_d = sum W J_d r``. The
   launch runs once per target keyframe (each with its image).
-- :func:`schur_points`: one thread per block of points (pairs sorted by point) sums each point's ``H_dd``, ``b_d`` and
-  its frame-point block in absolute frame parameters ``w_p [8 K]`` (adjoints applied), writes them, and accumulates
-  the Schur terms ``w_p w_p^T / H_dd`` and ``w_p b_d / H_dd`` into its partial row.
+- :func:`schur_points`: one thread per point (pairs sorted by point) sums the point's ``H_dd``, ``b_d`` and its
+  frame-point block in absolute frame parameters ``w_p [8 K]`` (adjoints applied) and writes them with
+  ``w_p / H_dd`` and the mask of the slots it touches; then one thread per (chunk of points, slot, slot) sums the
+  8x8 block of ``sum_p w_p w_p^T / H_dd`` (and ``sum_p w_p b_d / H_dd``) over the chunk's points that touch both
+  slots, in float64 registers, and writes a partial; the launcher sums the chunks.
 
 The caller (``mgso.window.energy``) sums the partial rows, maps the key blocks to absolute parameters and solves the
 reduced camera system ``(H_cc - H_sc) x_c = -(b_c - b_sc)``, then back-substitutes ``x_d = -(b_d + w_p . x_c) / H_dd``.
@@ -51,12 +53,13 @@ import warp as wp
 
 from . import runtime
 from .image import bilinear_inside, sample_dI
-from .photometric import (PATTERN, Intrinsics, gradient_weight, huber_weight, in_margins, inverse_K, project_pixel,
+from .photometric import (PATTERN, Intrinsics, vec6f, gradient_weight, huber_weight, in_margins, inverse_K, project_pixel,
                           project_RKi, projection_jacobians)
 
 __all__ = [
     "PAIR_PARAMS", "FRAME_PARAMS", "NUM_KEY_SLOTS", "SLOT_H", "SLOT_B", "PairState", "WindowParams",
     "make_window_params", "WindowKeys", "PairLinearization", "PointSchur", "linearize_window", "schur_points",
+    "schur_blocks_kernel",
     "linearize_pairs_kernel", "schur_points_kernel", "vec10d", "mat1010d",
 ]
 
@@ -69,6 +72,11 @@ SLOT_B = 100  # 10: b_c
 NUM_KEY_SLOTS = 110
 
 vec10d = wp.types.vector(length=10, dtype=wp.float64)
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
+mat88d = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
 mat1010d = wp.types.matrix(shape=(10, 10), dtype=wp.float64)
 
 
@@ -93,6 +101,38 @@ class WindowParams:
     border_lo: float  # DSO projectPoint: x > 1.1
     border_hi: float  # ... x < width - 3
     min_wji2: float  # DSO: outlier when sum (W |grad I_t|)^2 < 2
+
+
+@wp.func
+def pair_sums(dku: vec6f, dkv: vec6f, dd: wp.vec2, a_rel: float, s_xx: float, s_xy: float, s_yy: float,
+              s_hx: float, s_hy: float, s_x: float, s_y: float, s_hh: float, s_h: float, s_1: float, s_rx: float,
+              s_ry: float, s_rh: float, s_r: float):
+    """A pair's blocks in float64 from the pattern sums (see the kernel), split by parameter kind to keep the
+    arithmetic small: ``(H_pp 6x6, H_pa 6x4, H_aa 4x4, b_p 6, b_a 4, hcd_p 6, hcd_a 4, H_dd, b_d)`` with
+    ``J_c = (gx dKu + gy dKv, hc u + v)``, ``u = (-a, 0, a, 0)``, ``v = (0, -1, 0, a)``."""
+    x = vec6d(dku)
+    y = vec6d(dkv)
+    a = wp.float64(a_rel)
+    z = wp.float64(0.0)
+    u = wp.vec4d(-a, z, a, z)
+    v = wp.vec4d(z, wp.float64(-1.0), z, a)
+    px = wp.float64(s_xx) * x + wp.float64(s_xy) * y
+    py = wp.float64(s_xy) * x + wp.float64(s_yy) * y
+    pu = wp.float64(s_hx) * x + wp.float64(s_hy) * y
+    pv = wp.float64(s_x) * x + wp.float64(s_y) * y
+    Hpp = wp.outer(px, x) + wp.outer(py, y)
+    Hpa = wp.outer(pu, u) + wp.outer(pv, v)
+    uv = wp.outer(u, v)
+    Haa = wp.float64(s_hh) * wp.outer(u, u) + wp.float64(s_h) * (uv + wp.transpose(uv)) + wp.float64(s_1) * wp.outer(v, v)
+    bp = wp.float64(s_rx) * x + wp.float64(s_ry) * y
+    ba = wp.float64(s_rh) * u + wp.float64(s_r) * v
+    ddx = wp.float64(dd[0])
+    ddy = wp.float64(dd[1])
+    cp = ddx * px + ddy * py
+    ca = (wp.float64(s_hx) * ddx + wp.float64(s_hy) * ddy) * u + (wp.float64(s_x) * ddx + wp.float64(s_y) * ddy) * v
+    hdd = wp.float64(s_xx) * ddx * ddx + wp.float64(2.0 * s_xy) * ddx * ddy + wp.float64(s_yy) * ddy * ddy
+    bd = wp.float64(s_rx) * ddx + wp.float64(s_ry) * ddy
+    return Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd
 
 
 # ------------------------------------------------------------------------------------------------ kernels
@@ -125,8 +165,11 @@ def linearize_pairs_kernel(offset: int,
     blk = block_base + offset + wp.tid()
     cam = params.cam
     Ki = inverse_K(cam)
-    Hb = mat1010d()
-    bb = vec10d()
+    Hb_pp = mat66d()
+    Hb_pa = mat64d()
+    Hb_aa = wp.mat44d()
+    bb_p = vec6d()
+    bb_a = wp.vec4d()
     for q in range(block_start[blk], block_end[blk]):
         j = order[q]
         p = pair_point[j]
@@ -144,11 +187,23 @@ def linearize_pairs_kernel(offset: int,
         kk0, n0, h0 = project_pixel(c[0], c[1], d, key_R0[k], key_t0[k], cam, cam)
         dku, dkv, dd, dcu, dcv = projection_jacobians(n0, h0, d, key_R0[k], key_t0[k], cam)
         ok = n0[2] > 0.0
-        Hp = mat1010d()
-        bp = vec10d()
-        hcd = vec10d()
-        hdd = wp.float64(0.0)
-        bd = wp.float64(0.0)
+        # Per-pixel sums of scalars only (DSO AccumulatorApprox): the geometric Jacobian is the same for the 8
+        # pixels, so J_c = (Jx^T g, hc u + v) with g the target gradient, hc = I_h - b_h, u = (-a, 0, a, 0),
+        # v = (0, -1, 0, a); the 10x10 block is built once per pair from these sums.
+        s_xx = float(0.0)
+        s_xy = float(0.0)
+        s_yy = float(0.0)
+        s_hx = float(0.0)  # sum W gx hc
+        s_hy = float(0.0)
+        s_x = float(0.0)  # sum W gx
+        s_y = float(0.0)
+        s_hh = float(0.0)  # sum W hc^2
+        s_h = float(0.0)  # sum W hc
+        s_1 = float(0.0)  # sum W
+        s_rx = float(0.0)  # sum W gx r
+        s_ry = float(0.0)
+        s_rh = float(0.0)  # sum W hc r
+        s_r = float(0.0)  # sum W r
         energy = float(0.0)
         wji2 = float(0.0)
         for i in range(8):
@@ -171,18 +226,22 @@ def linearize_pairs_kernel(offset: int,
             W = hw * w * w
             energy += w * w * hw * r * r * (2.0 - hw)
             wji2 += W * W * g2
-            jc = vec10d(wp.float64(gx * dku[0] + gy * dkv[0]), wp.float64(gx * dku[1] + gy * dkv[1]),
-                        wp.float64(gx * dku[2] + gy * dkv[2]), wp.float64(gx * dku[3] + gy * dkv[3]),
-                        wp.float64(gx * dku[4] + gy * dkv[4]), wp.float64(gx * dku[5] + gy * dkv[5]),
-                        wp.float64(-a_rel * hc), wp.float64(-1.0), wp.float64(a_rel * hc), wp.float64(a_rel))
-            jd = wp.float64(gx * dd[0] + gy * dd[1])
-            Wd = wp.float64(W)
-            rd = wp.float64(r)
-            Hp += wp.outer(Wd * jc, jc)
-            bp += (Wd * rd) * jc
-            hcd += (Wd * jd) * jc
-            hdd += Wd * jd * jd
-            bd += Wd * jd * rd
+            s_xx += W * gx * gx
+            s_xy += W * gx * gy
+            s_yy += W * gy * gy
+            s_hx += W * gx * hc
+            s_hy += W * gy * hc
+            s_x += W * gx
+            s_y += W * gy
+            s_hh += W * hc * hc
+            s_h += W * hc
+            s_1 += W
+            s_rx += W * gx * r
+            s_ry += W * gy * r
+            s_rh += W * hc * r
+            s_r += W * r
+        Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd = pair_sums(dku, dkv, dd, a_rel, s_xx, s_xy, s_yy, s_hx, s_hy, s_x,
+                                                           s_y, s_hh, s_h, s_1, s_rx, s_ry, s_rh, s_r)
         th = key_energy_th[k]
         state = int(STATE_IN)
         if not ok:
@@ -190,22 +249,31 @@ def linearize_pairs_kernel(offset: int,
         elif energy > th or wji2 < params.min_wji2:
             state = STATE_OUTLIER
         inl = wp.where(state == STATE_IN, wp.float64(1.0), wp.float64(0.0))
-        Hb += inl * Hp
-        bb += inl * bp
+        Hb_pp += inl * Hpp
+        Hb_pa += inl * Hpa
+        Hb_aa += inl * Haa
+        bb_p += inl * bp
+        bb_a += inl * ba
         pair_state[j] = state
         pair_energy[j] = wp.where(state == STATE_IN, wp.float64(energy), wp.float64(th))
-        pair_hcd[j] = inl * hcd
+        pair_hcd[j] = inl * vec10d(cp[0], cp[1], cp[2], cp[3], cp[4], cp[5], ca[0], ca[1], ca[2], ca[3])
         pair_hdd[j] = inl * hdd
         pair_bd[j] = inl * bd
-    for a in range(10):
-        for b in range(10):
-            partials[blk, SLOT_H + a * 10 + b] = Hb[a, b]
-        partials[blk, SLOT_B + a] = bb[a]
+    for i in range(6):
+        for j in range(6):
+            partials[blk, SLOT_H + i * 10 + j] = Hb_pp[i, j]
+        for j in range(4):
+            partials[blk, SLOT_H + i * 10 + 6 + j] = Hb_pa[i, j]
+            partials[blk, SLOT_H + (6 + j) * 10 + i] = Hb_pa[i, j]
+        partials[blk, SLOT_B + i] = bb_p[i]
+    for i in range(4):
+        for j in range(4):
+            partials[blk, SLOT_H + (6 + i) * 10 + 6 + j] = Hb_aa[i, j]
+        partials[blk, SLOT_B + 6 + i] = bb_a[i]
 
 
 @wp.kernel
 def schur_points_kernel(offset: int,
-                        points_per_block: int,
                         point_start: wp.array(dtype=wp.int32),  # [n + 1] pair range of each point (point-major)
                         pair_key: wp.array(dtype=wp.int32),  # [M]
                         pair_state: wp.array(dtype=wp.int32),  # [M]
@@ -219,56 +287,84 @@ def schur_points_kernel(offset: int,
                         point_extra_b: wp.array(dtype=wp.float64),  # [n] added to b_d (prior gradient)
                         point_hdd: wp.array(dtype=wp.float64),  # [n] out: H_dd (with the extra term)
                         point_bd: wp.array(dtype=wp.float64),  # [n] out: b_d
-                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K] out: frame-point block (zeroed)
-                        sc_partials: wp.array2d(dtype=wp.float64)):  # [Bp, 8K * 8K + 8K] out
-    blk = offset + wp.tid()
-    n = point_start.shape[0] - 1
+                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K] out (zeroed): frame-point block
+                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] out: point_w / H_dd
+                        point_slots: wp.array(dtype=wp.int32)):  # [n] out: bit mask of the slots in point_w
+    p = offset + wp.tid()
+    touched = int(0)
     nf = point_w.shape[1]
-    nslots = nf // 8
-    start = blk * points_per_block
-    end = wp.min(start + points_per_block, n)
+    hdd = point_extra_h[p]
+    bd = point_extra_b[p]
+    for j in range(point_start[p], point_start[p + 1]):
+        if pair_state[j] != STATE_IN:
+            continue
+        k = pair_key[j]
+        hcd = pair_hcd[j]
+        hdd += pair_hdd[j]
+        bd += pair_bd[j]
+        ht = key_host[k]
+        tg = key_target[k]
+        touched = touched | (1 << ht) | (1 << tg)
+        for a in range(6):
+            point_w[p, 8 * tg + a] = point_w[p, 8 * tg + a] + hcd[a]
+            acc = wp.float64(0.0)
+            for m in range(6):
+                acc += key_adj[k, m * 6 + a] * hcd[m]
+            point_w[p, 8 * ht + a] = point_w[p, 8 * ht + a] - acc
+        point_w[p, 8 * tg + 6] = point_w[p, 8 * tg + 6] + hcd[6]
+        point_w[p, 8 * tg + 7] = point_w[p, 8 * tg + 7] + hcd[7]
+        point_w[p, 8 * ht + 6] = point_w[p, 8 * ht + 6] + hcd[8]
+        point_w[p, 8 * ht + 7] = point_w[p, 8 * ht + 7] + hcd[9]
+    if hdd < wp.float64(1e-10):  # DSO AccumulatedSCHessian::addPoint
+        hdd = wp.float64(1e-10)
+    point_hdd[p] = hdd
+    point_bd[p] = bd
+    ih = wp.float64(1.0) / hdd
+    for c in range(nf):
+        point_wi[p, c] = point_w[p, c] * ih
+    point_slots[p] = touched
+
+
+@wp.kernel
+def schur_blocks_kernel(offset: int,
+                        points_per_chunk: int,
+                        num_slots: int,
+                        point_slots: wp.array(dtype=wp.int32),  # [n] bit mask of the slots a point touches
+                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K]
+                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] point_w / H_dd
+                        point_bd: wp.array(dtype=wp.float64),  # [n]
+                        h_partials: wp.array3d(dtype=wp.float64),  # [chunks, K * K, 64] out: 8x8 blocks of H_sc
+                        b_partials: wp.array3d(dtype=wp.float64)):  # [chunks, K, 8] out: 8-blocks of b_sc
+    # one thread per (chunk of points, slot s1, slot s2): the 8x8 block (s1, s2) of sum_p wi_p w_p^T in registers
+    tid = offset + wp.tid()
+    kk = num_slots * num_slots
+    chunk = tid // kk
+    rem = tid - chunk * kk
+    s1 = rem // num_slots
+    s2 = rem - s1 * num_slots
+    n = point_w.shape[0]
+    start = chunk * points_per_chunk
+    end = wp.min(start + points_per_chunk, n)
+    need = (1 << s1) | (1 << s2)
+    acc = mat88d()
+    bacc = vec8d()
     for p in range(start, end):
-        hdd = point_extra_h[p]
-        bd = point_extra_b[p]
-        touched = int(0)
-        for j in range(point_start[p], point_start[p + 1]):
-            if pair_state[j] != STATE_IN:
-                continue
-            k = pair_key[j]
-            hcd = pair_hcd[j]
-            hdd += pair_hdd[j]
-            bd += pair_bd[j]
-            ht = key_host[k]
-            tg = key_target[k]
-            touched = touched | (1 << ht) | (1 << tg)
-            for a in range(6):
-                point_w[p, 8 * tg + a] = point_w[p, 8 * tg + a] + hcd[a]
-                acc = wp.float64(0.0)
-                for m in range(6):
-                    acc += key_adj[k, m * 6 + a] * hcd[m]
-                point_w[p, 8 * ht + a] = point_w[p, 8 * ht + a] - acc
-            point_w[p, 8 * tg + 6] = point_w[p, 8 * tg + 6] + hcd[6]
-            point_w[p, 8 * tg + 7] = point_w[p, 8 * tg + 7] + hcd[7]
-            point_w[p, 8 * ht + 6] = point_w[p, 8 * ht + 6] + hcd[8]
-            point_w[p, 8 * ht + 7] = point_w[p, 8 * ht + 7] + hcd[9]
-        if hdd < wp.float64(1e-10):  # DSO AccumulatedSCHessian::addPoint
-            hdd = wp.float64(1e-10)
-        point_hdd[p] = hdd
-        point_bd[p] = bd
-        ih = wp.float64(1.0) / hdd
-        for s1 in range(nslots):
-            if (touched & (1 << s1)) == 0:
-                continue
-            for a in range(8):
-                wa = point_w[p, 8 * s1 + a] * ih
-                sc_partials[blk, nf * nf + 8 * s1 + a] = sc_partials[blk, nf * nf + 8 * s1 + a] + wa * bd
-                for s2 in range(nslots):
-                    if (touched & (1 << s2)) == 0:
-                        continue
-                    for b in range(8):
-                        col = 8 * s2 + b
-                        sc_partials[blk, (8 * s1 + a) * nf + col] = (sc_partials[blk, (8 * s1 + a) * nf + col]
-                                                                      + wa * point_w[p, col])
+        m = point_slots[p]
+        if (m & (1 << s1)) == 0:
+            continue
+        a = vec8d(point_wi[p, 8 * s1], point_wi[p, 8 * s1 + 1], point_wi[p, 8 * s1 + 2], point_wi[p, 8 * s1 + 3],
+                  point_wi[p, 8 * s1 + 4], point_wi[p, 8 * s1 + 5], point_wi[p, 8 * s1 + 6], point_wi[p, 8 * s1 + 7])
+        b = vec8d(point_w[p, 8 * s2], point_w[p, 8 * s2 + 1], point_w[p, 8 * s2 + 2], point_w[p, 8 * s2 + 3],
+                  point_w[p, 8 * s2 + 4], point_w[p, 8 * s2 + 5], point_w[p, 8 * s2 + 6], point_w[p, 8 * s2 + 7])
+        if (m & need) == need:
+            acc += wp.outer(a, b)
+        bacc += point_bd[p] * a
+    for i in range(8):
+        for j in range(8):
+            h_partials[chunk, rem, i * 8 + j] = acc[i, j]
+    if s2 == 0:
+        for i in range(8):
+            b_partials[chunk, s1, i] = bacc[i]
 
 
 # ---------------------------------------------------------------------------------------------- launchers
@@ -426,7 +522,7 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
 
 def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray, point_start: np.ndarray,
                  num_slots: int, extra_h: np.ndarray | None = None, extra_b: np.ndarray | None = None, *,
-                 points_per_block: int = 64, device: str | None = None) -> PointSchur:
+                 points_per_chunk: int = 256, device: str | None = None) -> PointSchur:
     """Per point sums and the Schur complement over the inverse depths (see the module text).
 
     Pairs must be point-major: point ``p`` owns pairs ``point_start[p]:point_start[p+1]`` (``point_start [n+1]``).
@@ -444,20 +540,26 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
     nf = 8 * num_slots
     eh = np.zeros(n) if extra_h is None else _arr(extra_h, np.float64, (n,), "extra_h")
     eb = np.zeros(n) if extra_b is None else _arr(extra_b, np.float64, (n,), "extra_b")
-    nb = max(1, -(-n // points_per_block))
     f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
     hdd = wp.zeros(n, dtype=wp.float64, device=device)
     bd = wp.zeros(n, dtype=wp.float64, device=device)
     w = wp.zeros((n, nf), dtype=wp.float64, device=device)
-    part = wp.zeros((nb, nf * nf + nf), dtype=wp.float64, device=device)
+    wi = wp.zeros((n, nf), dtype=wp.float64, device=device)
+    slots = wp.zeros(n, dtype=wp.int32, device=device)
+    K = num_slots
+    chunks = max(1, -(-n // points_per_chunk))
+    hp = wp.zeros((chunks, K * K, 64), dtype=wp.float64, device=device)
+    bp = wp.zeros((chunks, K, 8), dtype=wp.float64, device=device)
     if n:
-        runtime.launch_split(schur_points_kernel, nb,
-                             [int(points_per_block), f(ps, wp.int32), f(_arr(pair_key, np.int32, (M,), "pair_key"),
-                                                                        wp.int32),
+        runtime.launch_split(schur_points_kernel, n,
+                             [f(ps, wp.int32), f(_arr(pair_key, np.int32, (M,), "pair_key"), wp.int32),
                               f(lin.state.astype(np.int32), wp.int32), f(lin.hcd, vec10d), f(lin.hdd, wp.float64),
                               f(lin.bd, wp.float64), f(keys.host.astype(np.int32), wp.int32),
                               f(keys.target.astype(np.int32), wp.int32),
                               f(keys.adj.reshape(len(keys), 36), wp.float64), f(eh, wp.float64), f(eb, wp.float64),
-                              hdd, bd, w, part], device, min_chunk=2)
-    tot = part.numpy().sum(axis=0)
-    return PointSchur(hdd.numpy(), bd.numpy(), w.numpy(), tot[: nf * nf].reshape(nf, nf), tot[nf * nf:])
+                              hdd, bd, w, wi, slots], device, min_chunk=256)
+        runtime.launch_split(schur_blocks_kernel, chunks * K * K,
+                             [int(points_per_chunk), K, slots, w, wi, bd, hp, bp], device, min_chunk=K * K,
+                             align=K * K)
+    Hb = hp.numpy().sum(axis=0).reshape(K, K, 8, 8).transpose(0, 2, 1, 3).reshape(nf, nf)
+    return PointSchur(hdd.numpy(), bd.numpy(), w.numpy(), Hb, bp.numpy().sum(axis=0).reshape(nf))

@@ -102,8 +102,7 @@ def test_linearize_and_schur_match_twin(wp_device):
     n = len(win["host"])
     point_start = np.searchsorted(win["pp"], np.arange(n + 1)).astype(np.int32)
     extra = rng.uniform(0, 5, n)
-    sc = kw.schur_points(lin, keys, win["pk"], point_start, win["nkf"], extra_h=extra, extra_b=-extra,
-                         points_per_block=7, device=wp_device)
+    sc = kw.schur_points(lin, keys, win["pk"], point_start, win["nkf"], extra_h=extra, extra_b=-extra, device=wp_device)
     lind = dict(state=lin.state, hcd=lin.hcd, hdd=lin.hdd, bd=lin.bd)
     sr = ref.schur_points(lind, keys, win["pk"], point_start, win["nkf"], extra_h=extra, extra_b=-extra)
     np.testing.assert_allclose(sc.hdd, sr["hdd"], rtol=1e-12)
