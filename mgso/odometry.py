@@ -66,7 +66,7 @@ from .window.window import MarginalizedPoints, Window
 
 __all__ = [
     "Odometry", "FrameStatus", "FrameResult", "FrameRecord", "KeyframeRecord", "TrackedFrame", "TrackingLost",
-    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "geometry_for",
+    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "make_back_end", "geometry_for",
 ]
 
 log = logging.getLogger(__name__)
@@ -214,6 +214,27 @@ class WindowBackEnd(Protocol):
         """Remove the flagged keyframes; returns their keyframe ids."""
 
 
+def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
+    """The back end ``cfg.window.backend`` names: ``bundle`` (:class:`~mgso.window.backend.WindowOptimizer`) or
+    ``fixed`` (:class:`~mgso.window.depth_refine.FixedWindowBackEnd`)."""
+    t, wc = cfg.tracking, cfg.window
+    if wc.backend == "fixed":
+        return FixedWindowBackEnd(FixedWindowSettings(
+            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=wc.max_frames,
+            min_frames=wc.min_frames, huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
+            overall_energy_th_weight=t.overall_energy_th_weight))
+    from .window.backend import WindowOptimizer
+    from .window.energy import BundleSettings
+    from .window.marginalize import MarginalizationSettings
+
+    bundle = BundleSettings(iterations=wc.iterations, affine_prior_a=wc.affine_prior_a,
+                            affine_prior_b=wc.affine_prior_b, idepth_fix_prior=wc.idepth_fix_prior,
+                            marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept, huber_th=t.huber_th,
+                            grad_c2=t.outlier_th_sum_component, overall_energy_th_weight=t.overall_energy_th_weight)
+    marg = MarginalizationSettings(min_frames=wc.min_frames, max_frames=wc.max_frames)
+    return WindowOptimizer(bundle, marg, device=device)
+
+
 def geometry_for(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
                  config: Config) -> PyramidGeometry:
     """The pyramid geometry (level count, crop, shifted intrinsics) the odometry uses for this camera."""
@@ -254,10 +275,7 @@ class Odometry:
         self.observer = observer or Observer()
         self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
                              immature_capacity=cfg.window.immature_capacity, device=device)
-        self.back_end: WindowBackEnd = back_end or FixedWindowBackEnd(FixedWindowSettings(
-            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=cfg.window.max_frames,
-            huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
-            overall_energy_th_weight=t.overall_energy_th_weight))
+        self.back_end: WindowBackEnd = back_end or make_back_end(cfg, device)
         self.tracker = CoarseTracker(geometry, t, device=device)
         self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
         self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed)
@@ -484,7 +502,7 @@ class Odometry:
         last = self._last_good
         if last is None or last.cam_to_world is None:
             return np.eye(4)
-        anchor = self.to_world(last.segment, last.cam_to_world)
+        anchor = self.to_world(last.segment, self._chained_pose(last))
         prev = self.segment_similarity(last.segment)
         s_prev = float(np.cbrt(np.linalg.det(prev[:3, :3])))
         med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
@@ -679,6 +697,15 @@ class Odometry:
             (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
+
+    def _chained_pose(self, f: FrameRecord) -> np.ndarray:
+        """A frame's pose from its keyframe's current pose (the back end may have moved it since the frame was
+        tracked)."""
+        if f.keyframe_id >= 0 and f.keyframe_id in self.keyframes:
+            return self.keyframes[f.keyframe_id].cam_to_world.copy()
+        if f.tracking_ref >= 0 and f.tracking_ref in self.keyframes and f.cam_to_tracking_ref is not None:
+            return self.keyframes[f.tracking_ref].cam_to_world @ f.cam_to_tracking_ref
+        return f.cam_to_world
 
     def _rechain_frames(self) -> None:
         for f in self.frames:

@@ -13,9 +13,10 @@ Energy (DSO's, ``r^2`` convention; the system is ``H = J^T W J``, ``b = J^T W r`
   or ``OUTLIER`` pair counting its threshold (:mod:`mgso_kernels.window`);
 - the marginalisation prior ``2 delta^T b_M + delta^T H_M delta`` (:class:`~mgso.window.marginalize.
   MarginalizationPrior`);
-- gauge priors: the first keyframe of a segment carries DSO's ``setting_initialTransPrior = 1e10``,
-  ``setting_initialRotPrior = 1e11`` and ``setting_initialAffA/BPrior = 1e14`` on its scaled parameters (pose and
-  brightness held at its linearisation point: 7 of the monocular window's gauge freedoms are fixed there), and the
+- gauge: the first keyframe of a segment is held fixed (pose and affine brightness) while it is in the window, which
+  fixes 6 of the monocular window's 7 gauge freedoms (and the global brightness); when it leaves, DSO's prior on it
+  (``setting_initialTransPrior = 1e10``, ``setting_initialRotPrior = 1e11``, ``setting_initialAffA/BPrior = 1e14``
+  on its scaled parameters) is folded into the marginalisation prior with it, so the gauge stays held; and the
   initialiser's points (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` towards their initial inverse
   depth (``idepth_zero``), which holds the scale. Both are folded into the marginalisation prior when the keyframe /
   points leave, so the gauge stays held after the first keyframe is gone. DSO also projects the gauge null space out
@@ -74,6 +75,7 @@ class BundleSettings:
     lambda_init: float = 0.1  # FullSystem::optimize
     lambda_accept: float = 0.25
     lambda_reject: float = 100.0
+    force_accept: bool = False  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
     initial_trans_prior: float = 1e10  # setting_initialTransPrior
     initial_rot_prior: float = 1e11  # setting_initialRotPrior
     initial_aff_a_prior: float = 1e14  # setting_initialAffAPrior
@@ -183,8 +185,10 @@ class WindowProblem:
             self.frame_prior[8 * slot:8 * slot + 8] = p
         self.depth_prior = np.where(a.has_depth_prior[self.points], settings.idepth_fix_prior, 0.0)
         self.idepth_prior_centre = a.idepth_zero[self.points].astype(np.float64)
-        self.live = np.concatenate([np.arange(8 * s, 8 * s + 8) for s in self.order]) if self.order else \
-            np.zeros(0, np.int64)
+        # the segment's first keyframe is held exactly (its prior is infinite while it is in the window; the finite
+        # DSO prior above is what the marginalisation folds in when it leaves)
+        free = [s for s in self.order if s not in first_slots]
+        self.live = np.concatenate([np.arange(8 * s, 8 * s + 8) for s in free]) if free else np.zeros(0, np.int64)
 
     # ------------------------------------------------------------------------------------------- state
     def delta(self) -> np.ndarray:
@@ -215,6 +219,8 @@ class WindowProblem:
         w = self.window
         delta = self.delta() + dx_c
         for s in self.order:
+            if not np.any(dx_c[8 * s:8 * s + 8]):
+                continue
             raw = delta[8 * s:8 * s + 8] * frame_scale()
             w.set_keyframe_state(s, se3_exp(raw[:6]) @ w.world_to_cam_zero_[s], w.affine_zero_[s] + raw[6:])
         d = w.active.idepth[self.points].astype(np.float64)
@@ -328,7 +334,6 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
     lam = s.lambda_init
     accepted = 0
     it = 0
-    n_pts = max(len(problem.points), 1)
     for it in range(1, s.iterations + 1):
         t0 = time.perf_counter()
         dx_c, dx_d = problem.solve(L, lam)
@@ -341,7 +346,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
         t0 = time.perf_counter()
         L_new = problem.linearize()
         tick("linearize", t0)
-        if L_new.energy < L.energy:
+        if L_new.energy < L.energy or s.force_accept:
             L = L_new
             accepted += 1
             lam *= s.lambda_accept
@@ -361,5 +366,4 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
                      and np.sqrt(sum_r) < 0.00005 * th and np.sqrt(sum_t) * sum_nid < 0.00005 * th)
         if can_break and it >= s.min_iterations:
             break
-    del n_pts
     return L, OptimizeStats(it, accepted, e0, L.energy, len(problem.pair_point), len(problem.points), times)
