@@ -16,11 +16,12 @@ Energy (DSO's, ``r^2`` convention; the system is ``H = J^T W J``, ``b = J^T W r`
 - gauge: the first keyframe of a segment is held fixed (pose and affine brightness) while it is in the window, which
   fixes 6 of the monocular window's 7 gauge freedoms (and the global brightness); when it leaves, DSO's prior on it
   (``setting_initialTransPrior = 1e10``, ``setting_initialRotPrior = 1e11``, ``setting_initialAffA/BPrior = 1e14``
-  on its scaled parameters) is folded into the marginalisation prior with it, so the gauge stays held; and the
-  initialiser's points (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` towards their initial inverse
-  depth (``idepth_zero``), which holds the scale. Both are folded into the marginalisation prior when the keyframe /
-  points leave, so the gauge stays held after the first keyframe is gone. DSO also projects the gauge null space out
-  of each step (``SOLVER_ORTHOGONALIZE_X_LATER``); mgso does not, the priors and the damping do that work. Other
+  on its scaled parameters) is folded into the marginalisation prior with it; the initialiser's points
+  (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` towards their initial inverse depth
+  (``idepth_zero``), folded into the prior too when they leave. And, as DSO (``SOLVER_ORTHOGONALIZE_X``), each step
+  is projected off the gauge directions of the frame parameters (:meth:`WindowProblem.nullspaces`: scale always,
+  the 6 pose directions once no keyframe is held), so that first-estimate inconsistencies cannot drive the window
+  along its null space. Other
   keyframes' affine parameters get ``affine_prior_a/b`` (DSO ``setting_affineOptModeA/B``; 0 = free, DSO's mode 1).
 
 Each iteration: linearise every candidate pair (Warp), accumulate the key blocks and the Schur complement over the
@@ -43,7 +44,7 @@ import scipy.linalg
 from mgso_kernels import runtime
 from mgso_kernels import window as kw
 
-from ..geometry import se3_adjoint, se3_exp, se3_inverse, se3_log
+from ..geometry import orthonormalize, se3_adjoint, se3_exp, se3_inverse, se3_log
 from .marginalize import MarginalizationPrior
 from .window import ResidualState, Window
 
@@ -76,6 +77,7 @@ class BundleSettings:
     lambda_accept: float = 0.25
     lambda_reject: float = 100.0
     force_accept: bool = False  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
+    orthogonalize: bool = True  # remove the gauge directions from each step (DSO SOLVER_ORTHOGONALIZE_X[_LATER])
     initial_trans_prior: float = 1e10  # setting_initialTransPrior
     initial_rot_prior: float = 1e11  # setting_initialRotPrior
     initial_aff_a_prior: float = 1e14  # setting_initialAffAPrior
@@ -114,6 +116,7 @@ class Linearization:
     energy_photo: float
     H: np.ndarray  # [8K, 8K] scaled reduced-system matrix (without damping)
     b: np.ndarray  # [8K] scaled reduced-system gradient
+    H_sc: np.ndarray  # [8K, 8K] scaled Schur term (in H with a minus sign; damping divides it by 1 + lambda)
 
 
 @dataclass
@@ -188,7 +191,17 @@ class WindowProblem:
         # the segment's first keyframe is held exactly (its prior is infinite while it is in the window; the finite
         # DSO prior above is what the marginalisation folds in when it leaves)
         free = [s for s in self.order if s not in first_slots]
+        self._make_rigid()
         self.live = np.concatenate([np.arange(8 * s, 8 * s + 8) for s in free]) if free else np.zeros(0, np.int64)
+
+    def _make_rigid(self) -> None:
+        """Project the keyframes' poses back onto SE(3): poses composed by the tracker drift off orthonormality
+        (1e-3 after a few dozen frames), which would make ``log(T T0^-1)`` and its re-exponentiation disagree."""
+        w = self.window
+        for s in self.order:
+            same = np.array_equal(w.world_to_cam_[s], w.world_to_cam_zero_[s])
+            w.world_to_cam_[s] = _rigid(w.world_to_cam_[s])
+            w.world_to_cam_zero_[s] = w.world_to_cam_[s] if same else _rigid(w.world_to_cam_zero_[s])
 
     # ------------------------------------------------------------------------------------------- state
     def delta(self) -> np.ndarray:
@@ -214,15 +227,15 @@ class WindowProblem:
         w.active.idepth[self.points] = d
 
     def apply_step(self, dx_c: np.ndarray, dx_d: np.ndarray) -> None:
-        """Scaled frame step (additive in the linearisation point's tangent, DSO ``setState(state + step)``) and
-        inverse-depth step."""
+        """Scaled frame step, applied as a left increment ``world_to_cam <- exp(dx) world_to_cam`` (to first order
+        DSO's ``state + step`` in the linearisation point's tangent, without a log of the pose), and inverse-depth
+        step."""
         w = self.window
-        delta = self.delta() + dx_c
         for s in self.order:
             if not np.any(dx_c[8 * s:8 * s + 8]):
                 continue
-            raw = delta[8 * s:8 * s + 8] * frame_scale()
-            w.set_keyframe_state(s, se3_exp(raw[:6]) @ w.world_to_cam_zero_[s], w.affine_zero_[s] + raw[6:])
+            raw = dx_c[8 * s:8 * s + 8] * frame_scale()
+            w.set_keyframe_state(s, _rigid(se3_exp(raw[:6]) @ w.world_to_cam_[s]), w.affine_[s] + raw[6:])
         d = w.active.idepth[self.points].astype(np.float64)
         new = d + dx_d * SCALE_IDEPTH
         w.active.idepth[self.points] = np.where(new > 1e-6 * np.maximum(d, 1e-9), new, 0.5 * d)
@@ -283,7 +296,8 @@ class WindowProblem:
         Htop, btop = self.top_system(keys, lin)
         S = self.S
         delta = self.delta()
-        H = (Htop - sc.H_sc) * np.outer(S, S) + np.diag(self.frame_prior)
+        Hsc = sc.H_sc * np.outer(S, S)
+        H = Htop * np.outer(S, S) - Hsc + np.diag(self.frame_prior)
         b = (btop - sc.b_sc) * S + self.frame_prior * delta
         e_photo = float(np.sum(lin.energy))
         d = self.window.active.idepth[self.points].astype(np.float64)
@@ -293,13 +307,49 @@ class WindowProblem:
             H = H + self.prior.H
             b = b + self.prior.gradient(delta)
             e += self.prior.energy(delta)
-        return Linearization(lin, sc, e, e_photo, H, b)
+        return Linearization(lin, sc, e, e_photo, H, b, Hsc)
+
+    def nullspaces(self) -> np.ndarray:
+        """``[8K, m]`` gauge directions of the frame parameters (scaled), at the linearisation points (DSO
+        ``lastNullspaces_pose``/``_scale``): a change of the world frame ``exp(g)`` moves keyframe ``s`` by
+        ``Ad(world_to_cam_s) g`` (6 columns, only when no keyframe is held fixed), a change of scale moves its
+        translation by ``t_s`` (1 column)."""
+        w = self.window
+        cols = []
+        if len(self.live) == 8 * len(self.order):  # nothing held: the pose gauge is free
+            for i in range(6):
+                v = np.zeros(self.nf)
+                for s in self.order:
+                    v[8 * s:8 * s + 6] = se3_adjoint(w.world_to_cam_zero_[s])[:, i]
+                cols.append(v)
+        v = np.zeros(self.nf)
+        for s in self.order:
+            v[8 * s:8 * s + 3] = w.world_to_cam_zero_[s][:3, 3]
+        cols.append(v)
+        N = np.stack(cols, axis=1) / self.S[:, None]
+        mask = np.zeros(self.nf, bool)
+        mask[self.live] = True
+        N[~mask] = 0.0
+        return N
+
+    def orthogonalize(self, x: np.ndarray) -> np.ndarray:
+        """Remove the gauge directions from a step (DSO ``orthogonalize`` with ``SOLVER_ORTHOGONALIZE_X``)."""
+        N = self.nullspaces()
+        norms = np.linalg.norm(N, axis=0)
+        N = N[:, norms > 1e-12] / norms[norms > 1e-12]
+        if not N.shape[1]:
+            return x
+        return x - N @ np.linalg.lstsq(N, x, rcond=1e-10)[0]
 
     def solve(self, L: Linearization, lam: float):
         """``(dx_c [8K] scaled, dx_d [n] scaled)`` of the damped reduced system."""
         idx = self.live
-        H = L.H[np.ix_(idx, idx)].copy()
+        # DSO solveSystemF: the diagonal of the full system times (1 + lambda), frames and points alike, i.e. the
+        # top block's diagonal scaled and the Schur term divided by (1 + lambda)
+        Hsc = L.H_sc[np.ix_(idx, idx)]
+        H = L.H[np.ix_(idx, idx)] + Hsc
         H[np.diag_indices_from(H)] *= 1.0 + lam
+        H -= Hsc / (1.0 + lam)
         H[np.diag_indices_from(H)] += 1e-12 * max(np.abs(np.diag(H)).max(), 1.0)
         b = L.b[idx]
         try:
@@ -309,11 +359,20 @@ class WindowProblem:
             x = np.linalg.lstsq(H, -b, rcond=None)[0]
         dx_c = np.zeros(self.nf)
         dx_c[idx] = x
+        if self.s.orthogonalize:
+            dx_c = self.orthogonalize(dx_c)
         # back-substitution (raw point units): H_dd dd = -(b_d + w . dx_raw)
         dx_raw = dx_c * self.S
         sc = L.schur
-        dx_d = -(sc.bd + sc.w @ dx_raw) / sc.hdd / SCALE_IDEPTH
+        dx_d = -(sc.bd + sc.w @ dx_raw) / (sc.hdd * (1.0 + lam)) / SCALE_IDEPTH
         return dx_c, dx_d
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = orthonormalize(out[:3, :3])
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dict | None = None
@@ -353,6 +412,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
         else:
             problem.restore(backup)
             lam *= s.lambda_reject
+            continue  # the break test judges steps that were taken
         # DSO doStepFromBackup's break test on the (scaled) step
         nfr = max(len(problem.order), 1)
         st = dx_c.reshape(-1, 8)[problem.order]
