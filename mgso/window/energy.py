@@ -130,6 +130,7 @@ class OptimizeStats:
     pairs: int
     points: int
     times_ms: dict  # linearize, schur, solve per call (summed)
+    history: list  # total energy at the start and after each accepted step
 
 
 class WindowProblem:
@@ -393,6 +394,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
     lam = s.lambda_init
     accepted = 0
     it = 0
+    history = [e0]
     for it in range(1, s.iterations + 1):
         t0 = time.perf_counter()
         dx_c, dx_d = problem.solve(L, lam)
@@ -408,6 +410,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
         if L_new.energy < L.energy or s.force_accept:
             L = L_new
             accepted += 1
+            history.append(L.energy)
             lam *= s.lambda_accept
         else:
             problem.restore(backup)
@@ -426,4 +429,5 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
                      and np.sqrt(sum_r) < 0.00005 * th and np.sqrt(sum_t) * sum_nid < 0.00005 * th)
         if can_break and it >= s.min_iterations:
             break
-    return L, OptimizeStats(it, accepted, e0, L.energy, len(problem.pair_point), len(problem.points), times)
+    return L, OptimizeStats(it, accepted, e0, L.energy, len(problem.pair_point), len(problem.points), times,
+                             history)
