@@ -303,7 +303,7 @@ class Odometry:
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
         self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
         self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
-        self._prev_pose: np.ndarray | None = None  # the previous tracked frame's cam_to_world (this segment)
+        self._prev_rec: FrameRecord | None = None  # the previous tracked frame (this segment)
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -464,7 +464,7 @@ class Odometry:
         pos = idepth > 0
         self._segment_median_depth = float(np.median(1.0 / idepth[pos])) if pos.any() else float("inf")
         self._segment_steps = []
-        self._prev_pose = None
+        self._prev_rec = None
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
         g = self.geometry
@@ -556,9 +556,9 @@ class Odometry:
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
         rec.cam_to_world = ref_c2w @ tr.cam_to_ref
-        if self._prev_pose is not None:
-            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose[:3, 3])))
-        self._prev_pose = rec.cam_to_world.copy()
+        if self._prev_rec is not None:
+            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose()[:3, 3])))
+        self._prev_rec = rec
         baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
         if tr.inlier_ratio >= 0.5 and (baseline <= 0 or tr.rmse0 <= cfg.kf_rmse_factor * baseline):
             self._last_good = rec  # a reliable pose: where a later segment would be chained
@@ -588,9 +588,9 @@ class Odometry:
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
         if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
             return LossReason.JUMP
-        if len(self._segment_steps) >= 5 and self._prev_pose is not None:
+        if len(self._segment_steps) >= 5 and self._prev_rec is not None:
             step = float(np.linalg.norm((self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)[:3, 3]
-                                        - self._prev_pose[:3, 3]))
+                                        - self._prev_pose()[:3, 3]))
             typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
             if step > cfg.lost_max_speed_factor * typical:
                 return LossReason.JUMP
@@ -697,6 +697,11 @@ class Odometry:
             (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
+
+    def _prev_pose(self) -> np.ndarray:
+        """The previous tracked frame's pose against its keyframe's current pose (the window may have moved it
+        since: comparing with the pose it had when it was tracked would read the correction as a jump)."""
+        return self._chained_pose(self._prev_rec)
 
     def _chained_pose(self, f: FrameRecord) -> np.ndarray:
         """A frame's pose from its keyframe's current pose (the back end may have moved it since the frame was

@@ -462,13 +462,15 @@ def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_bloc
 
 def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndarray, pair_key: np.ndarray,
                      uv: np.ndarray, idepth: np.ndarray, color: np.ndarray, weight: np.ndarray,
-                     target_images: dict, *, pairs_per_block: int = 32, device: str | None = None
-                     ) -> PairLinearization:
+                     target_images: dict, *, pairs_per_block: int = 32, device: str | None = None,
+                     cache: dict | None = None) -> PairLinearization:
     """Linearise ``M`` pairs (see the module text).
 
     ``pair_point [M]`` index into the point arrays ``uv [n, 2]`` (pixels), ``idepth [n]``, ``color/weight [n, 8]``;
     ``pair_key [M]`` index into ``keys``; ``target_images``: target slot -> ``wp.array2d(vec3) [H, W]`` level-0
     ``(I, dx, dy)`` (a keyframe pyramid's ``dI[0]``). Returns per pair and per key float64 NumPy arrays.
+    ``cache``: a dict the caller keeps while the pairs, ``uv``, ``color`` and ``weight`` stay the same (the iterations
+    of one optimisation); the block plan, those inputs and the output buffers are made once and reused.
     """
     device = device or runtime.default_device()
     nk = len(keys)
@@ -482,26 +484,36 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     idp = _arr(idepth, np.float32, (n,), "idepth")
     col = _arr(color, np.float32, (n, 8), "color")
     wgt = _arr(weight, np.float32, (n, 8), "weight")
-    pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
-    missing = set(np.unique(pair_target).tolist()) - set(target_images)
-    if missing:
-        raise ValueError(f"linearize_window: no image for target slot(s) {sorted(missing)}")
-    order, bs, be, bkey, ranges = _blocks_by_key(pk, pair_target, pairs_per_block)
-    B = len(bs)
     f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    if cache is None or "order" not in cache:
+        pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
+        missing = set(np.unique(pair_target).tolist()) - set(target_images)
+        if missing:
+            raise ValueError(f"linearize_window: no image for target slot(s) {sorted(missing)}")
+        order, bs, be, bkey, ranges = _blocks_by_key(pk, pair_target, pairs_per_block)
+        B = len(bs)
+        c = dict(order=order, bkey=bkey, ranges=ranges, B=B, w_bs=f(bs, wp.int32), w_be=f(be, wp.int32),
+                 w_order=f(order, wp.int32), w_pp=f(pp, wp.int32), w_pk=f(pk, wp.int32), uv=f(uv, wp.vec2),
+                 col=f(col, wp.float32), wgt=f(wgt, wp.float32),
+                 out_state=wp.zeros(M, dtype=wp.int32, device=device),
+                 out_energy=wp.zeros(M, dtype=wp.float64, device=device),
+                 out_hcd=wp.zeros(M, dtype=vec10d, device=device),
+                 out_hdd=wp.zeros(M, dtype=wp.float64, device=device),
+                 out_bd=wp.zeros(M, dtype=wp.float64, device=device),
+                 partials=wp.zeros((max(B, 1), NUM_KEY_SLOTS), dtype=wp.float64, device=device))
+        if cache is not None:
+            cache.update(c)
+    else:
+        c = cache
+    bkey, ranges, B = c["bkey"], c["ranges"], c["B"]
     key_args = [f(keys.R.astype(np.float32), wp.mat33), f(keys.t.astype(np.float32), wp.vec3),
                 f(keys.R0.astype(np.float32), wp.mat33), f(keys.t0.astype(np.float32), wp.vec3),
                 f(keys.aff.astype(np.float32), wp.vec3), f(keys.energy_th.astype(np.float32), wp.float32)]
-    pts = [f(uv, wp.vec2), f(idp, wp.float32), f(col, wp.float32), f(wgt, wp.float32)]
-    out_state = wp.zeros(M, dtype=wp.int32, device=device)
-    out_energy = wp.zeros(M, dtype=wp.float64, device=device)
-    out_hcd = wp.zeros(M, dtype=vec10d, device=device)
-    out_hdd = wp.zeros(M, dtype=wp.float64, device=device)
-    out_bd = wp.zeros(M, dtype=wp.float64, device=device)
-    partials = wp.zeros((max(B, 1), NUM_KEY_SLOTS), dtype=wp.float64, device=device)
+    pts = [c["uv"], f(idp, wp.float32), c["col"], c["wgt"]]
+    out_state, out_energy, out_hcd, out_hdd, out_bd, partials = (
+        c["out_state"], c["out_energy"], c["out_hcd"], c["out_hdd"], c["out_bd"], c["partials"])
     if B:
-        w_bs, w_be, w_order = f(bs, wp.int32), f(be, wp.int32), f(order, wp.int32)
-        w_pp, w_pk = f(pp, wp.int32), f(pk, wp.int32)
+        w_bs, w_be, w_order, w_pp, w_pk = c["w_bs"], c["w_be"], c["w_order"], c["w_pp"], c["w_pk"]
         for tg, (b0, b1) in sorted(ranges.items()):
             img = target_images[tg]
             if not isinstance(img, wp.array) or img.dtype != wp.vec3 or img.ndim != 2:
@@ -516,8 +528,9 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     kH = np.zeros((nk, NUM_KEY_SLOTS))
     if B:
         np.add.at(kH, bkey, part)
-    return PairLinearization(out_state.numpy(), out_energy.numpy(), out_hcd.numpy().reshape(M, 10),
-                             out_hdd.numpy(), out_bd.numpy(), kH[:, :100].reshape(nk, 10, 10), kH[:, 100:110])
+    return PairLinearization(out_state.numpy().copy(), out_energy.numpy().copy(),
+                             out_hcd.numpy().reshape(M, 10).copy(), out_hdd.numpy().copy(), out_bd.numpy().copy(),
+                             kH[:, :100].reshape(nk, 10, 10), kH[:, 100:110])
 
 
 def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray, point_start: np.ndarray,

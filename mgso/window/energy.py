@@ -173,6 +173,7 @@ class WindowProblem:
         self.params = kw.make_window_params(g.fx, g.fy, g.cx, g.cy, window.width, window.height,
                                             huber_th=settings.huber_th, grad_c2=settings.grad_c2)
         self.images = {int(t): window.pyramids[int(t)].dI[0] for t in np.unique(self.pair_target)}
+        self._cache: dict = {}  # linearize_window's plan and buffers (the pairs are fixed for the problem)
         self.S = np.tile(frame_scale(), self.K)
         # gauge / affine priors on the scaled frame parameters
         self.frame_prior = np.zeros(self.nf)
@@ -264,7 +265,7 @@ class WindowProblem:
         p = self.points
         return kw.linearize_window(self.params, keys, self.pair_point, self.pair_key, a.uv[p], a.idepth[p],
                                    a.color[p], a.weight[p], self.images, pairs_per_block=self.s.pairs_per_block,
-                                   device=self.device)
+                                   device=self.device, cache=self._cache)
 
     def top_system(self, keys: kw.WindowKeys, lin: kw.PairLinearization):
         """``(H_cc [8K, 8K], b_c [8K])`` raw units: the key blocks mapped to absolute frame parameters."""
