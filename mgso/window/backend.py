@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mgso_kernels import window as kw
+
 from .energy import BundleSettings, WindowProblem, new_frame_energy_threshold, optimize_window
 from .marginalize import (MarginalizationPrior, MarginalizationSettings, flag_frames_for_marginalization,
                           flag_points_for_removal)
@@ -103,12 +105,14 @@ class WindowOptimizer:
         # DSO setNewFrameEnergyTH: from the new keyframe's residuals before any is judged
         t0 = time.perf_counter()
         keys = problem.keys()
-        into_newest = keys.target == newest
-        keys.energy_th[into_newest] = np.inf
-        lin0 = problem.linearize_pairs(keys)
+        keys.energy_th[keys.target == newest] = np.inf
+        into = np.flatnonzero(keys.target[problem.pair_key] == newest)  # only the residuals into the new keyframe
+        pts = problem.points
+        lin0 = kw.linearize_window(problem.params, keys, problem.pair_point[into], problem.pair_key[into],
+                                   a.uv[pts], a.idepth[pts], a.color[pts], a.weight[pts], problem.images,
+                                   device=problem.device)
         times["threshold"] = (time.perf_counter() - t0) * 1000
-        sel = (keys.target[problem.pair_key] == newest) & (lin0.state == ResidualState.IN)
-        window.energy_th_[newest] = new_frame_energy_threshold(lin0.energy[sel], s)
+        window.energy_th_[newest] = new_frame_energy_threshold(lin0.energy[lin0.state == ResidualState.IN], s)
         L, stats = optimize_window(problem, s, times)
         # write the residual states back
         lin = L.pairs
@@ -150,8 +154,6 @@ class WindowOptimizer:
         keys = problem.keys()
         lin = problem.linearize_pairs(keys)
         eh, eb = problem.point_extras()
-        from mgso_kernels import window as kw
-
         sc = kw.schur_points(lin, keys, problem.pair_key, problem.point_start, problem.K, eh, eb, device=problem.device)
         Htop, btop = problem.top_system(keys, lin)
         S = problem.S
