@@ -37,6 +37,8 @@ def _load_cfg(args) -> Config:
     overrides = list(getattr(args, "set", None) or [])
     if getattr(args, "device", None):
         overrides.append(f"runtime.device={args.device}")
+    if getattr(args, "realtime", False):
+        overrides.append("system.mode=realtime")
     return load_config(getattr(args, "config", None), overrides)
 
 
@@ -162,16 +164,23 @@ def cmd_run(args) -> int:
     return EXIT_OK if summary.ok else EXIT_FAILED
 
 
+#: The demo's mapping budget (a few minutes on a 2-core CPU; docs/mgso.md): fewer steps a keyframe than a recorded
+#: run's default and densification from step 200, so that the small map gets its detail within the budget. Any
+#: ``--set`` of the user comes after these and wins.
+DEMO_OVERRIDES = ("mapping.mapper.iterations_per_keyframe=30", "mapping.mapper.final_iterations=300",
+                  "mapping.densify.refine_start_step=200")
+
+
 def cmd_demo(args) -> int:
     from .synthetic import cached_sequence_folder
 
-    cfg = _load_cfg(args)
+    args.set = list(DEMO_OVERRIDES) + list(args.set or [])
+    _load_cfg(args)                     # a bad --set fails before the scene is made
     _print(args, "making the built-in synthetic scene (cached after the first run) ...")
     folder = cached_sequence_folder(**_demo_scene_params(args))
     args.path, args.calib, args.groundtruth = str(folder), None, None
     if args.out is None:
         args.out = str(Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
-    del cfg
     return cmd_run(args)
 
 
@@ -250,16 +259,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groundtruth", help="ground-truth trajectory file (TUM or KITTI) of camera poses")
     p.add_argument("--stage", choices=STAGES, default=None,
                    help=f"how far to go (default {DEFAULT_STAGE}): " + "; ".join(STAGE_HELP[s] for s in STAGES))
+    p.add_argument("--realtime", action="store_true",
+                   help="play the sequence at its frame rate as a live camera would, the map trained in its own "
+                        "thread; frames that arrive while the odometry is busy are dropped (system.mode=realtime; "
+                        "default: deterministic)")
     _common(p)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("demo", help="run on the built-in synthetic scene (made once into a cache folder)")
     p.add_argument("--out", help="output folder (default runs/demo-<time>)")
     p.add_argument("--frames", type=int, default=120, help="frames of the synthetic sequence")
-    p.add_argument("--width", type=int, default=320, help="image width")
-    p.add_argument("--height", type=int, default=240, help="image height")
+    p.add_argument("--width", type=int, default=160, help="image width (160x120: a few minutes on a 2-core CPU)")
+    p.add_argument("--height", type=int, default=120, help="image height")
     p.add_argument("--seed", type=int, default=0, help="scene seed")
     p.add_argument("--stage", choices=STAGES, default=None, help="as for run")
+    p.add_argument("--realtime", action="store_true", help="as for run")
     _common(p)
     p.set_defaults(func=cmd_demo)
 

@@ -23,7 +23,7 @@ import yaml
 
 __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
-    "DensifyConfig", "TrainConfig", "SeedingConfig", "OutputConfig",
+    "DensifyConfig", "TrainConfig", "SeedingConfig", "MapperConfig", "OutputConfig", "SystemConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles",
 ]
@@ -47,6 +47,9 @@ def opt(default: Any, reason: str) -> Any:
 class RuntimeConfig:
     device: str = opt("auto", "Warp device: cpu, cuda, cuda:N, or auto (CUDA when present, else CPU)")
     threads: int = opt(0, "CPU threads for split kernel launches; 0 = all available cores")
+    odometry_device: str = opt("", "Warp device of the odometry's kernels when it should differ from `device` (e.g. "
+                                   "cpu odometry beside a cuda map: the two threads then share no CUDA stream); "
+                                   "empty = `device`")
     seed: int = opt(0, "seed of every random choice (pixel selection directions, random init), for repeatable runs")
 
 
@@ -463,6 +466,46 @@ class SeedingConfig:
 
 
 @dataclass(frozen=True)
+class MapperConfig:
+    """MGSO's mapping thread: how keyframe messages become training views and how much it trains (docs/mgso.md)."""
+
+    iterations_per_keyframe: int = opt(40, "deterministic mode: training steps after each keyframe message (real "
+                                           "time trains as much as it can instead); a CPU-sized budget")
+    final_iterations: int = opt(300, "final refinement after the last frame: steps over all keyframes (least used "
+                                     "first); 0 = none")
+    queue_size: int = opt(1024, "bounded message queue (odometry -> mapper): a few hundred keyframes of a typical run "
+                                "with their pose updates fit, so the odometry waits only when the mapper is hopelessly "
+                                "behind (each wait is counted and reported)")
+    newest_probability: float = opt(0.2, "chance that a step trains on the newest keyframe (where the map is worst); "
+                                         "otherwise one of the least used keyframes (LeastUsedSampler)")
+    init: Literal["dso", "random"] = opt(
+        "dso", "dso: seed Gaussians from DSO's points (MGSO); random: as many random points in the keyframe's "
+               "frustum as DSO seeding would add there, depth uniform over its points' depth range (the comparison "
+               "MGSO's claim is measured against)")
+    seed_marginalized: bool = opt(True, "also seed from marginalised points (final depths) where the map is still "
+                                        "empty, seen from their host keyframe (MGSO)")
+    min_train_views: int = opt(1, "no training before this many keyframes reached the map")
+    opacity_reset: bool = opt(False, "keep mapping.densify's periodic opacity reset (3DGS); off: a reset makes the "
+                                     "whole map nearly transparent, so the next keyframes' visibility test would "
+                                     "seed everywhere again (SplaTAM and MGSO's seeding rule add by coverage)")
+
+    def __post_init__(self):
+        problems = []
+        if self.iterations_per_keyframe < 0 or self.final_iterations < 0:
+            problems.append("iterations_per_keyframe and final_iterations must be >= 0")
+        if self.queue_size < 1:
+            problems.append(f"queue_size must be >= 1, got {self.queue_size}")
+        if not 0.0 <= self.newest_probability <= 1.0:
+            problems.append(f"newest_probability must be in [0, 1], got {self.newest_probability}")
+        if self.init not in ("dso", "random"):
+            problems.append(f"init must be 'dso' or 'random', got {self.init!r}")
+        if self.min_train_views < 1:
+            problems.append(f"min_train_views must be >= 1, got {self.min_train_views}")
+        if problems:
+            raise ConfigError("mapping.mapper: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
@@ -478,6 +521,8 @@ class MappingConfig:
                                metadata={"reason": "training on posed views (the step, fit, initial points)"})
     seeding: SeedingConfig = field(default_factory=SeedingConfig,
                                    metadata={"reason": "MGSO's seeding of Gaussians from DSO's points"})
+    mapper: MapperConfig = field(default_factory=MapperConfig,
+                                 metadata={"reason": "MGSO's mapping thread: messages, training budget, queue"})
 
 
 @dataclass(frozen=True)
@@ -488,6 +533,34 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class SystemConfig:
+    """The whole system (mgso.system): odometry + mapper, modes, evaluation of `mgso run` (docs/mgso.md)."""
+
+    mode: Literal["deterministic", "realtime"] = opt(
+        "deterministic", "deterministic: frames in order, a fixed number of mapping steps per keyframe, the same "
+                         "result on every CPU run (tests, evaluation); realtime: the mapper trains in its own thread "
+                         "while the odometry runs, a recorded sequence plays at its frame rate and frames that arrive "
+                         "while the odometry is busy are dropped (as a live camera's)")
+    playback_speed: float = opt(1.0, "realtime mode: a recorded sequence plays at this multiple of its frame rate "
+                                     "(0 = as fast as the odometry takes frames, nothing dropped)")
+    eval_monogs: bool = opt(True, "PSNR / SSIM at the tracked poses on every 5th frame, keyframes excluded (MonoGS "
+                                  "protocol), when the run ends")
+    eval_photo_slam: bool = opt(True, "PSNR / SSIM at the tracked poses on every tracked frame (Photo-SLAM protocol); "
+                                      "one render per frame")
+    eval_exposure: bool = opt(True, "evaluation renders get the frame's exposure from the odometry (DSO's affine "
+                                    "(a, b) and exposure time), as keyframes do in training; false = the map's "
+                                    "radiance as is")
+    renders_side_by_side: bool = opt(True, "renders/NNNNNN.png holds input | render side by side; false = two files "
+                                           "(renders/ and gt/) as 3DGS writes them")
+
+    def __post_init__(self):
+        if self.mode not in ("deterministic", "realtime"):
+            raise ConfigError(f"system.mode must be 'deterministic' or 'realtime', got {self.mode!r}")
+        if not self.playback_speed >= 0:
+            raise ConfigError(f"system.playback_speed must be >= 0, got {self.playback_speed}")
+
+
+@dataclass(frozen=True)
 class Config:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     input: InputConfig = field(default_factory=InputConfig)
@@ -495,6 +568,7 @@ class Config:
     window: WindowConfig = field(default_factory=WindowConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    system: SystemConfig = field(default_factory=SystemConfig)
 
 
 # ---------------------------------------------------------------------------------------------- conversion

@@ -140,6 +140,13 @@ def make_pose(R, t) -> np.ndarray:
     return T
 
 
+def se3_renormalize(T) -> np.ndarray:
+    """The pose with its rotation made orthonormal again (SVD). Chains of pose products (constant-motion guesses
+    compose the last two poses every frame) double their round-off each frame: renormalise what is kept."""
+    T = _as64(T)
+    return make_pose(orthonormalize(T[..., :3, :3]), T[..., :3, 3])
+
+
 def se3_exp(xi) -> np.ndarray:
     """``xi = (v, w)`` (..., 6) -> 4x4 pose (..., 4, 4)."""
     xi = _as64(xi)

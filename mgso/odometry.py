@@ -48,10 +48,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinhole
+from mgso_kernels import runtime
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 
 from .config import Config
-from .geometry import se3_exp, se3_inverse, se3_log
+from .geometry import se3_exp, se3_inverse, se3_log, se3_renormalize
 from .io.trajectory import Trajectory
 from .observers import Observer
 from .tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
@@ -265,18 +266,18 @@ class _PyramidPool:
 class Odometry:
     """DSO-style odometry over a sequence (see the module text). ``geometry`` from :func:`geometry_for`."""
 
-    def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str = "cpu",
+    def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str | None = None,
                  observer: Observer | None = None, back_end: WindowBackEnd | None = None):
         self.config = config or Config()
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
-        self.device = device
+        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
         self.observer = observer or Observer()
         self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
-                             immature_capacity=cfg.window.immature_capacity, device=device)
-        self.back_end: WindowBackEnd = back_end or make_back_end(cfg, device)
-        self.tracker = CoarseTracker(geometry, t, device=device)
+                             immature_capacity=cfg.window.immature_capacity, device=self.device)
+        self.back_end: WindowBackEnd = back_end or make_back_end(cfg, self.device)
+        self.tracker = CoarseTracker(geometry, t, device=self.device)
         self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
         self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed)
         self.selector = PixelSelector(geometry.width, geometry.height, min_grad_hist_cut=t.min_grad_hist_cut,
@@ -286,7 +287,7 @@ class Odometry:
                                       initial_potential=t.selector_initial_potential, seed=cfg.runtime.seed)
         self.activator = PointActivator(t)
         self.trace_params = trace_params_from_config(geometry.width, geometry.height, t, seed=cfg.runtime.seed)
-        self._pool = _PyramidPool(geometry, device)
+        self._pool = _PyramidPool(geometry, self.device)
         self._rng = np.random.default_rng(cfg.runtime.seed)
         self.frames: list[FrameRecord] = []
         self.keyframes: dict[int, KeyframeRecord] = {}
@@ -552,10 +553,10 @@ class Odometry:
         if reason is not None:
             return self._lose(rec, pyr, exposure, rgb, tr, reason)
         rec.status = FrameStatus.TRACKED
-        rec.cam_to_tracking_ref = tr.cam_to_ref
+        rec.cam_to_tracking_ref = se3_renormalize(tr.cam_to_ref)
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
-        rec.cam_to_world = ref_c2w @ tr.cam_to_ref
+        rec.cam_to_world = se3_renormalize(ref_c2w @ rec.cam_to_tracking_ref)
         if self._prev_rec is not None:
             self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose()[:3, 3])))
         self._prev_rec = rec

@@ -123,13 +123,14 @@ def trace_points_kernel(offset: int,
     last = status[i]
     nan = wp.nan
     energy_out[i] = nan
-    if last == ST_OOB:
+    f = host_index[i]
+    if last == ST_OOB or f < 0 or f >= KRKi.shape[0]:  # a bad host index (checked on the CPU) ends the point too
+        status[i] = ST_OOB
         trace_uv[i] = wp.vec2(-1.0, -1.0)
         pixel_interval[i] = 0.0
         return
     w = dI_t.shape[1]
     h = dI_t.shape[0]
-    f = host_index[i]
     M = KRKi[f]
     kt = Kt[f]
     aff = affine[f]
@@ -422,6 +423,7 @@ def trace_points(dI_t: wp.array, host_uv: wp.array, host_index: wp.array, color:
     if n and nf <= 0:
         raise ValueError("no host frames given (KRKi is empty)")
     if n and wp.get_device(device).is_cpu:  # a free view on the CPU: check the indices the kernel will follow
+        # (on a GPU the copy back would cost a synchronisation: the kernel ends such points as OOB instead)
         hi = host_index.numpy()
         if hi.min() < 0 or hi.max() >= nf:
             raise ValueError(f"host_index must lie in [0, {nf}), got [{hi.min()}, {hi.max()}]")

@@ -5,7 +5,7 @@ optional mask, per-view exposure)::
 
     render (Rasterizer.forward)
       -> L1 + D-SSIM of exp(a) * render + b against the image (L1SSIMLoss; a, b = the view's exposure)
-      -> backward (Rasterizer.backward) -> gradients copied into the map's gradient buffers
+      -> backward (Rasterizer.backward), writing the gradients into the map's gradient buffers
       -> densification statistics (GaussianMap.accumulate_stats, 3DGS's NDC units), when the strategy wants them
       -> Adam on every Gaussian (GaussianMap.optimizer_step); Adam on the view's exposure (learn_exposure) and pose
          (refine_poses), each with its own per-view moments
@@ -120,6 +120,9 @@ class TrainStep:
         self.strategy = strategy if strategy is not None else DefaultStrategy(cfg.densify)
         # ONLY changed by __call__ (through the strategy's hooks).
         self.strategy_state: StrategyState = self.strategy.initialize_state(seed)
+        # AbsGS statistics only when the strategy reads them (DefaultStrategy's grad_mode "absgrad" / "absgs"; a
+        # strategy without that setting gets them)
+        self._wants_absgrad = getattr(getattr(self.strategy, "cfg", None), "grad_mode", "absgrad") != "grad"
         self.timing = bool(timing)
         self._sync = timing and not wp.get_device(self.device).is_cpu
         self._losses: dict[tuple[int, int], L1SSIMLoss] = {}
@@ -181,13 +184,11 @@ class TrainStep:
         psnr = _psnr(out.rgb.numpy(), image_np, exposure, mask_np) if with_psnr else None
         t = self._clock(t, times, "loss")
 
-        g = self.rasterizer.backward(out, res.v_rendered_hw3)
-        fg = gmap.float_grads()
-        for dst, src in ((fg.means, g.v_means), (fg.log_scales, g.v_log_scales), (fg.quats, g.v_quats),
-                         (fg.opacity_logits, g.v_opacity_logits), (fg.sh, g.v_sh)):
-            wp.copy(dst, src)
+        g = self.rasterizer.backward(out, res.v_rendered_hw3, into=gmap.float_grads(),   # into the map's buffers
+                                     absgrad=want_stats and self._wants_absgrad)
         if want_stats:
-            gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H, g.absgrad.view(wp.vec2))
+            gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H,
+                                  g.absgrad.view(wp.vec2) if self._wants_absgrad else None)
         radii = g.radii.numpy()
         num_visible = int(np.count_nonzero(radii))
         v_pose = g.v_pose.numpy().astype(np.float64) if tc.refine_poses else None

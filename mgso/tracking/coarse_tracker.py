@@ -30,6 +30,7 @@ import numpy as np
 import warp as wp
 
 from mgso_kernels.image import ImagePyramid, PyramidGeometry
+from mgso_kernels import runtime
 from mgso_kernels.photometric import PATTERN_NP, make_frame_pair, make_intrinsics, affine_from_to
 from mgso_kernels.track import TrackWorkspace, TrackingSystem, track_system
 
@@ -285,12 +286,12 @@ class CoarseTracker:
     """Tracks frames against a :class:`TrackingReference` (DSO ``CoarseTracker``). Owns its workspaces and the
     last frame's RMSE (DSO ``lastCoarseRMSE``); the reference is swapped in whole by :meth:`set_reference`."""
 
-    def __init__(self, geometry: PyramidGeometry, config: TrackingConfig | None = None, device: str = "cpu"):
+    def __init__(self, geometry: PyramidGeometry, config: TrackingConfig | None = None, device: str | None = None):
         if geometry.camera is None:
             raise ValueError("CoarseTracker needs a PyramidGeometry with intrinsics")
         self.geometry = geometry
         self.config = config or TrackingConfig()
-        self.device = device
+        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
         p = 8 if self.config.coarse_pattern else 1
         self.workspaces = []
         self.cams = []

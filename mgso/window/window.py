@@ -60,7 +60,9 @@ import numpy as np
 import warp as wp
 
 from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry
+from mgso_kernels import runtime
 from mgso_kernels.photometric import PATTERN_NP, affine_from_to
+from ..geometry import se3_renormalize
 
 __all__ = [
     "Window", "WindowFullError", "PointBuffer", "Field", "ImmaturePoints", "ActivePoints", "PointCloud",
@@ -125,12 +127,12 @@ class PointBuffer:
 
     kind = "points"
 
-    def __init__(self, capacity: int, *, columns: int = 0, device: str = "cpu"):
+    def __init__(self, capacity: int, *, columns: int = 0, device: str | None = None):
         if capacity < 1:
             raise ValueError(f"{type(self).__name__}: capacity must be >= 1, got {capacity}")
         self.capacity = int(capacity)
         self.columns = int(columns)
-        self.device = device
+        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
         self.n = 0
         self._wp_full: dict[str, wp.array] = {}
         for f in self.fields():
@@ -356,13 +358,13 @@ class Window:
     """
 
     def __init__(self, geometry: PyramidGeometry, *, max_frames: int = 7, point_capacity: int = 8000,
-                 immature_capacity: int = 16000, device: str = "cpu", keep_rgb: bool = True):
+                 immature_capacity: int = 16000, device: str | None = None, keep_rgb: bool = True):
         if geometry.camera is None:
             raise ValueError("Window needs a PyramidGeometry with intrinsics (plan_pyramid(..., camera=...))")
         if not 2 <= max_frames <= 16:
             raise ValueError(f"max_frames must be in [2, 16], got {max_frames}")
         self.geometry = geometry
-        self.device = device
+        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
         self.max_frames = int(max_frames)
         self.capacity = self.max_frames + 1
         K = self.capacity
@@ -476,6 +478,7 @@ class Window:
         self.timestamp_[s] = float(timestamp)
         self.exposure_[s] = float(exposure or 0.0)
         self.segment_[s] = int(segment)
+        T = se3_renormalize(T)
         self.world_to_cam_[s] = T
         self.world_to_cam_zero_[s] = T
         self.affine_[s] = affine
@@ -535,7 +538,7 @@ class Window:
             T = np.asarray(world_to_cam, dtype=np.float64)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 raise ValueError("set_keyframe_state: world_to_cam must be a finite 4x4 matrix")
-            self.world_to_cam_[slot] = T
+            self.world_to_cam_[slot] = se3_renormalize(T)
         if affine is not None:
             self.affine_[slot] = affine
 

@@ -55,8 +55,8 @@ from . import sh as _sh
 from ._checks import as_float_array
 from .camera import TILE_SIZE, Camera, camera_centre, make_camera
 
-__all__ = ["Rasterizer", "RenderOutput", "AlphaOutput", "Gradients", "DensifyStats", "Camera", "make_camera",
-           "camera_centre", "TILE_SIZE"]
+__all__ = ["Rasterizer", "RenderOutput", "AlphaOutput", "Gradients", "Camera", "make_camera", "camera_centre",
+           "TILE_SIZE"]
 
 _GROWTH = 1.5
 
@@ -128,32 +128,6 @@ class Gradients:
     radii: wp.array
 
 
-@dataclass
-class DensifyStats:
-    """Per-Gaussian densification statistics accumulated over views by :meth:`Rasterizer.backward`.
-
-    ``grad2d_sum`` / ``absgrad2d_sum`` (N,) float32: sums over views of the norm of the 2D-mean gradient (AbsGS:
-    of the per-pixel absolute gradient), each scaled by ``(W/2, H/2)`` into 3DGS's NDC units (3DGS's densify
-    threshold 0.0002 applies to ``grad2d_sum / count``); ``count`` (N,) int32 views in which the Gaussian was
-    visible; ``max_radii`` (N,) float32 largest screen radius seen (pixels). The owner of the Gaussians (the map)
-    reorders / resets these when it densifies or prunes.
-    """
-
-    grad2d_sum: wp.array
-    absgrad2d_sum: wp.array
-    count: wp.array
-    max_radii: wp.array
-
-    @classmethod
-    def zeros(cls, n: int, device: str) -> "DensifyStats":
-        return cls(wp.zeros(n, dtype=wp.float32, device=device), wp.zeros(n, dtype=wp.float32, device=device),
-                   wp.zeros(n, dtype=wp.int32, device=device), wp.zeros(n, dtype=wp.float32, device=device))
-
-    def reset(self) -> None:
-        for a in (self.grad2d_sum, self.absgrad2d_sum, self.count, self.max_radii):
-            a.zero_()
-
-
 class _Buffer:
     """One capacity-bounded buffer: ``full`` holds ``capacity`` rows; ``view(n)`` is the live part."""
 
@@ -182,8 +156,9 @@ class Rasterizer:
     ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
     dilation of the 2D covariance (px^2, 3DGS's 0.3). ``antialiased``: also multiply each opacity by
     ``sqrt(det(J Sigma J^T) / det(J Sigma J^T + eps2d I))`` (Mip-Splatting's compensation, gsplat's ``antialiased`` mode);
-    off by default, as in the original 3DGS. ``pixels_per_thread``: pixels of a tile row a blending thread shades
-    (1, 2, 4, 8 or 16; default 16 on the CPU, where it shares the span work, and 1 on CUDA). ``threads``: CPU
+    off by default, as in the original 3DGS. ``pixels_per_thread``: pixels a blending thread shades: 256 = a whole
+    16x16 tile with the 16 pixels of a row in SIMD lanes (:mod:`~mgso_kernels.splat.raster_tile`, the CPU default),
+    or 1, 2, 4, 8, 16 pixels of a tile row (:mod:`~mgso_kernels.splat.raster`; 1 is the CUDA default). ``threads``: CPU
     threads for split launches (``None``: the runtime's setting); ``min_chunk``: fewest threads a CPU chunk gets (a
     launch smaller than two chunks stays on one core). ``profile=True`` synchronises after each stage
     and records seconds per stage in :attr:`timings` (for ``profiles/splat_raster.py``; slows the pipeline a little).
@@ -198,7 +173,7 @@ class Rasterizer:
         self.threads = threads
         self._split = {"threads": threads, "min_chunk": int(min_chunk)}
         if pixels_per_thread is None:
-            pixels_per_thread = TILE_SIZE if wp.get_device(self.device).is_cpu else 1
+            pixels_per_thread = TILE_SIZE * TILE_SIZE if wp.get_device(self.device).is_cpu else 1
         if pixels_per_thread not in _raster.SEGMENT_WIDTHS:
             raise ValueError(f"pixels_per_thread must be one of {_raster.SEGMENT_WIDTHS}, got {pixels_per_thread}")
         self.pixels_per_thread = int(pixels_per_thread)
@@ -282,6 +257,18 @@ class Rasterizer:
                 raise ValueError(f"sh: expected (N, K, 3) with K = (degree + 1)^2 in (1, 4, 9, 16), got K = "
                                  f"{sh.shape[1]}")
         return means, log_scales, quats, opacity_logits, sh
+
+    def _into_arrays(self, into, n: int, k: int):
+        from ._checks import check_array
+
+        out = []
+        for name, shape in (("means", (n, 3)), ("log_scales", (n, 3)), ("quats", (n, 4)), ("opacity_logits", (n,)),
+                            ("sh", (n, k, 3))):
+            a = getattr(into, name, None)
+            if a is None:
+                raise TypeError(f"backward(into=...): {type(into).__name__} has no array '{name}'")
+            out.append(check_array(a, f"into.{name}", wp.float32, shape, self.device))
+        return out
 
     def _check_camera(self, camera) -> None:
         if not isinstance(camera, Camera.cls):
@@ -402,14 +389,20 @@ class Rasterizer:
         return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
 
     # -------------------------------------------------------------------------------------------- backward
-    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *,
-                 stats: DensifyStats | None = None, stats_ndc: bool = True) -> Gradients:
+    def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *, into=None,
+                 absgrad: bool = True) -> Gradients:
         """Gradients of ``sum(v_rgb * rgb) + sum(v_depth * depth) + sum(v_alpha * alpha)`` (see :class:`Gradients`).
 
         ``v_rgb`` (H, W, 3), ``v_depth`` (H, W) or None, ``v_alpha`` (H, W) or None: float32, NumPy or Warp.
-        ``out`` must be the latest :meth:`forward` result of this rasteriser. ``stats``: if given, this view's
-        2D-mean gradient norms, visibility count and max radii are accumulated into it (``stats_ndc``: scale pixel
-        gradients by (W/2, H/2) into 3DGS's NDC units first).
+        ``out`` must be the latest :meth:`forward` result of this rasteriser. ``into``: optional object with float32
+        Warp arrays ``means`` (N, 3), ``log_scales`` (N, 3), ``quats`` (N, 4), ``opacity_logits`` (N,) and ``sh``
+        (N, K, 3) on this device (e.g. ``GaussianMap.float_grads()``): the parameter gradients are written there
+        (overwritten) instead of into the rasteriser's buffers, which saves the copy; the returned
+        :class:`Gradients` then holds those arrays. ``absgrad=False``: skip the AbsGS sums where that saves time
+        (the CPU tile kernels: 5-10% of the blend); ``Gradients.absgrad`` is then zero on every path. Densification statistics
+        are the owner's:
+        ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed :func:`mgso_kernels.adam.accumulate_stats`
+        (``GaussianMap.accumulate_stats``).
         """
         if out.generation != self._generation or out.T_final is None:
             raise RuntimeError("backward: this RenderOutput is stale: the rasteriser ran forward/render_alpha since "
@@ -442,33 +435,29 @@ class Rasterizer:
         _raster_bwd.launch_rasterize_backward(cam, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full,
                                               self.slots_.full, out.background, out.T_final, out.n_contrib, v_rgb,
                                               v_depth, v_alpha, self.pair_grads_.full, m, dev, **sp,
-                                              seg=self.pixels_per_thread)
+                                              seg=self.pixels_per_thread, absgrad=absgrad)
         t = self._stage("backward_blend", t)
         v_means2d, v_conics = self.v_means2d_.view(n), self.v_conics_.view(n)
         v_opac, v_colors, v_depths = self.v_opacities_.view(n), self.v_colors_.view(n), self.v_depths_.view(n)
-        absgrad = self.absgrad_.view(n)
+        want_absgrad, absgrad = absgrad, self.absgrad_.view(n)
         _raster_bwd.launch_gather_gaussian_grads(self.pair_offsets_.view(n), self.tiles_touched_.view(n),
                                                  self.pair_grads_.full, v_means2d, v_conics, v_opac, v_colors,
                                                  v_depths, absgrad, dev, **sp)
+        if not want_absgrad and self.pixels_per_thread != TILE_SIZE * TILE_SIZE:
+            absgrad.zero_()  # the row kernels sum it anyway: same contract on every path
         t = self._stage("backward_gather", t)
         radii = self.radii_.view(n)
         v_means, v_log_scales = self.v_means_.view(n), self.v_log_scales_.view(n)
         v_quats, v_logits = self.v_quats_.view(n), self.v_opacity_logits_.view(n)
         v_pose_partial, v_sh = self.v_pose_partial_.view(n), self.v_sh_.view(n)
+        if into is not None:
+            v_means, v_log_scales, v_quats, v_logits, v_sh = self._into_arrays(into, n, sh.shape[1])
         _project.launch_project_backward(means, log_scales, quats, opacity_logits, cam, self.eps2d,
                                          self.antialiased, radii, v_means2d, v_conics, v_depths, v_opac, v_means,
                                          v_log_scales, v_quats, v_logits, v_pose_partial, dev, **sp)
         _sh.launch_evaluate_sh_backward(sh, means, out.num_bases, cam, radii, v_colors, v_sh, v_means,
                                         v_pose_partial, dev, **sp)
         _project.launch_reduce_pose(v_pose_partial, self.pose_blocks_.full, self.v_pose, dev, **sp)
-        if stats is not None:
-            scale = (0.5 * W, 0.5 * H) if stats_ndc else (1.0, 1.0)
-            for name in ("grad2d_sum", "absgrad2d_sum", "count", "max_radii"):
-                a = getattr(stats, name)
-                if a.shape[0] != n or str(a.device) != str(wp.get_device(dev)):
-                    raise ValueError(f"stats.{name}: expected ({n},) on {dev}, got {a.shape} on {a.device}")
-            _raster_bwd.launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, stats.grad2d_sum,
-                                                        stats.absgrad2d_sum, stats.count, stats.max_radii, dev, **sp)
         self._stage("backward_project", t)
         return Gradients(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                          v_sh=v_sh, v_pose=self.v_pose, v_means2d=v_means2d.view(wp.float32),

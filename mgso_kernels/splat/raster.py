@@ -1,4 +1,7 @@
-"""Tile-sorted alpha blending, forward (Warp module).
+"""Tile-sorted alpha blending, forward (Warp module): the kernels with 1-16 pixels of a tile row per thread.
+
+(The CPU default is :mod:`mgso_kernels.splat.raster_tile`, a thread per tile with the row's pixels in SIMD lanes;
+these kernels are the CUDA path, ``pixels_per_thread=1``, and are selectable on the CPU.)
 
 **Work split.** One thread per *tile row*: thread ``i`` shades the 16 pixels of row ``i % 16`` of the tile in slot
 ``i // 16``, so a contiguous chunk of threads (what :func:`mgso_kernels.runtime.launch_split` gives one CPU core,
@@ -45,13 +48,16 @@ vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
 vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 
 TS = wp.constant(TILE_SIZE)
-SEGMENT_WIDTHS = (1, 2, 4, 8, 16)  # pixels per thread the blend kernels accept
+SEGMENT_WIDTHS = (1, 2, 4, 8, 16, TILE_SIZE * TILE_SIZE)  # pixels per thread the blend kernels accept; 256 = a
+# whole tile per thread, lanes vectorised (mgso_kernels.splat.raster_tile, the CPU default)
 
 
 def segment_threads(cam: Camera, seg: int) -> tuple[int, int]:
     """(threads of a blend launch, threads per tile) for segments of ``seg`` pixels."""
     if seg not in SEGMENT_WIDTHS:
         raise ValueError(f"pixels per thread must be one of {SEGMENT_WIDTHS}, got {seg}")
+    if seg == TILE_SIZE * TILE_SIZE:
+        return cam.tiles_x * cam.tiles_y, 1
     per_tile = TILE_SIZE * (TILE_SIZE // seg)
     return cam.tiles_x * cam.tiles_y * per_tile, per_tile
 
@@ -296,6 +302,13 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
     if ranges.shape[0] < cam.tiles_x * cam.tiles_y:
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
     dim, per_tile = segment_threads(cam, seg)
+    if seg == TILE_SIZE * TILE_SIZE:
+        from .raster_tile import rasterize_forward_tile
+
+        launch_split(rasterize_forward_tile, dim, [cam, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
+                                                   alpha, T_final, n_contrib],
+                     device, threads=threads, min_chunk=max(1, min_chunk // seg))
+        return
     launch_split(rasterize_forward, dim, [cam, seg, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
                                           alpha, T_final, n_contrib],
                  device, threads=threads, min_chunk=max(1, min_chunk // seg), align=per_tile)
@@ -309,5 +322,11 @@ def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, thre
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
     dim, per_tile = segment_threads(cam, seg)
+    if seg == TILE_SIZE * TILE_SIZE:
+        from .raster_tile import rasterize_alpha_tile
+
+        launch_split(rasterize_alpha_tile, dim, [cam, ranges, splats, alpha], device, threads=threads,
+                     min_chunk=max(1, min_chunk // seg))
+        return
     launch_split(rasterize_alpha, dim, [cam, seg, ranges, splats, alpha], device, threads=threads,
                  min_chunk=max(1, min_chunk // seg), align=per_tile)

@@ -1,4 +1,6 @@
-"""Tile-sorted alpha blending, hand-written backward (Warp module).
+"""Tile-sorted alpha blending, hand-written backward (Warp module): the row kernels (1-16 pixels per thread), the
+per-Gaussian gather of the per-pair gradients. (The CPU default backward blend is
+:func:`mgso_kernels.splat.raster_tile.rasterize_backward_tile`, dispatched by :func:`launch_rasterize_backward`.)
 
 Warp's ``wp.Tape`` is silently wrong for the blending loop (a runtime-bounded loop carrying ``T``), so this adjoint
 is written by hand, as 3DGS and gsplat do: per pixel, back to front from the last accumulated Gaussian
@@ -33,7 +35,7 @@ from .raster import row_span, segment_threads, span_exp_start, tile_row, vec16, 
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["rasterize_backward", "gather_gaussian_grads", "accumulate_densify_stats", "vec12"]
+__all__ = ["rasterize_backward", "gather_gaussian_grads", "vec12"]
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
@@ -198,37 +200,16 @@ def gather_gaussian_grads(
     absgrad[g] = wp.vec2(acc[10], acc[11])
 
 
-@wp.kernel
-def accumulate_densify_stats(
-    offset: int,
-    v_means2d: wp.array(dtype=wp.vec2),  # [N] this view's d/d mean2d, pixels
-    absgrad: wp.array(dtype=wp.vec2),  # [N] this view's AbsGS sums, pixels
-    radii: wp.array(dtype=wp.int32),  # [N] 0 = not visible in this view
-    scale: wp.vec2,  # multiplies the pixel gradients (W/2, H/2 gives 3DGS's NDC units)
-    grad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * v_mean2d|
-    absgrad2d_sum: wp.array(dtype=float),  # [N] in/out: sum over views of |scale * absgrad|
-    count: wp.array(dtype=wp.int32),  # [N] in/out: views in which the Gaussian was visible
-    max_radii: wp.array(dtype=float),  # [N] in/out: max over views of radii (pixels)
-):
-    g = offset + wp.tid()
-    r = radii[g]
-    if r == 0:
-        return
-    v = v_means2d[g]
-    a = absgrad[g]
-    grad2d_sum[g] = grad2d_sum[g] + wp.length(wp.vec2(v[0] * scale[0], v[1] * scale[1]))
-    absgrad2d_sum[g] = absgrad2d_sum[g] + wp.length(wp.vec2(a[0] * scale[0], a[1] * scale[1]))
-    count[g] = count[g] + 1
-    max_radii[g] = wp.max(max_radii[g], float(r))
-
-
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
-                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
+                              threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE,
+                              absgrad: bool = True) -> None:
     """Per-pair gradients (zeroed here, then accumulated) from the upstream image gradients.
 
-    ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output).
+    ``v_depth`` / ``v_alpha`` may be ``None`` (no gradient through that output). ``absgrad=False`` lets the tile
+    kernel (``seg`` 256) skip the AbsGS sums (components 10, 11 stay 0); the row kernels compute them anyway
+    (``Rasterizer.backward`` zeroes them after the gather, so that the result is the same on every path).
     """
     from ..runtime import launch_split
     from ._checks import check_array
@@ -248,6 +229,14 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
         raise ValueError(f"rasterize_backward: pair_grads holds {pair_grads.shape[0]}, need {n_pairs}")
     pair_grads[:n_pairs].zero_()
     dim, per_tile = segment_threads(cam, seg)
+    if seg == TILE_SIZE * TILE_SIZE:
+        from .raster_tile import BWD_ACC_ROWS, rasterize_backward_tile, rasterize_backward_tile_noabs
+
+        launch_split(rasterize_backward_tile if absgrad else rasterize_backward_tile_noabs, dim,
+                     [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
+                      v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads], device,
+                     threads=threads, min_chunk=max(1, min_chunk // seg))
+        return
     launch_split(rasterize_backward, dim,
                  [cam, seg, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
                   v_depth, v_alpha, use_depth, use_alpha, pair_grads], device,
@@ -263,14 +252,4 @@ def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_mean
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
                                             v_opacities, v_colors, v_depths, absgrad], device, threads=threads,
-                 min_chunk=min_chunk)
-
-
-def launch_accumulate_densify_stats(v_means2d, absgrad, radii, scale, grad2d_sum, absgrad2d_sum, count, max_radii,
-                                    device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
-    from ..runtime import launch_split
-
-    n = v_means2d.shape[0]
-    launch_split(accumulate_densify_stats, n, [v_means2d, absgrad, radii, wp.vec2(*scale), grad2d_sum,
-                                               absgrad2d_sum, count, max_radii], device, threads=threads,
                  min_chunk=min_chunk)

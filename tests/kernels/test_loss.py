@@ -19,6 +19,9 @@ def test_window_is_the_3dgs_window():
     # exp(-(x^2)/(2*1.5^2)) normalised: the ratio of neighbours is fixed by sigma alone
     assert np.isclose(g[6] / g[5], np.exp(-1 / 4.5), rtol=1e-6)
     assert np.allclose(g, g[::-1])
+    # the chunk kernels have it built in
+    from mgso_kernels.loss_chunks import WINDOW
+    assert np.array_equal(WINDOW, g)
 
 
 def test_twin_ssim_is_the_zero_padded_windowed_formula(rng):
@@ -44,8 +47,10 @@ def test_twin_ssim_is_the_zero_padded_windowed_formula(rng):
 
 
 @pytest.mark.parametrize("use_mask,exposure", [(False, None), (True, (0.3, -0.05))])
-def test_forward_and_backward_match_twin(wp_device, rng, use_mask, exposure):
-    h, w = 96, 131   # > 4096 pixels: the launches are split over the cores; odd sizes exercise the borders
+@pytest.mark.parametrize("h,w", [(96, 131), (64, 96)])
+def test_forward_and_backward_match_twin(wp_device, rng, use_mask, exposure, h, w):
+    # 96 x 131: > 4096 pixels, the launches are split over the cores; odd sizes exercise the borders, and rows of
+    # 3 x 131 floats are not whole 16-float chunks (staged). 64 x 96: rows are whole chunks (read in place).
     rendered, target = _pair(rng, h, w)
     mask = None
     if use_mask:
@@ -67,6 +72,22 @@ def test_forward_and_backward_match_twin(wp_device, rng, use_mask, exposure):
         # weight-0 pixels farther than the window radius (5 px) from any weighted pixel get exactly no gradient;
         # nearer ones still get the SSIM gradient of their valid neighbours' windows
         assert not np.any(g[:, :7]) and np.abs(g[:, 7:12]).max() > 0
+
+
+@pytest.mark.parametrize("window_size,sigma", [(7, 1.0), (13, 2.0)])
+def test_other_windows_match_twin(wp_device, rng, window_size, sigma):
+    """Windows other than 3DGS's 11 x 11, sigma 1.5 run the per-pixel kernels."""
+    h, w = 40, 48
+    rendered, target = _pair(rng, h, w)
+    fn = wl.L1SSIMLoss(h, w, wp_device, window_size=window_size, sigma=sigma)
+    assert not fn.chunked and wl.L1SSIMLoss(h, w, wp_device).chunked
+    res = fn(rendered, target, exposure=(0.1, 0.02))
+    ref = rl.l1_dssim_loss(rendered, target, exposure=(0.1, 0.02), window_size=window_size, sigma=sigma)
+    assert np.isclose(res.loss, ref["loss"], rtol=1e-5, atol=1e-7)
+    assert np.isclose(res.ssim, ref["ssim"], rtol=1e-5, atol=1e-6)
+    scale = np.abs(ref["v_rendered"]).max()
+    np.testing.assert_allclose(res.v_rendered.numpy(), ref["v_rendered"], atol=2e-5 * scale, rtol=0)
+    np.testing.assert_allclose(res.v_exposure, ref["v_exposure"], rtol=2e-5, atol=1e-7)
 
 
 def test_warp_accepts_warp_arrays_and_is_deterministic(wp_device, rng):

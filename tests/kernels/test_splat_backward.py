@@ -10,8 +10,9 @@ import pytest
 import warp as wp
 
 from mgso.geometry import se3_exp
+from mgso_kernels import adam as kadam
 from mgso_kernels.reference import splat as ref
-from mgso_kernels.splat import DensifyStats, Rasterizer, make_camera
+from mgso_kernels.splat import Rasterizer, make_camera
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD_OF = {"means": "v_means", "log_scales": "v_log_scales", "quats": "v_quats",
@@ -165,9 +166,10 @@ def test_warp_antialiased_matches_twin(wp_device):
         _close(getattr(grads, name).numpy(), r[name], name)
 
 
-@pytest.mark.parametrize("seg", [1, 2, 8])
+@pytest.mark.parametrize("seg", [1, 2, 8, 16, 256])
 def test_pixels_per_thread_variants_match_twin(wp_device, seg):
-    # 16 pixels per thread is the CPU default (every other test); 1 is the CUDA default: same rules, same results
+    # a tile per thread (256) is the CPU default; 1 is the CUDA default; 16 was the CPU row kernel: same rules, same
+    # results; absgrad=False (the tile path's second compiled kernel) changes nothing but the AbsGS sums (zero)
     rng = np.random.default_rng(20 + seg)
     cam = _camera(rng, 40, 36)
     scene = ref.random_scene(rng, 40, cam, 1)
@@ -184,6 +186,13 @@ def test_pixels_per_thread_variants_match_twin(wp_device, seg):
     grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
     for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
         _close(getattr(grads, name).numpy(), r[name], name)
+    assert np.abs(r["absgrad"]).max() > 0
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
+    grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32),
+                          absgrad=False)
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d"):
+        _close(getattr(grads, name).numpy(), r[name], name)
+    assert not grads.absgrad.numpy().any()
     with pytest.raises(ValueError, match="pixels_per_thread"):
         Rasterizer(wp_device, pixels_per_thread=3)
 
@@ -206,18 +215,25 @@ def test_split_backward_is_bitwise_identical(wp_device):
 
 
 def test_densify_stats_accumulate_over_views(wp_device):
+    # the one statistics mechanism: the backward's v_means2d / absgrad / radii into the map's DensifyStats
+    # (mgso_kernels.adam.accumulate_stats, what GaussianMap.accumulate_stats runs), in 3DGS's NDC units
     rng = np.random.default_rng(31)
     cams = [_camera(rng, 48, 32) for _ in range(2)]
     scene = ref.random_scene(rng, 60, cams[0], 0)
     n = 60
     rast = Rasterizer(wp_device)
-    stats = DensifyStats.zeros(n, wp_device)
+    stats = kadam.DensifyStats()
+    for name, dt in (("grad2d_sum", wp.float32), ("absgrad2d_sum", wp.float32), ("vis_count", wp.int32),
+                     ("max_radius_px", wp.float32), ("views_seen", wp.int32)):
+        setattr(stats, name, wp.zeros(n, dtype=dt, device=wp_device))
     want_grad, want_abs, want_count = np.zeros(n), np.zeros(n), np.zeros(n, int)
     want_rad = np.zeros(n)
     for cam in cams:
         v_rgb = rng.normal(size=(cam.height, cam.width, 3))
         out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
-        rast.backward(out, v_rgb.astype(np.float32), stats=stats)
+        g = rast.backward(out, v_rgb.astype(np.float32))
+        kadam.accumulate_stats(stats, g.v_means2d.view(wp.vec2), g.radii, cam.width, cam.height,
+                               g.absgrad.view(wp.vec2), device=wp_device)
         r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, (0, 0, 0), v_rgb)
         radii = out.radii.numpy()
         vis = radii > 0
@@ -227,8 +243,39 @@ def test_densify_stats_accumulate_over_views(wp_device):
         want_count += vis
         want_rad = np.maximum(want_rad, radii)
     assert want_count.max() == 2 and want_count.min() == 0
-    np.testing.assert_array_equal(stats.count.numpy(), want_count)
-    np.testing.assert_array_equal(stats.max_radii.numpy(), want_rad)
+    np.testing.assert_array_equal(stats.vis_count.numpy(), want_count)
+    np.testing.assert_array_equal(stats.views_seen.numpy(), want_count)
+    np.testing.assert_array_equal(stats.max_radius_px.numpy(), want_rad)
     _close(stats.grad2d_sum.numpy(), want_grad, "grad2d")
     _close(stats.absgrad2d_sum.numpy(), want_abs, "absgrad2d")
     assert np.all(stats.absgrad2d_sum.numpy() >= stats.grad2d_sum.numpy() - 1e-4)
+
+
+def test_backward_into_given_arrays_is_identical(wp_device):
+    # into=: the parameter gradients land in the caller's buffers (a Gaussian map's), bit for bit the same
+    rng = np.random.default_rng(41)
+    cam = _camera(rng, 40, 32)
+    scene = ref.random_scene(rng, 50, cam, 1)
+    v_rgb = rng.normal(size=(cam.height, cam.width, 3)).astype(np.float32)
+    rast = Rasterizer(wp_device)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    g = rast.backward(out, v_rgb)
+    want = {k: getattr(g, "v_" + k).numpy().copy() for k in PARAMS}
+    n, k = scene["sh"].shape[:2]
+
+    class Into:
+        means = wp.full((n, 3), 7.0, dtype=wp.float32, device=wp_device)   # overwritten, not added to
+        log_scales = wp.zeros((n, 3), dtype=wp.float32, device=wp_device)
+        quats = wp.zeros((n, 4), dtype=wp.float32, device=wp_device)
+        opacity_logits = wp.zeros(n, dtype=wp.float32, device=wp_device)
+        sh = wp.zeros((n, k, 3), dtype=wp.float32, device=wp_device)
+
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    g2 = rast.backward(out, v_rgb, into=Into)
+    for name in PARAMS:
+        assert np.array_equal(getattr(Into, name).numpy(), want[name]), name
+        assert getattr(g2, "v_" + name).ptr == getattr(Into, name).ptr
+    Into.quats = wp.zeros((n, 3), dtype=wp.float32, device=wp_device)
+    out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
+    with pytest.raises(ValueError, match="into.quats"):
+        rast.backward(out, v_rgb, into=Into)

@@ -8,7 +8,7 @@ import warp as wp
 
 from mgso.geometry import se3_exp
 from mgso_kernels.reference import splat as ref
-from mgso_kernels.splat import TILE_SIZE, DensifyStats, Rasterizer, make_camera
+from mgso_kernels.splat import TILE_SIZE, Rasterizer, make_camera
 
 
 def _camera(rng, width=64, height=48, f=55.0):
@@ -208,8 +208,6 @@ def test_bad_input_errors(wp_device):
     out = rast.forward(s["means"], s["log_scales"], s["quats"], s["opacity_logits"], s["sh"], _wcam(cam))
     with pytest.raises(ValueError, match="v_rgb"):
         rast.backward(out, np.zeros((32, 31, 3)))
-    with pytest.raises(ValueError, match="stats"):
-        rast.backward(out, np.zeros((32, 32, 3)), stats=DensifyStats.zeros(4, wp_device))
 
 
 def test_vector_typed_inputs_are_viewed(wp_device):

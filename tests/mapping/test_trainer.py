@@ -209,9 +209,25 @@ def test_step_applies_the_rasteriser_gradient_of_the_loss_to_every_group(room, w
     v_pose = g.v_pose.numpy().astype(np.float64)
     delta = -np.array([cfg.train.lr_pose_translation] * 3 + [cfg.train.lr_pose_rotation] * 3) * np.sign(v_pose)
     np.testing.assert_allclose(view.world_to_cam, se3_exp(delta) @ w2c0, atol=1e-9)
-    # densification statistics of this view were accumulated
+    # densification statistics of this view were accumulated; the default grad_mode ("grad") reads no AbsGS sums,
+    # so the step skips them
     np.testing.assert_array_equal(gmap.stats.vis_count.numpy(), (g.radii.numpy() > 0).astype(np.int32))
     assert r.num_visible == int((g.radii.numpy() > 0).sum()) and r.psnr is not None and r.psnr > 5
+    assert gmap.stats.grad2d_sum.numpy().max() > 0 and not gmap.stats.absgrad2d_sum.numpy().any()
+
+
+def test_absgrad_statistics_only_when_the_strategy_reads_them(room, wp_device):
+    arrays = _surface_map(room, wp_device, stride=4).to_numpy()
+    views = _views(room, [6])
+    for mode in ("grad", "absgrad"):
+        cfg = _cfg(f"mapping.densify.grad_mode={mode}", "mapping.densify.refine_stop_step=1")
+        gmap = GaussianMap.from_arrays(arrays, device=wp_device)
+        TrainStep(cfg, wp_device)(gmap, views[6], 0)
+        st = gmap.stats
+        assert st.grad2d_sum.numpy().max() > 0
+        assert (st.absgrad2d_sum.numpy().max() > 0) == (mode == "absgrad"), mode
+        if mode == "absgrad":   # the absolute per-pixel sums bound the norm of the summed gradient
+            assert np.all(st.absgrad2d_sum.numpy() >= st.grad2d_sum.numpy() - 1e-6)
 
 
 def test_densification_runs_inside_the_loop_and_keeps_arrays_consistent(room, wp_device):

@@ -1,0 +1,468 @@
+"""MGSO's mapping thread: keyframe messages in, a trained Gaussian map out (docs/mgso.md).
+
+The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.GaussianMap`), the training views
+(:class:`~mgso.mapping.views.ViewSet`, one per keyframe) and the trainer. It reads typed messages
+(:mod:`mgso.mapping.messages`) from a bounded :class:`queue.Queue` and applies them between training steps:
+
+- :class:`~mgso.mapping.messages.KeyframeMessage`: seed new Gaussians from the keyframe's DSO points where the map
+  is still empty (:func:`~mgso.mapping.seeding.seed_keyframe`: coverage render, Delaunay fill, visibility filter),
+  then add the keyframe as a training view with its exposure (below);
+- :class:`~mgso.mapping.messages.PoseUpdate`: move the views of refined keyframes (the map follows the odometry;
+  the odometry never waits for the map);
+- :class:`~mgso.mapping.messages.MarginalizedPoints`: seed from points with their final depth, seen from their host
+  keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived);
+- :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
+  keyframes) unless the run was interrupted, and stop.
+
+Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
+:class:`~mgso.mapping.views.LeastUsedSampler` (least used keyframes, the newest more often), Gaussian-pyramid levels
+(``mapping.train.pyramid_levels``) and densification / pruning by the strategy (``mapping.densify``).
+
+**Exposure.** Each view's exposure ``(a', b')`` (the loss compares ``exp(a') render + b'`` with the keyframe) starts
+from DSO's affine brightness and exposure time (:func:`~mgso.mapping.messages.map_exposure`), so the map stores
+radiance at the first keyframe's exposure, not each image's brightness; seed colours are converted to radiance the
+same way. With ``mapping.train.learn_exposure`` the trainer learns a correction on top (its own Adam per view); a
+pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change and keeps the learned correction.
+
+**Modes.** Deterministic (:meth:`process_pending`, in the caller's thread): messages in order, a fixed
+``mapping.mapper.iterations_per_keyframe`` steps after each keyframe message; the same map on every CPU run.
+Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
+queue only while it has nothing to train. :meth:`submit` puts a message on the bounded queue; when it is full the
+caller waits (backpressure), and every wait is counted in :class:`MapperStats`.
+
+Ownership: the map, the views and the trainer are changed only by the thread that runs the mapper (the caller's in
+deterministic mode, the mapping thread in real time). Read them after :meth:`stop` (or between
+:meth:`process_pending` calls).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mgso.config import Config
+from mgso.geometry import se3_inverse
+from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
+from mgso.mapping.messages import KeyframeMessage, MapperMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
+from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, plan_seeds,
+                                  render_coverage, seed_keyframe, seed_scales)
+from mgso.mapping.strategy import DefaultStrategy
+from mgso.mapping.trainer import StepResult, Trainer, TrainStep
+from mgso.mapping.views import LeastUsedSampler, TrainView, ViewSet
+from mgso.observers import Observer
+
+__all__ = ["Mapper", "MapperStats", "MapperError", "MapUpdate"]
+
+log = logging.getLogger(__name__)
+
+
+class MapperError(RuntimeError):
+    """The mapping thread failed; the original exception is the ``__cause__``."""
+
+
+@dataclass
+class MapperStats:
+    """Counts and times of a mapper's work (values, read after :meth:`Mapper.stop`)."""
+
+    keyframes: int = 0                      # keyframe messages applied (= training views)
+    pose_updates: int = 0                   # PoseUpdate messages applied
+    poses_applied: int = 0                  # keyframe poses moved by them
+    poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
+    point_messages: int = 0                 # MarginalizedPoints messages
+    points_received: int = 0
+    gaussians_seeded: int = 0               # added by seeding (keyframes and marginalised points)
+    seeds_skipped_too_few: int = 0          # seedings that added nothing (fewer than min_new_gaussians survived)
+    steps: int = 0                          # training steps, all of them
+    train_seconds: float = 0.0              # wall time inside training steps
+    final_steps: int = 0                    # steps of the final refinement (included in steps)
+    final_seconds: float = 0.0
+    seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
+    queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
+    queue_wait_seconds: float = 0.0
+    max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
+    densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
+                                                   "skipped_capacity": 0, "opacity_resets": 0})
+    seed_results: list = field(default_factory=list)   # SeedResult per seeding, in order
+    stopped_by: str = ""                    # "stop" (end of stream) or "interrupt"
+
+    @property
+    def iterations_per_s(self) -> float:
+        return self.steps / self.train_seconds if self.train_seconds > 0 else 0.0
+
+    def as_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "seed_results"}
+        d["iterations_per_s"] = self.iterations_per_s
+        d["seeding"] = [{"keyframe_id": r.keyframe_id, "status": r.status.value, "candidates": r.num_candidates,
+                         "fill": r.num_fill, "rejected_visibility": r.num_rejected_visibility,
+                         "added": r.num_added} for r in self.seed_results]
+        return d
+
+
+@dataclass(frozen=True)
+class MapUpdate:
+    """What ``Observer.on_map_updated`` gets after each keyframe message and at the end of the refinement."""
+
+    keyframe_id: int                        # -1 after the final refinement
+    num_gaussians: int
+    num_views: int
+    steps: int                              # training steps so far
+    seed: SeedResult | None
+    last_step: StepResult | None
+
+
+def _as_seed_input(view: TrainView, uv: np.ndarray, idepth: np.ndarray, colors: np.ndarray | None,
+                   weights: np.ndarray | None) -> KeyframeSeedInput:
+    return KeyframeSeedInput(view.image, view.camera, view.cam_to_world, uv, idepth, colors=colors, weights=weights,
+                             exposure=(float(view.exposure[0]), float(view.exposure[1])),
+                             keyframe_id=view.view_id)
+
+
+class Mapper:
+    """MGSO's mapping thread (see the module doc).
+
+    ``config``: the full configuration (``mapping`` for the map, training, seeding and the mapper; ``runtime.seed``
+    for the sampler and the random-init baseline). ``device``: Warp device (initialised by the caller;
+    default: the runtime's). ``observer``: gets :class:`MapUpdate` values through ``on_map_updated`` (from the
+    mapping thread in real time).
+    """
+
+    def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None):
+        self.config = config
+        mc = config.mapping
+        self.mc = mc
+        self.cfg = mc.mapper
+        seed = int(config.runtime.seed)
+        self.gmap = GaussianMap(mc.capacity, mc.sh_degree, device=device, optim=mc.optim)
+        self.device = self.gmap.device
+        self.views = ViewSet()
+        self.sampler = LeastUsedSampler(self.cfg.newest_probability, seed=seed)
+        densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
+        step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
+        self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
+                               train_step=step, seed=seed)
+        self.observer = observer or Observer()
+        self.stats = MapperStats()
+        self.queue: queue.Queue = queue.Queue(maxsize=self.cfg.queue_size)
+        self._rng = np.random.default_rng([seed, 0x5EED])
+        # DSO's part of each view's exposure, so that a refined (a, b) shifts the view and keeps what was learned.
+        self._dso_exposure: dict[int, tuple[float, float]] = {}
+        self._exposure_ms: dict[int, float | None] = {}
+        self.reference_exposure_ms: float | None = None   # the first keyframe's exposure time (None: unknown)
+        self._last_step: StepResult | None = None
+        self._thread: threading.Thread | None = None
+        self._interrupt = threading.Event()
+        self._error: BaseException | None = None
+        self._stopped = False
+
+    # ------------------------------------------------------------------------------------------ queue
+    @property
+    def running(self) -> bool:
+        """Whether the real-time mapping thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def submit(self, msg: MapperMessage) -> None:
+        """Put ``msg`` on the queue. When it is full: in real time the caller waits for room (counted in
+        ``stats.queue_waits`` / ``queue_wait_seconds``); in deterministic mode the pending messages are applied
+        first. Raises :class:`MapperError` if the mapping thread has failed."""
+        if not isinstance(msg, (KeyframeMessage, PoseUpdate, MarginalizedPoints, Stop)):
+            raise TypeError(f"Mapper.submit: expected a mapper message, got {type(msg).__name__}")
+        self._raise_if_failed()
+        depth = self.queue.qsize()
+        self.stats.max_queue_depth = max(self.stats.max_queue_depth, depth + 1)
+        if self._thread is None:
+            if self.queue.full():
+                self.process_pending()
+            self.queue.put_nowait(msg)
+            return
+        try:
+            self.queue.put_nowait(msg)
+            return
+        except queue.Full:
+            pass
+        self.stats.queue_waits += 1
+        t0 = time.perf_counter()
+        log.warning("mapper queue full (%d messages): the odometry waits for the map", self.cfg.queue_size)
+        while True:
+            try:
+                self.queue.put(msg, timeout=0.1)
+                break
+            except queue.Full:
+                if not self.running:
+                    self._raise_if_failed()
+                    raise MapperError("the mapping thread stopped while the odometry waited for queue room")
+        self.stats.queue_wait_seconds += time.perf_counter() - t0
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise MapperError(f"the mapping thread failed: {type(err).__name__}: {err}") from err
+
+    # ------------------------------------------------------------------------------------ deterministic
+    def process_pending(self, iterations_per_keyframe: int | None = None) -> int:
+        """Deterministic mode: apply every queued message in order, training ``iterations_per_keyframe`` steps
+        (default ``mapping.mapper.iterations_per_keyframe``) after each keyframe message; a :class:`Stop` runs the
+        final refinement (when asked) and ends. Returns the messages applied."""
+        if self._thread is not None:
+            raise RuntimeError("Mapper.process_pending: the mapper runs in its own thread (real-time mode)")
+        n_iter = self.cfg.iterations_per_keyframe if iterations_per_keyframe is None else int(iterations_per_keyframe)
+        done = 0
+        while True:
+            try:
+                msg = self.queue.get_nowait()
+            except queue.Empty:
+                return done
+            done += 1
+            if isinstance(msg, Stop):
+                self._finish(msg)
+                return done
+            self.handle(msg)
+            if isinstance(msg, KeyframeMessage) and not self._interrupt.is_set():
+                self.train(n_iter)
+
+    # ------------------------------------------------------------------------------------------ real time
+    def start(self) -> None:
+        """Real-time mode: start the mapping thread (drain messages, train, repeat)."""
+        if self._thread is not None:
+            raise RuntimeError("Mapper.start: already started")
+        self._thread = threading.Thread(target=self._run, name="mgso-mapper", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                try:
+                    msg = self.queue.get_nowait()
+                except queue.Empty:
+                    if self._interrupt.is_set():
+                        self.stats.stopped_by = "interrupt"
+                        return
+                    if self.can_train():
+                        self._step()
+                        continue
+                    try:
+                        msg = self.queue.get(timeout=0.05)
+                    except queue.Empty:
+                        continue
+                if isinstance(msg, Stop):
+                    self._finish(msg)
+                    return
+                self.handle(msg)
+        except BaseException as exc:  # handed to the odometry side at its next submit / at stop
+            log.exception("the mapping thread failed")
+            self._error = exc
+
+    def stop(self, refine: bool = True, timeout: float | None = None) -> MapperStats:
+        """End the stream: in real time, send :class:`Stop` (``refine``: run the final refinement) and wait for the
+        thread; in deterministic mode apply what is pending and the refinement. Idempotent. Raises
+        :class:`MapperError` when the mapping thread failed."""
+        if self._stopped:
+            self._raise_if_failed()
+            return self.stats
+        if not refine:
+            self._interrupt.set()          # apply what is queued (views, poses, seeds), then stop without training
+        if self._thread is None:
+            self.submit(Stop(refine))
+            self.process_pending()
+        else:
+            if self._thread.is_alive():
+                self.submit(Stop(refine))
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                raise MapperError(f"the mapping thread did not stop within {timeout} s")
+        self._stopped = True
+        self._raise_if_failed()
+        return self.stats
+
+    def _finish(self, msg: Stop) -> None:
+        if msg.refine and not self._interrupt.is_set():
+            self.refine(self.cfg.final_iterations)
+            self.stats.stopped_by = "stop"
+        else:
+            self.stats.stopped_by = "interrupt"
+        self.observer.on_map_updated(MapUpdate(-1, self.gmap.n, len(self.views), self.stats.steps, None,
+                                               self._last_step))
+
+    # ------------------------------------------------------------------------------------------ messages
+    def handle(self, msg: MapperMessage) -> None:
+        """Apply one message (not :class:`Stop`) now, in the calling thread."""
+        if isinstance(msg, KeyframeMessage):
+            self._on_keyframe(msg)
+        elif isinstance(msg, PoseUpdate):
+            self._on_pose_update(msg)
+        elif isinstance(msg, MarginalizedPoints):
+            self._on_points(msg)
+        elif isinstance(msg, Stop):
+            raise ValueError("Mapper.handle: Stop ends the stream (use stop())")
+        else:
+            raise TypeError(f"Mapper.handle: unknown message {type(msg).__name__}")
+
+    def _on_keyframe(self, msg: KeyframeMessage) -> None:
+        kid = msg.keyframe_id
+        if kid in self.views:
+            raise ValueError(f"keyframe {kid} reached the map twice")
+        if self.reference_exposure_ms is None and msg.exposure_ms:
+            self.reference_exposure_ms = msg.exposure_ms
+        exposure = msg.map_exposure(self.reference_exposure_ms)
+        view = TrainView(kid, msg.image, msg.camera, msg.world_to_cam, mask=msg.mask, exposure=exposure,
+                         timestamp=msg.timestamp, name=f"keyframe {kid} (frame {msg.frame_index})")
+        res = self._seed(msg.seed_input(exposure=exposure), self.mc.seeding)
+        self.views.add(view)
+        self._dso_exposure[kid] = exposure
+        self._exposure_ms[kid] = msg.exposure_ms
+        self.stats.keyframes += 1
+        self.observer.on_map_updated(MapUpdate(kid, self.gmap.n, len(self.views), self.stats.steps, res,
+                                               self._last_step))
+
+    def _on_pose_update(self, msg: PoseUpdate) -> None:
+        self.stats.pose_updates += 1
+        for kid, c2w in msg.cam_to_world.items():
+            if kid not in self.views:
+                self.stats.poses_unknown += 1
+                continue
+            self.views.set_pose(kid, se3_inverse(c2w))
+            self.stats.poses_applied += 1
+        for kid, ab in msg.affine.items():
+            if kid not in self.views:
+                continue
+            new = map_exposure(ab, self._exposure_ms.get(kid), self.reference_exposure_ms)
+            old = self._dso_exposure[kid]
+            view = self.views[kid]
+            self.views.set_exposure(kid, view.exposure[0] + new[0] - old[0], view.exposure[1] + new[1] - old[1])
+            self._dso_exposure[kid] = new
+
+    def _on_points(self, msg: MarginalizedPoints) -> None:
+        self.stats.point_messages += 1
+        self.stats.points_received += len(msg)
+        if not self.cfg.seed_marginalized or len(msg) == 0 or msg.host_keyframe_id not in self.views:
+            return
+        view = self.views[msg.host_keyframe_id]
+        T = view.world_to_cam
+        pc = msg.points @ T[:3, :3].T + T[:3, 3]
+        cam = view.camera
+        z = pc[:, 2]
+        ok = z > 1e-6
+        if not ok.any():
+            return
+        zs = np.where(ok, z, 1.0)
+        uv = np.stack([cam.fx * pc[:, 0] / zs + cam.cx, cam.fy * pc[:, 1] / zs + cam.cy], axis=1)
+        ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= cam.height - 0.5)
+        if not ok.any():
+            return
+        weights = None if msg.weights is None else msg.weights[ok]
+        seed_in = _as_seed_input(view, uv[ok], 1.0 / z[ok], msg.colors[ok], weights)
+        self._seed(seed_in, dataclasses.replace(self.mc.seeding, fill=False))
+
+    # ------------------------------------------------------------------------------------------ seeding
+    def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
+        t0 = time.perf_counter()
+        step = self.trainer.step_count
+        if self.cfg.init == "dso":
+            res = seed_keyframe(self.gmap, self.trainer.train_step.rasterizer, seed_in, scfg, step)
+        else:
+            res = self._seed_random(seed_in, scfg, step)
+        self.stats.seed_seconds += time.perf_counter() - t0
+        self.stats.gaussians_seeded += res.num_added
+        self.stats.seeds_skipped_too_few += int(res.skipped_too_few)
+        self.stats.seed_results.append(res)
+        log.debug("seeding keyframe %d: %s, %d candidates, %d added, %d Gaussians", res.keyframe_id,
+                  res.status.value, res.num_candidates, res.num_added, self.gmap.n)
+        return res
+
+    def _seed_random(self, seed_in: KeyframeSeedInput, scfg, step: int) -> SeedResult:
+        """The baseline of MGSO's claim: as many Gaussians as DSO seeding would add here, at random pixels of the
+        keyframe with a depth uniform over its points' depth range (what the odometry knows), coloured from the
+        image (as radiance), with the seeding's scale rule and opacity."""
+        gmap = self.gmap
+        alpha, neighbours = None, None
+        if gmap.n > 0:
+            cov = render_coverage(gmap, self.trainer.train_step.rasterizer, seed_in.camera, seed_in.world_to_cam,
+                                  scfg.alpha_downscale)
+            alpha = cov.alpha
+            if cov.visible.any():
+                neighbours = gmap.means.numpy()[cov.visible]
+        plan = plan_seeds(seed_in, scfg, alpha, neighbours, sh_degree=gmap.sh_degree)
+        n = min(plan.gaussians.n, gmap.capacity - gmap.n)
+        res = plan.result
+        if n <= 0:
+            return dataclasses.replace(res, num_added=0)
+        cam = seed_in.camera
+        z_pts = plan.candidates.depth
+        z_lo, z_hi = float(z_pts.min()), float(z_pts.max())
+        if not z_hi > z_lo:
+            z_hi = z_lo * 1.01
+        u = self._rng.integers(cam.width, size=n)
+        v = self._rng.integers(cam.height, size=n)
+        z = self._rng.uniform(z_lo, z_hi, size=n)
+        pc = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], axis=1)
+        T = seed_in.cam_to_world
+        means = pc @ T[:3, :3].T + T[:3, 3]
+        rgb = seed_in.image[v, u].astype(np.float64)
+        if seed_in.exposure is not None:
+            a, b = seed_in.exposure
+            rgb = (rgb - b) / math.exp(a)
+        focal = math.sqrt(cam.fx * cam.fy)
+        scales = seed_scales(means, z, focal, scfg, neighbours)
+        g: GaussianArrays = gaussians_from_seeds(means, np.clip(rgb, 0.0, 1.0), scales, scfg, gmap.sh_degree)
+        gmap.add(g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, step=step)
+        return dataclasses.replace(res, status=SeedStatus.ADDED, num_added=n)
+
+    # ------------------------------------------------------------------------------------------ training
+    def can_train(self) -> bool:
+        """Whether a training step can run: enough views and at least one Gaussian."""
+        return len(self.views) >= self.cfg.min_train_views and self.gmap.n > 0
+
+    def _step(self) -> StepResult:
+        t0 = time.perf_counter()
+        r = self.trainer.step()
+        self.stats.train_seconds += time.perf_counter() - t0
+        self.stats.steps += 1
+        self._last_step = r
+        f = r.refine
+        if f.refined or f.opacity_reset:
+            d = self.stats.densify
+            d["refines"] += int(f.refined)
+            d["cloned"] += f.cloned
+            d["split"] += f.split
+            d["pruned"] += f.pruned
+            d["skipped_capacity"] += f.skipped_capacity
+            d["opacity_resets"] += int(f.opacity_reset)
+        return r
+
+    def train(self, iterations: int) -> int:
+        """Run up to ``iterations`` training steps now (fewer when nothing can be trained yet). Returns the steps."""
+        done = 0
+        for _ in range(int(iterations)):
+            if not self.can_train():
+                break
+            self._step()
+            done += 1
+        return done
+
+    def refine(self, iterations: int) -> int:
+        """The final refinement: ``iterations`` steps over all keyframes (the sampler's least-used choice)."""
+        t0 = time.perf_counter()
+        done = self.train(iterations)
+        self.stats.final_steps += done
+        self.stats.final_seconds += time.perf_counter() - t0
+        return done
+
+    # ------------------------------------------------------------------------------------------ results
+    @property
+    def keyframe_ids(self) -> list[int]:
+        return self.views.ids()
+
+    def render(self, camera, world_to_cam: np.ndarray, exposure: tuple[float, float] | None = None) -> np.ndarray:
+        """(H, W, 3) float32 render of the map from ``world_to_cam`` with ``camera`` (a pinhole camera);
+        ``exposure`` (a', b') gives ``exp(a') render + b'``. Call after :meth:`stop` in real-time mode."""
+        return self.trainer.render(camera, world_to_cam, exposure=exposure)
+
+    def view_exposure(self, keyframe_id: int) -> tuple[float, float]:
+        v = self.views[keyframe_id]
+        return float(v.exposure[0]), float(v.exposure[1])

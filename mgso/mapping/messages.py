@@ -1,0 +1,275 @@
+"""Typed messages from the odometry to the mapping thread (DSO habit 10: threads talk through typed messages).
+
+The odometry (tracking + window) never touches the Gaussian map; it emits these frozen values, the system puts them
+on the mapper's bounded queue, and the mapper (:mod:`mgso.mapping.mapper`) applies them between training steps:
+
+- :class:`KeyframeMessage`: a new keyframe: its RGB image, pinhole camera, refined ``cam_to_world``, DSO's affine
+  brightness (a, b) and exposure time, and DSO's points hosted by it (pixel, inverse depth, kind). The mapper seeds
+  Gaussians from the points where the map is still empty and adds the keyframe as a training view.
+- :class:`PoseUpdate`: the window refined keyframes that already reached the map: new ``cam_to_world`` (and
+  affine) per keyframe id. The mapper moves the training views (the map follows the odometry).
+- :class:`MarginalizedPoints`: points left the window for good (final depth): world positions, colours, the host
+  keyframe. They join the DSO point cloud (``points.ply``), and the mapper seeds from them as from a keyframe's
+  points (where the map is still empty, seen from the host keyframe).
+- :class:`Stop`: the end of the stream (``refine``: run the final refinement first; an interrupted run does not).
+
+Every array is copied, made read-only and checked at construction; bad input raises ``ValueError`` naming the field,
+so a broken odometry fails where it emits, not deep inside the mapping thread.
+
+Conventions (the project's): poses ``cam_to_world`` 4x4 float64 rigid (``X_w = R X_c + t``); camera x right, y down,
+z forward; pixel centres at integer coordinates; inverse depth = 1 / camera z. DSO's photometric model is
+``I = t e^a L + b`` on the 0-255 scale (``t`` the exposure time, 1 when unknown); :meth:`KeyframeMessage.map_exposure`
+converts it to the trainer's ``image = exp(a') render + b'`` on the [0, 1] scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Mapping, Union
+
+import numpy as np
+
+from mgso.camera import PinholeCamera
+from mgso.geometry import orthonormalize
+from mgso.mapping.seeding import KeyframeSeedInput, PointKind
+
+__all__ = ["KeyframeMessage", "PoseUpdate", "MarginalizedPoints", "Stop", "MapperMessage", "PointKind",
+           "map_exposure"]
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    a.setflags(write=False)
+    return a
+
+
+def _rigid(T, where: str) -> np.ndarray:
+    M = np.array(T, dtype=np.float64)
+    if M.shape == (3, 4):
+        M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ValueError(f"{where}: expected a finite 4x4 cam_to_world, got shape {M.shape}")
+    R = M[:3, :3]
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-2 or np.linalg.det(R) < 0 or np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError(f"{where}: not a rigid transform (rotation not orthonormal: error {err:.2g}, or last row "
+                         "not 0 0 0 1; convert a Sim3 to SE3 first)")
+    if err > 1e-12:          # round-off of a long chain of float products: the nearest rotation
+        M[:3, :3] = orthonormalize(R)
+    return _frozen(M)
+
+
+def _affine(ab, where: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in ab)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: expected a pair (a, b), got {ab!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise ValueError(f"{where}: (a, b) must be finite, got {ab!r}")
+    return a, b
+
+
+def map_exposure(affine: tuple[float, float], exposure_ms: float | None,
+                 reference_exposure_ms: float | None) -> tuple[float, float]:
+    """The trainer's per-view exposure ``(a', b')`` (``image = exp(a') render + b'``, [0, 1] units) of a frame with
+    DSO's affine brightness ``affine = (a, b)`` (``I = t e^a L + b``, 0-255 units) and exposure time ``t``.
+
+    ``a' = a + ln(t / t_ref)``, ``b' = b / 255``: the map then stores ``L t_ref / 255``, the radiance seen at the
+    reference exposure (the first keyframe's), and every view's brightness is the odometry's. Unknown exposures
+    (``None`` or <= 0, on either side) count as equal (DSO sets both to 1).
+    """
+    a, b = affine
+    gain = 0.0
+    if exposure_ms and reference_exposure_ms and exposure_ms > 0 and reference_exposure_ms > 0:
+        gain = math.log(exposure_ms / reference_exposure_ms)
+    return float(a) + gain, float(b) / 255.0
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeMessage:
+    """A new keyframe for the map.
+
+    - ``keyframe_id``: the odometry's id (unique, increasing); ``frame_index``: position of the frame in the
+      sequence; ``timestamp``: seconds.
+    - ``image``: (H, W, 3) float RGB in [0, 1] as recorded (undistorted, in the odometry's image geometry);
+      ``camera``: its pinhole intrinsics (:class:`~mgso.camera.PinholeCamera` or anything with ``fx fy cx cy
+      width height``).
+    - ``cam_to_world``: 4x4 rigid pose at the time the keyframe was made (refined later by :class:`PoseUpdate`).
+    - ``affine``: DSO's (a, b) of the keyframe (0-255 scale); ``exposure_ms``: its exposure time (``None`` when the
+      dataset has none).
+    - ``points_uv`` (M, 2) pixels, ``idepths`` (M,) inverse depths, ``kinds`` (M,) :class:`PointKind` codes (active,
+      marginalised, immature), optional ``weights`` (M,) (DSO's inverse-depth Hessian) and ``colors`` (M, 3) RGB in
+      [0, 1] (default: sampled from ``image`` over DSO's pattern by the seeding).
+    - ``mask``: optional (H, W) loss weights (0 = ignore the pixel, e.g. black undistortion borders).
+    - ``segment``: the odometry's segment number (a new one starts after a tracking loss).
+    """
+
+    keyframe_id: int
+    frame_index: int
+    timestamp: float
+    image: np.ndarray
+    camera: PinholeCamera
+    cam_to_world: np.ndarray
+    points_uv: np.ndarray
+    idepths: np.ndarray
+    kinds: np.ndarray | None = None
+    affine: tuple[float, float] = (0.0, 0.0)
+    exposure_ms: float | None = None
+    weights: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    segment: int = 0
+
+    def __post_init__(self):
+        where = f"KeyframeMessage(keyframe {self.keyframe_id})"
+        cam = self.camera
+        if not isinstance(cam, PinholeCamera):
+            try:
+                cam = PinholeCamera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+            except AttributeError:
+                raise TypeError(f"{where}.camera: expected a PinholeCamera (fx, fy, cx, cy, width, height), got "
+                                f"{type(cam).__name__}") from None
+            object.__setattr__(self, "camera", cam)
+        object.__setattr__(self, "keyframe_id", int(self.keyframe_id))
+        object.__setattr__(self, "frame_index", int(self.frame_index))
+        object.__setattr__(self, "timestamp", float(self.timestamp))
+        object.__setattr__(self, "segment", int(self.segment))
+        img = np.asarray(self.image)
+        if img.shape != (cam.height, cam.width, 3):
+            raise ValueError(f"{where}.image: expected ({cam.height}, {cam.width}, 3) RGB for a {cam.width}x"
+                             f"{cam.height} camera, got {img.shape}")
+        if not np.issubdtype(img.dtype, np.floating):
+            raise ValueError(f"{where}.image: expected float RGB in [0, 1], got {img.dtype} (divide uint8 by 255)")
+        if not np.all(np.isfinite(img)):
+            raise ValueError(f"{where}.image: non-finite values")
+        object.__setattr__(self, "image", _frozen(img.astype(np.float32, copy=True)))
+        object.__setattr__(self, "cam_to_world", _rigid(self.cam_to_world, f"{where}.cam_to_world"))
+        uv = np.array(self.points_uv, dtype=np.float64)
+        if uv.size == 0:
+            uv = uv.reshape(0, 2)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"{where}.points_uv: expected (M, 2) pixels, got {uv.shape}")
+        m = len(uv)
+        object.__setattr__(self, "points_uv", _frozen(uv))
+        idepths = np.array(self.idepths, dtype=np.float64).reshape(-1)
+        if idepths.shape != (m,):
+            raise ValueError(f"{where}.idepths: expected ({m},) for {m} points, got {idepths.shape}")
+        object.__setattr__(self, "idepths", _frozen(idepths))
+        kinds = np.zeros(m, np.int8) if self.kinds is None else np.array(self.kinds).reshape(-1)
+        if kinds.shape != (m,):
+            raise ValueError(f"{where}.kinds: expected ({m},), got {kinds.shape}")
+        valid = {int(PointKind.ACTIVE), int(PointKind.MARGINALIZED), int(PointKind.IMMATURE)}
+        if m and not set(np.unique(kinds).tolist()) <= valid:
+            raise ValueError(f"{where}.kinds: values must be PointKind ACTIVE/MARGINALIZED/IMMATURE {sorted(valid)}")
+        object.__setattr__(self, "kinds", _frozen(kinds.astype(np.int8)))
+        for name, shape in (("weights", (m,)), ("colors", (m, 3))):
+            v = getattr(self, name)
+            if v is not None:
+                arr = np.array(v, dtype=np.float64 if name == "weights" else np.float32)
+                if arr.shape != shape:
+                    raise ValueError(f"{where}.{name}: expected {shape}, got {arr.shape}")
+                object.__setattr__(self, name, _frozen(arr))
+        if self.mask is not None:
+            mk = np.array(self.mask, dtype=np.float32)
+            if mk.shape != (cam.height, cam.width) or not np.all(np.isfinite(mk)) or np.any(mk < 0):
+                raise ValueError(f"{where}.mask: expected ({cam.height}, {cam.width}) finite weights >= 0")
+            object.__setattr__(self, "mask", _frozen(mk))
+        object.__setattr__(self, "affine", _affine(self.affine, f"{where}.affine"))
+        if self.exposure_ms is not None:
+            e = float(self.exposure_ms)
+            if not math.isfinite(e):
+                raise ValueError(f"{where}.exposure_ms: must be finite, got {self.exposure_ms!r}")
+            object.__setattr__(self, "exposure_ms", e if e > 0 else None)
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points_uv.shape[0])
+
+    @property
+    def world_to_cam(self) -> np.ndarray:
+        T = self.cam_to_world
+        out = np.eye(4)
+        out[:3, :3] = T[:3, :3].T
+        out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+        return out
+
+    def map_exposure(self, reference_exposure_ms: float | None) -> tuple[float, float]:
+        """This keyframe's exposure for the trainer (see :func:`map_exposure`)."""
+        return map_exposure(self.affine, self.exposure_ms, reference_exposure_ms)
+
+    def seed_input(self, exposure: tuple[float, float] | None = None) -> KeyframeSeedInput:
+        """What :func:`mgso.mapping.seeding.seed_keyframe` needs (``exposure``: the trainer's (a', b') of the view,
+        so that seed colours are radiance)."""
+        return KeyframeSeedInput(self.image, self.camera, self.cam_to_world, self.points_uv, self.idepths,
+                                 kinds=self.kinds, weights=self.weights, colors=self.colors, exposure=exposure,
+                                 keyframe_id=self.keyframe_id)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseUpdate:
+    """Keyframe poses refined by the window: ``cam_to_world`` maps keyframe id -> 4x4 rigid pose; ``affine`` maps
+    keyframe id -> DSO's refined (a, b) (only for those whose affine changed; may be empty). Ids the map does not
+    know (a keyframe whose message has not arrived or that was never sent) are counted by the mapper and ignored."""
+
+    cam_to_world: Mapping[int, np.ndarray]
+    affine: Mapping[int, tuple[float, float]] = field(default_factory=dict)
+
+    def __post_init__(self):
+        poses = {int(k): _rigid(v, f"PoseUpdate.cam_to_world[{k}]") for k, v in dict(self.cam_to_world).items()}
+        aff = {int(k): _affine(v, f"PoseUpdate.affine[{k}]") for k, v in dict(self.affine).items()}
+        object.__setattr__(self, "cam_to_world", MappingProxyType(poses))
+        object.__setattr__(self, "affine", MappingProxyType(aff))
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        return sorted(set(self.cam_to_world) | set(self.affine))
+
+
+@dataclass(frozen=True, eq=False)
+class MarginalizedPoints:
+    """Points that left the window for good: ``points`` (N, 3) world positions, ``colors`` (N, 3) RGB in [0, 1]
+    (DSO: the mean over the pattern), ``host_keyframe_id`` (the keyframe they were hosted by; -1 when they are not
+    from one keyframe), optional ``idepths`` (N,) in the host and ``weights`` (N,)."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    host_keyframe_id: int = -1
+    weights: np.ndarray | None = None
+
+    def __post_init__(self):
+        where = f"MarginalizedPoints(host {self.host_keyframe_id})"
+        p = np.array(self.points, dtype=np.float64)
+        if p.size == 0:
+            p = p.reshape(0, 3)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"{where}.points: expected (N, 3), got {p.shape}")
+        n = len(p)
+        c = np.array(self.colors, dtype=np.float32)
+        if c.size == 0:
+            c = c.reshape(0, 3)
+        if c.shape != (n, 3):
+            raise ValueError(f"{where}.colors: expected ({n}, 3) RGB in [0, 1], got {c.shape}")
+        object.__setattr__(self, "points", _frozen(p))
+        object.__setattr__(self, "colors", _frozen(c))
+        object.__setattr__(self, "host_keyframe_id", int(self.host_keyframe_id))
+        if self.weights is not None:
+            w = np.array(self.weights, dtype=np.float64).reshape(-1)
+            if w.shape != (n,):
+                raise ValueError(f"{where}.weights: expected ({n},), got {w.shape}")
+            object.__setattr__(self, "weights", _frozen(w))
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True)
+class Stop:
+    """End of the message stream. ``refine``: run the final refinement before stopping (false when the run was
+    interrupted: the outputs of what was done are written at once)."""
+
+    refine: bool = True
+
+
+MapperMessage = Union[KeyframeMessage, PoseUpdate, MarginalizedPoints, Stop]

@@ -1,0 +1,227 @@
+"""MGSO's mapper (mgso.mapping.mapper) and its messages (mgso.mapping.messages), driven by hand-made messages."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from mgso import synthetic
+from mgso.camera import PinholeCamera
+from mgso.config import ConfigError, load_config
+from mgso.geometry import se3_exp, se3_inverse
+from mgso.mapping.mapper import Mapper, MapperError
+from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PointKind, PoseUpdate, Stop, map_exposure
+from mgso.mapping.seeding import backproject
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return synthetic.make_sequence(seed=0, num_frames=9, width=80, height=60, motion_scale=2.0)
+
+
+@pytest.fixture(scope="module")
+def cam(seq):
+    k = seq.intrinsics
+    return PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+
+
+def _grid(cam, step=5, margin=2):
+    u, v = np.meshgrid(np.arange(margin, cam.width - margin, step), np.arange(margin, cam.height - margin, step))
+    return np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+
+
+def _kf(seq, cam, i, kid=None, pose=None, **kw):
+    uv = _grid(cam)
+    ui = uv.astype(int)
+    z = seq.depths[i][ui[:, 1], ui[:, 0]].astype(np.float64)
+    return KeyframeMessage(i if kid is None else kid, i, float(seq.timestamps[i]), seq.images[i], cam,
+                           seq.cam_to_world[i] if pose is None else pose, uv, 1.0 / z, **kw)
+
+
+def _cfg(*over):
+    return load_config(None, ["mapping.mapper.iterations_per_keyframe=3", "mapping.mapper.final_iterations=4",
+                              "mapping.capacity=20000", *over])
+
+
+# ------------------------------------------------------------------------------------------------ messages
+def test_messages_check_their_fields(seq, cam):
+    m = _kf(seq, cam, 0)
+    assert not m.image.flags.writeable and not m.points_uv.flags.writeable and m.kinds.dtype == np.int8
+    assert m.num_points == len(_grid(cam))
+    with pytest.raises(ValueError, match="image"):
+        _kf(seq, cam, 0).__class__(0, 0, 0.0, seq.images[0][:, :10], cam, np.eye(4), m.points_uv, m.idepths)
+    with pytest.raises(ValueError, match="idepths"):
+        KeyframeMessage(0, 0, 0.0, seq.images[0], cam, np.eye(4), m.points_uv, m.idepths[:-1])
+    with pytest.raises(ValueError, match="rigid"):
+        KeyframeMessage(0, 0, 0.0, seq.images[0], cam, 2 * np.eye(4), m.points_uv, m.idepths)
+    with pytest.raises(ValueError, match="kinds"):
+        KeyframeMessage(0, 0, 0.0, seq.images[0], cam, np.eye(4), m.points_uv, m.idepths,
+                        kinds=np.full(m.num_points, 9))
+    with pytest.raises(ValueError, match="affine"):
+        KeyframeMessage(0, 0, 0.0, seq.images[0], cam, np.eye(4), m.points_uv, m.idepths, affine=(math.nan, 0))
+    with pytest.raises(ValueError, match=r"PoseUpdate.cam_to_world\[3\]"):
+        PoseUpdate({3: np.ones((4, 4))})
+    with pytest.raises(ValueError, match="colors"):
+        MarginalizedPoints(np.zeros((4, 3)), np.zeros((3, 3)), 0)
+    drift = np.eye(4)
+    drift[:3, :3] += 1e-3 * np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, 1.0]])   # round-off of a chain
+    m = KeyframeMessage(0, 0, 0.0, seq.images[0], cam, drift, m.points_uv, m.idepths)
+    R = m.cam_to_world[:3, :3]
+    assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12 and np.abs(R - drift[:3, :3]).max() < 2e-3
+    u = PoseUpdate({2: np.eye(4)}, affine={2: (0.1, 2.0)})
+    assert u.keyframe_ids == [2] and u.affine[2] == (0.1, 2.0)
+    with pytest.raises(TypeError):
+        u.cam_to_world[5] = np.eye(4)          # read-only mapping
+
+
+def test_map_exposure_follows_dsos_model():
+    # DSO: I = t e^a L + b (0-255); trainer: image = exp(a') render + b' ([0, 1]); render = L t_ref / 255
+    a, b, t, t_ref = 0.2, 12.0, 20.0, 10.0
+    ap, bp = map_exposure((a, b), t, t_ref)
+    L = 100.0
+    image01 = (t * math.exp(a) * L + b) / 255.0
+    render = L * t_ref / 255.0
+    assert math.exp(ap) * render + bp == pytest.approx(image01)
+    assert map_exposure((a, b), None, t_ref) == pytest.approx((a, b / 255.0))   # unknown exposure: DSO uses 1
+
+
+def test_config_checks_mapper_and_system():
+    with pytest.raises(ConfigError, match="mapping.mapper"):
+        load_config(None, ["mapping.mapper.queue_size=0"])
+    with pytest.raises(ConfigError, match="init"):
+        load_config(None, ["mapping.mapper.init=grid"])
+    with pytest.raises(ConfigError, match="system: mode"):
+        load_config(None, ["system.mode=fast"])
+
+
+# ------------------------------------------------------------------------------------------ deterministic
+def test_keyframes_seed_views_and_train(wp_device, seq, cam):
+    mp = Mapper(_cfg(), device=wp_device)
+    mp.submit(_kf(seq, cam, 0, exposure_ms=10.0))
+    mp.submit(_kf(seq, cam, 4, exposure_ms=20.0, affine=(0.1, 3.0)))
+    assert mp.process_pending() == 2
+    st = mp.stats
+    assert st.keyframes == 2 and mp.keyframe_ids == [0, 4]
+    assert st.steps == 2 * 3                          # iterations_per_keyframe after each keyframe
+    assert st.seed_results[0].num_added > 100 and mp.gmap.n >= st.gaussians_seeded - st.densify["pruned"]
+    # the first keyframe's exposure is the reference; the second's is DSO's affine and the exposure ratio
+    assert mp.reference_exposure_ms == 10.0
+    assert mp.view_exposure(0) == pytest.approx((0.0, 0.0))
+    assert mp.view_exposure(4) == pytest.approx((0.1 + math.log(2.0), 3.0 / 255.0))
+    np.testing.assert_allclose(mp.views[4].world_to_cam, se3_inverse(seq.cam_to_world[4]), atol=1e-12)
+    stats = mp.stop()
+    assert stats.final_steps == 4 and stats.steps == 10 and stats.stopped_by == "stop"
+
+
+def test_pose_update_moves_views_and_shifts_exposure(wp_device, seq, cam):
+    noisy = seq.cam_to_world[0] @ se3_exp([0.05, 0, 0, 0, 0.02, 0])
+    mp = Mapper(_cfg("mapping.train.learn_exposure=true"), device=wp_device)
+    mp.submit(_kf(seq, cam, 0, pose=noisy, affine=(0.2, 5.0)))
+    mp.process_pending()
+    learned = np.array(mp.view_exposure(0)) - np.array(map_exposure((0.2, 5.0), None, None))
+    assert np.abs(learned).max() > 0                  # the trainer learned a correction on top of DSO's
+    mp.submit(PoseUpdate({0: seq.cam_to_world[0], 7: np.eye(4)}, affine={0: (0.5, 1.0)}))
+    mp.process_pending()
+    np.testing.assert_allclose(mp.views[0].cam_to_world, seq.cam_to_world[0], atol=1e-12)
+    assert mp.stats.poses_applied == 1 and mp.stats.poses_unknown == 1
+    # DSO's change of (a, b) moves the view's exposure; what was learned on top is kept
+    expect = np.array(map_exposure((0.5, 1.0), None, None)) + learned
+    np.testing.assert_allclose(mp.view_exposure(0), expect, atol=1e-12)
+
+
+def test_marginalized_points_seed_only_where_the_map_is_empty(wp_device, seq, cam):
+    mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=0"), device=wp_device)
+    kf = _kf(seq, cam, 0)
+    # the keyframe brings only the left half of its points; the right half arrives marginalised later
+    left = kf.points_uv[:, 0] < cam.width / 2
+    mp.submit(KeyframeMessage(0, 0, kf.timestamp, kf.image, cam, kf.cam_to_world, kf.points_uv[left],
+                              kf.idepths[left]))
+    mp.process_pending()
+    n0 = mp.gmap.n
+    pts = backproject(kf.points_uv, 1.0 / kf.idepths, cam, kf.cam_to_world)
+    cols = np.full((len(pts), 3), 0.5, np.float32)
+    mp.submit(MarginalizedPoints(pts, cols, host_keyframe_id=0))
+    mp.submit(MarginalizedPoints(pts, cols, host_keyframe_id=99))      # unknown host: cloud only
+    mp.process_pending()
+    res = mp.stats.seed_results[-1]
+    added = mp.gmap.n - n0
+    assert mp.stats.point_messages == 2 and mp.stats.points_received == 2 * len(pts)
+    assert res.num_fill == 0                           # no Delaunay fill for marginalised points
+    # the right half is new; most of the left half is already covered by the keyframe's seeds
+    assert added == res.num_added and (~left).sum() * 0.7 < added < len(pts) * 0.8
+    assert res.num_rejected_visibility > 0.5 * left.sum()
+
+
+def test_random_init_adds_what_dso_seeding_would(wp_device, seq, cam):
+    counts = {}
+    for init in ("dso", "random"):
+        mp = Mapper(_cfg(f"mapping.mapper.init={init}", "mapping.mapper.iterations_per_keyframe=0"),
+                    device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        mp.process_pending()
+        counts[init] = mp.gmap.n
+        means = mp.gmap.means.numpy()
+        z = (means - seq.cam_to_world[0][:3, 3]) @ seq.cam_to_world[0][:3, 2]
+        zt = 1.0 / _kf(seq, cam, 0).idepths
+        assert zt.min() - 1e-3 <= z.min() and z.max() <= zt.max() + 1e-3     # inside the points' depth range
+        if init == "random":
+            # not on the surfaces: the depth of a random Gaussian is unrelated to the surface behind its pixel
+            uv = means @ seq.cam_to_world[0][:3, :3] - seq.cam_to_world[0][:3, 3] @ seq.cam_to_world[0][:3, :3]
+            px = np.round(cam.fx * uv[:, 0] / uv[:, 2] + cam.cx).astype(int).clip(0, cam.width - 1)
+            py = np.round(cam.fy * uv[:, 1] / uv[:, 2] + cam.cy).astype(int).clip(0, cam.height - 1)
+            rel = np.abs(z - seq.depths[0][py, px]) / seq.depths[0][py, px]
+            assert np.median(rel) > 0.1
+    assert counts["dso"] == counts["random"] > 0
+
+
+def test_stop_without_refinement_applies_pending_messages_only(wp_device, seq, cam):
+    mp = Mapper(_cfg(), device=wp_device)
+    mp.submit(_kf(seq, cam, 0))
+    mp.submit(_kf(seq, cam, 4))
+    st = mp.stop(refine=False)
+    assert st.keyframes == 2 and st.steps == 0 and st.stopped_by == "interrupt"
+    assert mp.stop() is st                             # idempotent
+
+
+# --------------------------------------------------------------------------------------------- real time
+def test_real_time_thread_applies_every_message_and_counts_backpressure(wp_device, seq, cam):
+    mp = Mapper(_cfg("mapping.mapper.queue_size=1", "mapping.mapper.final_iterations=2"), device=wp_device)
+    mp.start()
+    assert mp.running
+    truth = {}
+    for i in range(0, 9, 2):
+        mp.submit(_kf(seq, cam, i, pose=seq.cam_to_world[i] @ se3_exp([0.03, 0, 0, 0, 0, 0])))
+        truth[i] = seq.cam_to_world[i]
+        mp.submit(PoseUpdate(dict(truth)))
+    st = mp.stop(timeout=60)
+    assert not mp.running
+    assert st.keyframes == 5 and mp.keyframe_ids == [0, 2, 4, 6, 8]
+    assert st.pose_updates == 5 and st.poses_applied == 1 + 2 + 3 + 4 + 5 and st.poses_unknown == 0
+    for i, T in truth.items():
+        np.testing.assert_allclose(mp.views[i].cam_to_world, T, atol=1e-12)
+    assert st.final_steps == 2 and st.stopped_by == "stop"
+    assert st.queue_waits > 0 and st.max_queue_depth >= 1    # a queue of 1 makes the sender wait
+
+
+def test_mapping_thread_failure_reaches_the_sender(wp_device, seq, cam):
+    mp = Mapper(_cfg(), device=wp_device)
+    mp.start()
+    mp.submit(_kf(seq, cam, 0))
+    mp.submit(_kf(seq, cam, 0))          # the same keyframe twice: the mapping thread raises
+    with pytest.raises(MapperError, match="twice"):
+        for _ in range(200):
+            threading.Event().wait(0.05)
+            mp.submit(PoseUpdate({}))
+        mp.stop(timeout=30)
+
+
+def test_submit_rejects_other_objects(wp_device):
+    mp = Mapper(_cfg(), device=wp_device)
+    with pytest.raises(TypeError, match="mapper message"):
+        mp.submit("keyframe")
+    with pytest.raises(ValueError, match="Stop"):
+        mp.handle(Stop())
+    assert isinstance(PointKind.ACTIVE, int)
