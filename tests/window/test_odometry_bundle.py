@@ -18,7 +18,7 @@ GRAY = np.array([0.299, 0.587, 0.114], np.float32)
 
 @pytest.fixture(scope="module")
 def room():
-    return synthetic.make_sequence(seed=0, num_frames=40, width=160, height=120)
+    return synthetic.make_sequence(seed=0, num_frames=60, width=160, height=120)
 
 
 def run(seq, backend):
@@ -36,14 +36,14 @@ def test_bundle_adjustment_beats_tracking_alone(wp_device, room):
     fixed = run(room, "fixed")
     bundle = run(room, "bundle")
     assert isinstance(fixed.back_end, FixedWindowBackEnd) and isinstance(bundle.back_end, WindowOptimizer)
-    assert bundle.segment == 0 and len(bundle.trajectory()) >= 30
+    assert bundle.segment == 0 and len(bundle.trajectory()) >= 45
     ate_f = compute_ate(fixed.trajectory(), room.trajectory).rmse
     ate_b = compute_ate(bundle.trajectory(), room.trajectory).rmse
     kf_f = compute_ate(fixed.keyframe_trajectory(), room.trajectory).rmse
     kf_b = compute_ate(bundle.keyframe_trajectory(), room.trajectory).rmse
-    # measured when written: all frames 1.0 mm vs 6.8 mm, keyframes 0.65 mm vs 4.4 mm (50 cm path)
-    assert ate_b < 0.5 * ate_f, (ate_b, ate_f)
-    assert kf_b < 0.5 * kf_f, (kf_b, kf_f)
+    # measured when written: all frames 1.05 mm vs 2.35 mm, keyframes 0.72 mm vs 2.60 mm (75 cm path)
+    assert ate_b < 0.6 * ate_f, (ate_b, ate_f)
+    assert kf_b < 0.4 * kf_f, (kf_b, kf_f)
     # the back end kept a prior and the points it marginalised are in the cloud with colours
     assert bundle.back_end.prior is not None and not bundle.back_end.prior.empty
     cloud = bundle.point_cloud
