@@ -261,12 +261,32 @@ class WindowConfig:
                                     "and activation never exceeds the free capacity)")
     immature_capacity: int = opt(16000, "immature points the window can hold (about 1500 a keyframe; buffers "
                                         "preallocated; a keyframe's selection is cut to the free capacity)")
+    backend: Literal["bundle", "fixed"] = opt("bundle", "bundle: DSO's joint photometric bundle adjustment with a "
+                                                       "marginalisation prior (docs/window.md); fixed: the stand-in "
+                                                       "(poses fixed, inverse depths refined; docs/tracking.md)")
+    iterations: int = opt(6, "Levenberg-Marquardt iterations per keyframe (DSO setting_maxOptIterations = 6)")
+    min_frames: int = opt(5, "keyframes kept at least when marginalising (DSO setting_minFrames = 5)")
+    affine_prior_a: float = opt(0.0, "prior on each keyframe's affine a (DSO setting_affineOptModeA; 0 = free as "
+                                     "DSO's mode 1 without photometric calibration, DSO default 1e12)")
+    affine_prior_b: float = opt(0.0, "prior on each keyframe's affine b (DSO setting_affineOptModeB; DSO default 1e8)")
+    idepth_fix_prior: float = opt(2500.0, "prior weight on the initialiser's inverse depths: holds the scale "
+                                          "(DSO setting_idepthFixPrior = 50^2)")
+    marg_weight_fac: float = opt(0.25, "factor on what is marginalised into the prior, for its inexact "
+                                       "linearisation point (DSO setting_margWeightFac = 0.5^2)")
+    force_accept: bool = opt(False, "keep every step even if the energy rises (DSO setting_forceAceptStep = true); "
+                                    "false: a step is kept only when the total energy goes down")
 
     def __post_init__(self):
         if not 2 <= self.max_frames <= 16:
             raise ConfigError(f"window.max_frames must be in [2, 16], got {self.max_frames}")
         if self.point_capacity < 100 or self.immature_capacity < 100:
             raise ConfigError("window.point_capacity and window.immature_capacity must be >= 100")
+        if self.backend not in ("bundle", "fixed"):
+            raise ConfigError(f"window.backend must be 'bundle' or 'fixed', got {self.backend!r}")
+        if not 1 <= self.iterations <= 100:
+            raise ConfigError(f"window.iterations must be in [1, 100], got {self.iterations}")
+        if not 2 <= self.min_frames <= self.max_frames:
+            raise ConfigError(f"window.min_frames must be in [2, max_frames], got {self.min_frames}")
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,7 @@ from .window.window import MarginalizedPoints, Window
 
 __all__ = [
     "Odometry", "FrameStatus", "FrameResult", "FrameRecord", "KeyframeRecord", "TrackedFrame", "TrackingLost",
-    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "geometry_for",
+    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "make_back_end", "geometry_for",
 ]
 
 log = logging.getLogger(__name__)
@@ -215,6 +215,27 @@ class WindowBackEnd(Protocol):
         """Remove the flagged keyframes; returns their keyframe ids."""
 
 
+def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
+    """The back end ``cfg.window.backend`` names: ``bundle`` (:class:`~mgso.window.backend.WindowOptimizer`) or
+    ``fixed`` (:class:`~mgso.window.depth_refine.FixedWindowBackEnd`)."""
+    t, wc = cfg.tracking, cfg.window
+    if wc.backend == "fixed":
+        return FixedWindowBackEnd(FixedWindowSettings(
+            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=wc.max_frames,
+            min_frames=wc.min_frames, huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
+            overall_energy_th_weight=t.overall_energy_th_weight))
+    from .window.backend import WindowOptimizer
+    from .window.energy import BundleSettings
+    from .window.marginalize import MarginalizationSettings
+
+    bundle = BundleSettings(iterations=wc.iterations, affine_prior_a=wc.affine_prior_a,
+                            affine_prior_b=wc.affine_prior_b, idepth_fix_prior=wc.idepth_fix_prior,
+                            marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept, huber_th=t.huber_th,
+                            grad_c2=t.outlier_th_sum_component, overall_energy_th_weight=t.overall_energy_th_weight)
+    marg = MarginalizationSettings(min_frames=wc.min_frames, max_frames=wc.max_frames)
+    return WindowOptimizer(bundle, marg, device=device)
+
+
 def geometry_for(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
                  config: Config) -> PyramidGeometry:
     """The pyramid geometry (level count, crop, shifted intrinsics) the odometry uses for this camera."""
@@ -255,10 +276,7 @@ class Odometry:
         self.observer = observer or Observer()
         self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
                              immature_capacity=cfg.window.immature_capacity, device=self.device)
-        self.back_end: WindowBackEnd = back_end or FixedWindowBackEnd(FixedWindowSettings(
-            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=cfg.window.max_frames,
-            huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
-            overall_energy_th_weight=t.overall_energy_th_weight))
+        self.back_end: WindowBackEnd = back_end or make_back_end(cfg, self.device)
         self.tracker = CoarseTracker(geometry, t, device=self.device)
         self.policy = KeyframePolicy.from_config(geometry.width, geometry.height, t)
         self.initializer = CoarseInitializer(geometry, t, seed=cfg.runtime.seed, device=self.device)
@@ -286,7 +304,7 @@ class Odometry:
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
         self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
         self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
-        self._prev_pose: np.ndarray | None = None  # the previous tracked frame's cam_to_world (this segment)
+        self._prev_rec: FrameRecord | None = None  # the previous tracked frame (this segment)
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -447,7 +465,7 @@ class Odometry:
         pos = idepth > 0
         self._segment_median_depth = float(np.median(1.0 / idepth[pos])) if pos.any() else float("inf")
         self._segment_steps = []
-        self._prev_pose = None
+        self._prev_rec = None
         keep = self._rng.random(len(xy)) <= cfg.point_density / max(len(xy), 1)
         xy, idepth, typ = xy[keep], idepth[keep], typ[keep]
         g = self.geometry
@@ -485,7 +503,7 @@ class Odometry:
         last = self._last_good
         if last is None or last.cam_to_world is None:
             return np.eye(4)
-        anchor = self.to_world(last.segment, last.cam_to_world)
+        anchor = self.to_world(last.segment, self._chained_pose(last))
         prev = self.segment_similarity(last.segment)
         s_prev = float(np.cbrt(np.linalg.det(prev[:3, :3])))
         med_new = float(np.median(1.0 / idepth[idepth > 0])) if np.any(idepth > 0) else float("nan")
@@ -539,9 +557,9 @@ class Odometry:
         rec.tracking_ref = ref.keyframe_id
         rec.affine = tr.affine
         rec.cam_to_world = se3_renormalize(ref_c2w @ rec.cam_to_tracking_ref)
-        if self._prev_pose is not None:
-            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose[:3, 3])))
-        self._prev_pose = rec.cam_to_world.copy()
+        if self._prev_rec is not None:
+            self._segment_steps.append(float(np.linalg.norm(rec.cam_to_world[:3, 3] - self._prev_pose()[:3, 3])))
+        self._prev_rec = rec
         baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
         if tr.inlier_ratio >= 0.5 and (baseline <= 0 or tr.rmse0 <= cfg.kf_rmse_factor * baseline):
             self._last_good = rec  # a reliable pose: where a later segment would be chained
@@ -571,9 +589,9 @@ class Odometry:
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
         if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
             return LossReason.JUMP
-        if len(self._segment_steps) >= 5 and self._prev_pose is not None:
+        if len(self._segment_steps) >= 5 and self._prev_rec is not None:
             step = float(np.linalg.norm((self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)[:3, 3]
-                                        - self._prev_pose[:3, 3]))
+                                        - self._prev_pose()[:3, 3]))
             typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
             if step > cfg.lost_max_speed_factor * typical:
                 return LossReason.JUMP
@@ -680,6 +698,20 @@ class Odometry:
             (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
+
+    def _prev_pose(self) -> np.ndarray:
+        """The previous tracked frame's pose against its keyframe's current pose (the window may have moved it
+        since: comparing with the pose it had when it was tracked would read the correction as a jump)."""
+        return self._chained_pose(self._prev_rec)
+
+    def _chained_pose(self, f: FrameRecord) -> np.ndarray:
+        """A frame's pose from its keyframe's current pose (the back end may have moved it since the frame was
+        tracked)."""
+        if f.keyframe_id >= 0 and f.keyframe_id in self.keyframes:
+            return self.keyframes[f.keyframe_id].cam_to_world.copy()
+        if f.tracking_ref >= 0 and f.tracking_ref in self.keyframes and f.cam_to_tracking_ref is not None:
+            return self.keyframes[f.tracking_ref].cam_to_world @ f.cam_to_tracking_ref
+        return f.cam_to_world
 
     def _rechain_frames(self) -> None:
         for f in self.frames:

@@ -7,6 +7,8 @@ by the stage's engine, which reports through observers and result values. Stages
 - ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end):
   a pose for every tracked frame (``trajectory.txt``), the keyframes (``keyframes.txt``), a per-frame log
   (``frames.csv``), the marginalised points (``points.ply``) and, with ground truth, ATE in ``metrics.json``.
+- ``odometry``: the same outputs with the back end ``window.backend`` names (default ``bundle``: DSO's sliding-window
+  bundle adjustment with marginalisation, docs/window.md).
 - ``full``: the whole MGSO system (:mod:`mgso.system`): the DSO odometry and the Gaussian mapper seeded from its
   points, in deterministic or real-time mode; every output of docs/mgso.md (trajectories, ``map.ply``, ``points.ply``,
   renders, ``metrics.json`` with ATE, PSNR/SSIM, memory and speed).
@@ -31,9 +33,11 @@ __all__ = ["STAGES", "STAGE_HELP", "DEFAULT_STAGE", "RunSummary", "run_sequence"
 
 log = logging.getLogger(__name__)
 
-STAGES = ("check", "tracking", "full")
+STAGES = ("check", "tracking", "odometry", "full")
 STAGE_HELP = {"check": "check = decode and check every frame, describe the sequence",
               "tracking": "tracking = DSO front end: pose of every frame, keyframes, ATE with ground truth",
+              "odometry": "odometry = DSO front end + sliding-window bundle adjustment (window.backend): trajectory, "
+                          "keyframes, point cloud, ATE with ground truth",
               "full": "full = DSO odometry + Gaussian map seeded from its points (MGSO): trajectories, map.ply, "
                       "renders, ATE/PSNR/SSIM"}
 DEFAULT_STAGE = "full"
@@ -183,6 +187,14 @@ def run_sequence(seq, cfg: Config, out_dir: Path, *, stage: str | None = None,
     if stage == "check":
         _check_frames(seq, summary, progress)
     elif stage == "tracking":
+        import dataclasses
+
+        from .tracking.run import run_tracking
+
+        # the front end with the stand-in back end (poses fixed); the window optimisation is the odometry stage
+        cfg_t = dataclasses.replace(cfg, window=dataclasses.replace(cfg.window, backend="fixed"))
+        run_tracking(seq, cfg_t, out_dir, summary, progress)
+    elif stage == "odometry":
         from .tracking.run import run_tracking
 
         run_tracking(seq, cfg, out_dir, summary, progress)

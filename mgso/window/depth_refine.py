@@ -24,14 +24,14 @@ window (which keyframes and points leave), so that the front end runs on its own
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..geometry import se3_exp
 from ..tracking.point_residuals import evaluate_pairs, make_pairs
-from .window import MarginalizedPoints, PointFlag, ResidualState, Window
+from .marginalize import flag_frames_for_marginalization, flag_points_for_removal
+from .window import MarginalizedPoints, ResidualState, Window
 
 __all__ = ["FixedWindowSettings", "FixedWindowBackEnd", "RefineResult"]
 
@@ -85,44 +85,9 @@ class FixedWindowBackEnd:
 
     # ------------------------------------------------------------------------------- frame marginalisation
     def flag_frames_for_marginalization(self, window: Window) -> list[int]:
-        """DSO ``flagFramesForMarginalization`` (called before the new keyframe is added). Returns flagged slots."""
-        s = self.settings
-        order = list(window.order)
-        if not order:
-            return []
-        latest = order[-1]
-        flagged = 0
-        out = []
-        for slot in order:
-            n_in = window.points_in(slot)
-            n_out = int(window.points_left_[slot])
-            a_rel, _ = window.affine_rel(latest, slot)
-            if ((n_in < s.min_points_remaining * (n_in + n_out) or abs(math.log(a_rel)) > s.max_log_aff_fac_in_window)
-                    and len(order) - flagged > s.min_frames):
-                window.flagged_[slot] = True
-                flagged += 1
-                out.append(slot)
-        if len(order) - flagged >= s.max_frames:
-            latest_id = window.keyframe_id_[latest]
-            seg = int(window.segment_[latest])
-            first_id = self._segment_first.setdefault(seg, min(int(window.keyframe_id_[o]) for o in order))
-            best, best_slot = 1.0, -1
-            for slot in order:
-                kid = window.keyframe_id_[slot]
-                if kid > latest_id - s.min_frame_age or kid == first_id or window.flagged_[slot]:
-                    continue
-                score = 0.0
-                for other in order:
-                    if window.keyframe_id_[other] > latest_id - s.min_frame_age + 1 or other == slot:
-                        continue
-                    score += 1.0 / (1e-5 + np.linalg.norm(window.target_from_host(slot, other)[:3, 3]))
-                score *= -math.sqrt(np.linalg.norm(window.target_from_host(slot, latest)[:3, 3]))
-                if score < best:
-                    best, best_slot = score, slot
-            if best_slot >= 0:
-                window.flagged_[best_slot] = True
-                out.append(best_slot)
-        return out
+        """DSO ``flagFramesForMarginalization`` (called before the new keyframe is added). Returns flagged slots
+        (:func:`mgso.window.marginalize.flag_frames_for_marginalization`)."""
+        return flag_frames_for_marginalization(window, self.settings, self._segment_first)
 
     def marginalize_frames(self, window: Window) -> list[int]:
         """Remove the flagged keyframes (their remaining points are dropped); returns their keyframe ids."""
@@ -373,35 +338,8 @@ class FixedWindowBackEnd:
     # ------------------------------------------------------------------------------- point marginalisation
     def marginalize_points(self, window: Window) -> MarginalizedPoints:
         """DSO ``flagPointsForRemoval`` + ``dropPointsF``/``marginalizePointsF`` (without the prior): flag and remove
-        points; inliers go to the point cloud."""
-        s = self.settings
-        a = window.active
-        if a.n == 0:
-            return window.marginalize_points(np.zeros(0, bool))
-        order = window.order
-        newest = order[-1]
-        second = order[-2] if len(order) > 1 else -1
-        rs = a.res_state
-        n_res = np.count_nonzero((rs == ResidualState.IN) | (rs == ResidualState.OUTLIER), axis=1)
-        n_in = np.count_nonzero(rs == ResidualState.IN, axis=1)
-        flagged_slots = [o for o in order if window.flagged_[o]]
-        vis_in_marg = np.zeros(a.n, np.int64)
-        for f in flagged_slots:
-            vis_in_marg += rs[:, f] == ResidualState.IN
-        last0 = rs[:, newest]
-        last1 = rs[:, second] if second >= 0 else np.zeros(a.n, np.uint8)
-        oob = ((n_res >= s.min_good_active_res_for_marg) & (a.num_good_residuals > s.min_good_res_for_marg + 10)
-               & (n_res - vis_in_marg < s.min_good_active_res_for_marg))
-        oob |= (last0 == ResidualState.OOB) & (a.host != newest)
-        oob |= (n_res >= 2) & (last0 == ResidualState.OUTLIER) & (last1 == ResidualState.OUTLIER)
-        host_out = window.flagged_[a.host]
-        leave = oob | host_out
-        inlier = (n_res >= s.min_good_active_res_for_marg) & (a.num_good_residuals >= s.min_good_res_for_marg)
-        flag = np.full(a.n, PointFlag.KEEP, np.int8)
-        flag[leave & inlier & (a.idepth_hessian > s.min_idepth_h_marg)] = PointFlag.MARGINALIZE
-        flag[leave & ~(inlier & (a.idepth_hessian > s.min_idepth_h_marg))] = PointFlag.DROP
-        flag[(a.idepth < 0) | (n_in == 0) & (a.host != newest)] = PointFlag.DROP
-        a.flag[:] = flag
+        points; inliers go to the point cloud (:func:`mgso.window.marginalize.flag_points_for_removal`)."""
+        flag_points_for_removal(window, self.settings)
         return window.remove_flagged_points()
 
 

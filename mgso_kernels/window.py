@@ -1,0 +1,578 @@
+"""Sliding-window photometric bundle adjustment: residuals, Jacobians and Hessian blocks of every (point, target)
+pair, and the Schur complement over the points' inverse depths (DSO ``PointFrameResidual::linearize``,
+``AccumulatedTopHessian`` and ``AccumulatedSCHessian``).
+
+Parameters
+----------
+A **pair** is one active point (hosted in keyframe ``h``) and one target keyframe ``t``. Its residual depends on the
+10 *pair parameters* ``(xi_rel (6), a_t, b_t, a_h, b_h)`` -- the left se3 perturbation ``(v, w)`` of
+``target_from_host`` and the two frames' absolute affine brightness -- and on the point's inverse depth ``d``.
+A **keyframe** has 8 *frame parameters* ``(xi (6), a, b)``: the left perturbation of its ``world_to_cam`` about its
+linearisation point and its affine brightness. With ``T_th = T_t T_h^-1`` a perturbation of the target moves
+``T_th`` by ``exp(xi_t)`` and one of the host by ``exp(-Ad(T_th) xi_h)``, so the pose part of the pair parameters is
+``xi_rel = xi_t - Ad(T_th) xi_h`` (DSO ``EnergyFunctional::setAdjointsF``), taken at the linearisation point. Pairs
+of the same (host, target) keyframes share a **key**; a key holds ``target_from_host`` at the current estimate and
+at the linearisation point, and the relative brightness.
+
+Residual (:mod:`mgso_kernels.photometric`, DSO's): for each of the 8 pattern pixels, projected with the *current*
+``target_from_host`` and inverse depth, ``r = (I_t - b_t) - a_rel (I_h - b_h)``, Huber weight ``hw`` (9), gradient
+weight ``w = (w_t + w_h) / 2`` with ``w_t = sqrt(c2 / (c2 + |grad I_t|^2))``, energy ``w^2 hw r^2 (2 - hw)`` and
+system weight ``W = hw w^2``. Jacobians as DSO: the geometric part ``d(Ku, Kv)/d(xi_rel, d)`` once per pair at the
+pattern centre **at the linearisation point** of the keyframes (first-estimate Jacobians; the inverse depth is the
+current one: DSO moves a point's linearisation point every step), chained with each pattern pixel's target gradient
+at the current projection; affine Jacobians ``(-a_rel (I_h - b_h), -1, a_rel (I_h - b_h), a_rel)``.
+
+A pair is ``OOB`` when a pattern pixel falls outside ``border_lo < x < width - border_hi`` (DSO 1.1 / 3), behind the
+camera or on a non-finite sample, and ``OUTLIER`` when its energy exceeds its key's threshold (DSO ``max(host, target
+frameEnergyTH)``) or ``sum (W |grad I_t|)^2 < 2`` (DSO ``wJI2_sum``); only ``IN`` pairs enter the system, the others
+report the threshold as their energy (DSO ``linearize``).
+
+Reductions (no atomics; bitwise equal single, split over CPU cores or on a GPU):
+
+- :func:`linearize_window`: one thread per *block* of pairs of one key (pairs sorted by key) accumulates the key's
+  10x10 block ``H_cc = sum W J_c J_c^T`` and ``b_c = sum W J_c r`` in float64 and writes one row of a partial-sum
+  buffer; per pair it writes ``H_cd = sum W J_c J_d`` (10), ``H_dd = sum W J_d^2`` and ``b_d = sum W J_d r``. The
+  launch runs once per target keyframe (each with its image).
+- :func:`schur_points`: one thread per point (pairs sorted by point) sums the point's ``H_dd``, ``b_d`` and its
+  frame-point block in absolute frame parameters ``w_p [8 K]`` (adjoints applied) and writes them with
+  ``w_p / H_dd`` and the mask of the slots it touches; then one thread per (chunk of points, slot, slot) sums the
+  8x8 block of ``sum_p w_p w_p^T / H_dd`` (and ``sum_p w_p b_d / H_dd``) over the chunk's points that touch both
+  slots, in float64 registers, and writes a partial; the launcher sums the chunks.
+
+The caller (``mgso.window.energy``) sums the partial rows, maps the key blocks to absolute parameters and solves the
+reduced camera system ``(H_cc - H_sc) x_c = -(b_c - b_sc)``, then back-substitutes ``x_d = -(b_d + w_p . x_c) / H_dd``.
+No scaling is applied here (DSO's ``SCALE_*`` preconditioning is the solver's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import runtime
+from .image import bilinear_inside, sample_dI
+from .photometric import (PATTERN, Intrinsics, vec6f, gradient_weight, huber_weight, in_margins, inverse_K, project_pixel,
+                          project_RKi, projection_jacobians)
+
+__all__ = [
+    "PAIR_PARAMS", "FRAME_PARAMS", "NUM_KEY_SLOTS", "SLOT_H", "SLOT_B", "PairState", "WindowParams",
+    "make_window_params", "WindowKeys", "PairLinearization", "PointSchur", "linearize_window", "schur_points",
+    "schur_blocks_kernel",
+    "linearize_pairs_kernel", "schur_points_kernel", "vec10d", "mat1010d",
+]
+
+wp.set_module_options({"enable_backward": False})
+
+PAIR_PARAMS = 10  # (v, w) of target_from_host, a_t, b_t, a_h, b_h
+FRAME_PARAMS = 8  # (v, w) of world_to_cam, a, b
+SLOT_H = 0  # 100: the key's H_cc, row-major
+SLOT_B = 100  # 10: b_c
+NUM_KEY_SLOTS = 110
+
+vec10d = wp.types.vector(length=10, dtype=wp.float64)
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
+mat88d = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
+mat1010d = wp.types.matrix(shape=(10, 10), dtype=wp.float64)
+
+
+class PairState:
+    """Outcome of a pair (values equal :class:`mgso.window.window.ResidualState`)."""
+
+    IN = 1
+    OOB = 2
+    OUTLIER = 3
+
+
+STATE_IN = wp.constant(1)
+STATE_OOB = wp.constant(2)
+STATE_OUTLIER = wp.constant(3)
+
+
+@wp.struct
+class WindowParams:
+    cam: Intrinsics  # level-0 intrinsics and image size (shared by all keyframes)
+    huber_th: float  # DSO setting_huberTH = 9
+    grad_c2: float  # DSO setting_outlierTHSumComponent = 50^2
+    border_lo: float  # DSO projectPoint: x > 1.1
+    border_hi: float  # ... x < width - 3
+    min_wji2: float  # DSO: outlier when sum (W |grad I_t|)^2 < 2
+
+
+@wp.func
+def pair_sums(dku: vec6f, dkv: vec6f, dd: wp.vec2, a_rel: float, s_xx: float, s_xy: float, s_yy: float,
+              s_hx: float, s_hy: float, s_x: float, s_y: float, s_hh: float, s_h: float, s_1: float, s_rx: float,
+              s_ry: float, s_rh: float, s_r: float):
+    """A pair's blocks in float64 from the pattern sums (see the kernel), split by parameter kind to keep the
+    arithmetic small: ``(H_pp 6x6, H_pa 6x4, H_aa 4x4, b_p 6, b_a 4, hcd_p 6, hcd_a 4, H_dd, b_d)`` with
+    ``J_c = (gx dKu + gy dKv, hc u + v)``, ``u = (-a, 0, a, 0)``, ``v = (0, -1, 0, a)``."""
+    x = vec6d(dku)
+    y = vec6d(dkv)
+    a = wp.float64(a_rel)
+    z = wp.float64(0.0)
+    u = wp.vec4d(-a, z, a, z)
+    v = wp.vec4d(z, wp.float64(-1.0), z, a)
+    px = wp.float64(s_xx) * x + wp.float64(s_xy) * y
+    py = wp.float64(s_xy) * x + wp.float64(s_yy) * y
+    pu = wp.float64(s_hx) * x + wp.float64(s_hy) * y
+    pv = wp.float64(s_x) * x + wp.float64(s_y) * y
+    Hpp = wp.outer(px, x) + wp.outer(py, y)
+    Hpa = wp.outer(pu, u) + wp.outer(pv, v)
+    uv = wp.outer(u, v)
+    Haa = wp.float64(s_hh) * wp.outer(u, u) + wp.float64(s_h) * (uv + wp.transpose(uv)) + wp.float64(s_1) * wp.outer(v, v)
+    bp = wp.float64(s_rx) * x + wp.float64(s_ry) * y
+    ba = wp.float64(s_rh) * u + wp.float64(s_r) * v
+    ddx = wp.float64(dd[0])
+    ddy = wp.float64(dd[1])
+    cp = ddx * px + ddy * py
+    ca = (wp.float64(s_hx) * ddx + wp.float64(s_hy) * ddy) * u + (wp.float64(s_x) * ddx + wp.float64(s_y) * ddy) * v
+    hdd = wp.float64(s_xx) * ddx * ddx + wp.float64(2.0 * s_xy) * ddx * ddy + wp.float64(s_yy) * ddy * ddy
+    bd = wp.float64(s_rx) * ddx + wp.float64(s_ry) * ddy
+    return Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd
+
+
+# ------------------------------------------------------------------------------------------------ kernels
+@wp.kernel
+def linearize_pairs_kernel(offset: int,
+                           block_base: int,  # first block of this launch (one launch per target)
+                           block_start: wp.array(dtype=wp.int32),  # [B] range into order
+                           block_end: wp.array(dtype=wp.int32),  # [B]
+                           order: wp.array(dtype=wp.int32),  # [M] pair indices sorted by key
+                           pair_point: wp.array(dtype=wp.int32),  # [M] point index
+                           pair_key: wp.array(dtype=wp.int32),  # [M] key index
+                           key_R: wp.array(dtype=wp.mat33),  # [nk] target_from_host rotation, current
+                           key_t: wp.array(dtype=wp.vec3),  # [nk] translation, current
+                           key_R0: wp.array(dtype=wp.mat33),  # [nk] at the linearisation point
+                           key_t0: wp.array(dtype=wp.vec3),  # [nk]
+                           key_aff: wp.array(dtype=wp.vec3),  # [nk] (a_rel, b_h, b_t), current
+                           key_energy_th: wp.array(dtype=float),  # [nk] outlier threshold (8-pixel energy)
+                           uv: wp.array(dtype=wp.vec2),  # [n] host pixel of the point (level 0)
+                           idepth: wp.array(dtype=float),  # [n] host inverse depth
+                           color: wp.array2d(dtype=float),  # [n, 8] host intensity per pattern pixel
+                           weight: wp.array2d(dtype=float),  # [n, 8] host gradient weight per pattern pixel
+                           dI_t: wp.array2d(dtype=wp.vec3),  # [H, W] (I, dx, dy) of this launch's target
+                           params: WindowParams,
+                           pair_state: wp.array(dtype=wp.int32),  # [M] out: PairState
+                           pair_energy: wp.array(dtype=wp.float64),  # [M] out: energy (threshold unless IN)
+                           pair_hcd: wp.array(dtype=vec10d),  # [M] out: sum W J_c J_d (0 unless IN)
+                           pair_hdd: wp.array(dtype=wp.float64),  # [M] out: sum W J_d^2
+                           pair_bd: wp.array(dtype=wp.float64),  # [M] out: sum W J_d r
+                           partials: wp.array2d(dtype=wp.float64)):  # [B, NUM_KEY_SLOTS] out
+    blk = block_base + offset + wp.tid()
+    cam = params.cam
+    Ki = inverse_K(cam)
+    Hb_pp = mat66d()
+    Hb_pa = mat64d()
+    Hb_aa = wp.mat44d()
+    bb_p = vec6d()
+    bb_a = wp.vec4d()
+    for q in range(block_start[blk], block_end[blk]):
+        j = order[q]
+        p = pair_point[j]
+        k = pair_key[j]
+        R = key_R[k]
+        t = key_t[k]
+        aff = key_aff[k]
+        a_rel = aff[0]
+        b_h = aff[1]
+        b_t = aff[2]
+        c = uv[p]
+        d = idepth[p]
+        RKi = R * Ki
+        # first-estimate geometry at the pattern centre
+        kk0, n0, h0 = project_pixel(c[0], c[1], d, key_R0[k], key_t0[k], cam, cam)
+        dku, dkv, dd, dcu, dcv = projection_jacobians(n0, h0, d, key_R0[k], key_t0[k], cam)
+        ok = n0[2] > 0.0
+        # Per-pixel sums of scalars only (DSO AccumulatorApprox): the geometric Jacobian is the same for the 8
+        # pixels, so J_c = (Jx^T g, hc u + v) with g the target gradient, hc = I_h - b_h, u = (-a, 0, a, 0),
+        # v = (0, -1, 0, a); the 10x10 block is built once per pair from these sums.
+        s_xx = float(0.0)
+        s_xy = float(0.0)
+        s_yy = float(0.0)
+        s_hx = float(0.0)  # sum W gx hc
+        s_hy = float(0.0)
+        s_x = float(0.0)  # sum W gx
+        s_y = float(0.0)
+        s_hh = float(0.0)  # sum W hc^2
+        s_h = float(0.0)  # sum W hc
+        s_1 = float(0.0)  # sum W
+        s_rx = float(0.0)  # sum W gx r
+        s_ry = float(0.0)
+        s_rh = float(0.0)  # sum W hc r
+        s_r = float(0.0)  # sum W r
+        energy = float(0.0)
+        wji2 = float(0.0)
+        for i in range(8):
+            kk, nrm = project_RKi(c[0] + PATTERN[i, 0], c[1] + PATTERN[i, 1], d, RKi, t, cam)
+            ku = kk[0]
+            kv = kk[1]
+            inside = in_margins(ku, kv, cam.width, cam.height, params.border_lo, params.border_hi)
+            inside = inside and bilinear_inside(ku, kv, cam.width, cam.height) and nrm[2] > 0.0
+            s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
+            good = inside and wp.isfinite(s)
+            if not good:
+                ok = False
+            hc = color[p, i] - b_h
+            r = wp.where(good, (s[0] - b_t) - a_rel * hc, 0.0)
+            gx = wp.where(good, s[1], 0.0)
+            gy = wp.where(good, s[2], 0.0)
+            g2 = gx * gx + gy * gy
+            w = 0.5 * (gradient_weight(g2, params.grad_c2) + weight[p, i])
+            hw = huber_weight(r, params.huber_th)
+            W = hw * w * w
+            energy += w * w * hw * r * r * (2.0 - hw)
+            wji2 += W * W * g2
+            s_xx += W * gx * gx
+            s_xy += W * gx * gy
+            s_yy += W * gy * gy
+            s_hx += W * gx * hc
+            s_hy += W * gy * hc
+            s_x += W * gx
+            s_y += W * gy
+            s_hh += W * hc * hc
+            s_h += W * hc
+            s_1 += W
+            s_rx += W * gx * r
+            s_ry += W * gy * r
+            s_rh += W * hc * r
+            s_r += W * r
+        Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd = pair_sums(dku, dkv, dd, a_rel, s_xx, s_xy, s_yy, s_hx, s_hy, s_x,
+                                                           s_y, s_hh, s_h, s_1, s_rx, s_ry, s_rh, s_r)
+        th = key_energy_th[k]
+        state = int(STATE_IN)
+        if not ok:
+            state = STATE_OOB
+        elif energy > th or wji2 < params.min_wji2:
+            state = STATE_OUTLIER
+        inl = wp.where(state == STATE_IN, wp.float64(1.0), wp.float64(0.0))
+        Hb_pp += inl * Hpp
+        Hb_pa += inl * Hpa
+        Hb_aa += inl * Haa
+        bb_p += inl * bp
+        bb_a += inl * ba
+        pair_state[j] = state
+        pair_energy[j] = wp.where(state == STATE_IN, wp.float64(energy), wp.float64(th))
+        pair_hcd[j] = inl * vec10d(cp[0], cp[1], cp[2], cp[3], cp[4], cp[5], ca[0], ca[1], ca[2], ca[3])
+        pair_hdd[j] = inl * hdd
+        pair_bd[j] = inl * bd
+    for i in range(6):
+        for j in range(6):
+            partials[blk, SLOT_H + i * 10 + j] = Hb_pp[i, j]
+        for j in range(4):
+            partials[blk, SLOT_H + i * 10 + 6 + j] = Hb_pa[i, j]
+            partials[blk, SLOT_H + (6 + j) * 10 + i] = Hb_pa[i, j]
+        partials[blk, SLOT_B + i] = bb_p[i]
+    for i in range(4):
+        for j in range(4):
+            partials[blk, SLOT_H + (6 + i) * 10 + 6 + j] = Hb_aa[i, j]
+        partials[blk, SLOT_B + 6 + i] = bb_a[i]
+
+
+@wp.kernel
+def schur_points_kernel(offset: int,
+                        point_start: wp.array(dtype=wp.int32),  # [n + 1] pair range of each point (point-major)
+                        pair_key: wp.array(dtype=wp.int32),  # [M]
+                        pair_state: wp.array(dtype=wp.int32),  # [M]
+                        pair_hcd: wp.array(dtype=vec10d),  # [M]
+                        pair_hdd: wp.array(dtype=wp.float64),  # [M]
+                        pair_bd: wp.array(dtype=wp.float64),  # [M]
+                        key_host: wp.array(dtype=wp.int32),  # [nk] host slot
+                        key_target: wp.array(dtype=wp.int32),  # [nk] target slot
+                        key_adj: wp.array2d(dtype=wp.float64),  # [nk, 36] Ad(target_from_host) at lin. point
+                        point_extra_h: wp.array(dtype=wp.float64),  # [n] added to H_dd (prior, damping)
+                        point_extra_b: wp.array(dtype=wp.float64),  # [n] added to b_d (prior gradient)
+                        point_hdd: wp.array(dtype=wp.float64),  # [n] out: H_dd (with the extra term)
+                        point_bd: wp.array(dtype=wp.float64),  # [n] out: b_d
+                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K] out (zeroed): frame-point block
+                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] out: point_w / H_dd
+                        point_slots: wp.array(dtype=wp.int32)):  # [n] out: bit mask of the slots in point_w
+    p = offset + wp.tid()
+    touched = int(0)
+    nf = point_w.shape[1]
+    hdd = point_extra_h[p]
+    bd = point_extra_b[p]
+    for j in range(point_start[p], point_start[p + 1]):
+        if pair_state[j] != STATE_IN:
+            continue
+        k = pair_key[j]
+        hcd = pair_hcd[j]
+        hdd += pair_hdd[j]
+        bd += pair_bd[j]
+        ht = key_host[k]
+        tg = key_target[k]
+        touched = touched | (1 << ht) | (1 << tg)
+        for a in range(6):
+            point_w[p, 8 * tg + a] = point_w[p, 8 * tg + a] + hcd[a]
+            acc = wp.float64(0.0)
+            for m in range(6):
+                acc += key_adj[k, m * 6 + a] * hcd[m]
+            point_w[p, 8 * ht + a] = point_w[p, 8 * ht + a] - acc
+        point_w[p, 8 * tg + 6] = point_w[p, 8 * tg + 6] + hcd[6]
+        point_w[p, 8 * tg + 7] = point_w[p, 8 * tg + 7] + hcd[7]
+        point_w[p, 8 * ht + 6] = point_w[p, 8 * ht + 6] + hcd[8]
+        point_w[p, 8 * ht + 7] = point_w[p, 8 * ht + 7] + hcd[9]
+    if hdd < wp.float64(1e-10):  # DSO AccumulatedSCHessian::addPoint
+        hdd = wp.float64(1e-10)
+    point_hdd[p] = hdd
+    point_bd[p] = bd
+    ih = wp.float64(1.0) / hdd
+    for c in range(nf):
+        point_wi[p, c] = point_w[p, c] * ih
+    point_slots[p] = touched
+
+
+@wp.kernel
+def schur_blocks_kernel(offset: int,
+                        points_per_chunk: int,
+                        num_slots: int,
+                        point_slots: wp.array(dtype=wp.int32),  # [n] bit mask of the slots a point touches
+                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K]
+                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] point_w / H_dd
+                        point_bd: wp.array(dtype=wp.float64),  # [n]
+                        h_partials: wp.array3d(dtype=wp.float64),  # [chunks, K * K, 64] out: 8x8 blocks of H_sc
+                        b_partials: wp.array3d(dtype=wp.float64)):  # [chunks, K, 8] out: 8-blocks of b_sc
+    # one thread per (chunk of points, slot s1, slot s2): the 8x8 block (s1, s2) of sum_p wi_p w_p^T in registers
+    tid = offset + wp.tid()
+    kk = num_slots * num_slots
+    chunk = tid // kk
+    rem = tid - chunk * kk
+    s1 = rem // num_slots
+    s2 = rem - s1 * num_slots
+    n = point_w.shape[0]
+    start = chunk * points_per_chunk
+    end = wp.min(start + points_per_chunk, n)
+    need = (1 << s1) | (1 << s2)
+    acc = mat88d()
+    bacc = vec8d()
+    for p in range(start, end):
+        m = point_slots[p]
+        if (m & (1 << s1)) == 0:
+            continue
+        a = vec8d(point_wi[p, 8 * s1], point_wi[p, 8 * s1 + 1], point_wi[p, 8 * s1 + 2], point_wi[p, 8 * s1 + 3],
+                  point_wi[p, 8 * s1 + 4], point_wi[p, 8 * s1 + 5], point_wi[p, 8 * s1 + 6], point_wi[p, 8 * s1 + 7])
+        b = vec8d(point_w[p, 8 * s2], point_w[p, 8 * s2 + 1], point_w[p, 8 * s2 + 2], point_w[p, 8 * s2 + 3],
+                  point_w[p, 8 * s2 + 4], point_w[p, 8 * s2 + 5], point_w[p, 8 * s2 + 6], point_w[p, 8 * s2 + 7])
+        if (m & need) == need:
+            acc += wp.outer(a, b)
+        bacc += point_bd[p] * a
+    for i in range(8):
+        for j in range(8):
+            h_partials[chunk, rem, i * 8 + j] = acc[i, j]
+    if s2 == 0:
+        for i in range(8):
+            b_partials[chunk, s1, i] = bacc[i]
+
+
+# ---------------------------------------------------------------------------------------------- launchers
+def make_window_params(fx: float, fy: float, cx: float, cy: float, width: int, height: int, *,
+                       huber_th: float = 9.0, grad_c2: float = 2500.0, border_lo: float = 1.1,
+                       border_hi: float = 3.0, min_wji2: float = 2.0) -> WindowParams:
+    """Level-0 intrinsics and DSO's residual constants (``setting_huberTH``, ``setting_outlierTHSumComponent``,
+    ``projectPoint``'s margins, the ``wJI2_sum < 2`` outlier test)."""
+    if not (fx > 0 and fy > 0) or width < 8 or height < 8:
+        raise ValueError(f"bad intrinsics fx={fx} fy={fy} size {width}x{height}")
+    p = WindowParams()
+    c = Intrinsics()
+    c.fx, c.fy, c.cx, c.cy, c.width, c.height = float(fx), float(fy), float(cx), float(cy), int(width), int(height)
+    p.cam = c
+    p.huber_th, p.grad_c2 = float(huber_th), float(grad_c2)
+    p.border_lo, p.border_hi, p.min_wji2 = float(border_lo), float(border_hi), float(min_wji2)
+    return p
+
+
+@dataclass
+class WindowKeys:
+    """The (host, target) keyframe pairs of a window, ``nk`` of them (NumPy, float64)."""
+
+    host: np.ndarray  # [nk] int32 host slot
+    target: np.ndarray  # [nk] int32 target slot
+    R: np.ndarray  # [nk, 3, 3] target_from_host rotation at the current estimate
+    t: np.ndarray  # [nk, 3]
+    R0: np.ndarray  # [nk, 3, 3] at the linearisation point
+    t0: np.ndarray  # [nk, 3]
+    aff: np.ndarray  # [nk, 3] (a_rel, b_h, b_t) at the current estimate
+    energy_th: np.ndarray  # [nk] outlier threshold of the pair's 8-pixel energy
+    adj: np.ndarray  # [nk, 6, 6] Ad(target_from_host) at the linearisation point, (v, w) order
+
+    def __len__(self) -> int:
+        return len(self.host)
+
+
+@dataclass
+class PairLinearization:
+    """Per pair and per key results of :func:`linearize_window` (NumPy)."""
+
+    state: np.ndarray  # [M] int32 PairState
+    energy: np.ndarray  # [M] float64 (the key's threshold unless IN)
+    hcd: np.ndarray  # [M, 10] float64
+    hdd: np.ndarray  # [M] float64
+    bd: np.ndarray  # [M] float64
+    key_H: np.ndarray  # [nk, 10, 10] float64 sum over IN pairs
+    key_b: np.ndarray  # [nk, 10]
+
+
+@dataclass
+class PointSchur:
+    """Per point results of :func:`schur_points` and the summed Schur terms (NumPy float64)."""
+
+    hdd: np.ndarray  # [n] H_dd including the extra term (at least 1e-10)
+    bd: np.ndarray  # [n]
+    w: np.ndarray  # [n, 8 K] frame-point block in absolute frame parameters (slot-major)
+    H_sc: np.ndarray  # [8 K, 8 K] sum w w^T / H_dd
+    b_sc: np.ndarray  # [8 K] sum w b_d / H_dd
+
+
+def _arr(a, dtype, shape, name):
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+    return a
+
+
+def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_block: int):
+    """Pairs sorted by (target, key); blocks of at most ``pairs_per_block`` pairs that never straddle a key.
+    Returns ``order, block_start, block_end, block_key, target_block_ranges``."""
+    order = np.lexsort((pair_key, pair_target)).astype(np.int32)
+    keys = pair_key[order]
+    M = len(order)
+    if M == 0:
+        return order, np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int64), {}
+    cuts = np.flatnonzero(np.diff(keys)) + 1
+    seg_start = np.concatenate([[0], cuts])
+    seg_end = np.concatenate([cuts, [M]])
+    starts, ends = [], []
+    for s, e in zip(seg_start, seg_end):
+        b = np.arange(s, e, pairs_per_block)
+        starts.append(b)
+        ends.append(np.minimum(b + pairs_per_block, e))
+    bs = np.concatenate(starts).astype(np.int32)
+    be = np.concatenate(ends).astype(np.int32)
+    bkey = keys[bs].astype(np.int64)
+    btarget = pair_target[order][bs]
+    ranges = {}
+    for tg in np.unique(btarget):
+        idx = np.flatnonzero(btarget == tg)
+        ranges[int(tg)] = (int(idx[0]), int(idx[-1]) + 1)
+    return order, bs, be, bkey, ranges
+
+
+def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndarray, pair_key: np.ndarray,
+                     uv: np.ndarray, idepth: np.ndarray, color: np.ndarray, weight: np.ndarray,
+                     target_images: dict, *, pairs_per_block: int = 32, device: str | None = None,
+                     cache: dict | None = None) -> PairLinearization:
+    """Linearise ``M`` pairs (see the module text).
+
+    ``pair_point [M]`` index into the point arrays ``uv [n, 2]`` (pixels), ``idepth [n]``, ``color/weight [n, 8]``;
+    ``pair_key [M]`` index into ``keys``; ``target_images``: target slot -> ``wp.array2d(vec3) [H, W]`` level-0
+    ``(I, dx, dy)`` (a keyframe pyramid's ``dI[0]``). Returns per pair and per key float64 NumPy arrays.
+    ``cache``: a dict the caller keeps while the pairs, ``uv``, ``color`` and ``weight`` stay the same (the iterations
+    of one optimisation); the block plan, those inputs and the output buffers are made once and reused.
+    """
+    device = device or runtime.default_device()
+    nk = len(keys)
+    M = int(np.asarray(pair_point).shape[0])
+    n = int(np.asarray(uv).shape[0])
+    pp = _arr(pair_point, np.int32, (M,), "pair_point")
+    pk = _arr(pair_key, np.int32, (M,), "pair_key")
+    if M and (pk.min() < 0 or pk.max() >= nk or pp.min() < 0 or pp.max() >= n):
+        raise ValueError("linearize_window: pair_point / pair_key out of range")
+    uv = _arr(uv, np.float32, (n, 2), "uv")
+    idp = _arr(idepth, np.float32, (n,), "idepth")
+    col = _arr(color, np.float32, (n, 8), "color")
+    wgt = _arr(weight, np.float32, (n, 8), "weight")
+    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    if cache is None or "order" not in cache:
+        pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
+        missing = set(np.unique(pair_target).tolist()) - set(target_images)
+        if missing:
+            raise ValueError(f"linearize_window: no image for target slot(s) {sorted(missing)}")
+        order, bs, be, bkey, ranges = _blocks_by_key(pk, pair_target, pairs_per_block)
+        B = len(bs)
+        c = dict(order=order, bkey=bkey, ranges=ranges, B=B, w_bs=f(bs, wp.int32), w_be=f(be, wp.int32),
+                 w_order=f(order, wp.int32), w_pp=f(pp, wp.int32), w_pk=f(pk, wp.int32), uv=f(uv, wp.vec2),
+                 col=f(col, wp.float32), wgt=f(wgt, wp.float32),
+                 out_state=wp.zeros(M, dtype=wp.int32, device=device),
+                 out_energy=wp.zeros(M, dtype=wp.float64, device=device),
+                 out_hcd=wp.zeros(M, dtype=vec10d, device=device),
+                 out_hdd=wp.zeros(M, dtype=wp.float64, device=device),
+                 out_bd=wp.zeros(M, dtype=wp.float64, device=device),
+                 partials=wp.zeros((max(B, 1), NUM_KEY_SLOTS), dtype=wp.float64, device=device))
+        if cache is not None:
+            cache.update(c)
+    else:
+        c = cache
+    bkey, ranges, B = c["bkey"], c["ranges"], c["B"]
+    key_args = [f(keys.R.astype(np.float32), wp.mat33), f(keys.t.astype(np.float32), wp.vec3),
+                f(keys.R0.astype(np.float32), wp.mat33), f(keys.t0.astype(np.float32), wp.vec3),
+                f(keys.aff.astype(np.float32), wp.vec3), f(keys.energy_th.astype(np.float32), wp.float32)]
+    pts = [c["uv"], f(idp, wp.float32), c["col"], c["wgt"]]
+    out_state, out_energy, out_hcd, out_hdd, out_bd, partials = (
+        c["out_state"], c["out_energy"], c["out_hcd"], c["out_hdd"], c["out_bd"], c["partials"])
+    if B:
+        w_bs, w_be, w_order, w_pp, w_pk = c["w_bs"], c["w_be"], c["w_order"], c["w_pp"], c["w_pk"]
+        for tg, (b0, b1) in sorted(ranges.items()):
+            img = target_images[tg]
+            if not isinstance(img, wp.array) or img.dtype != wp.vec3 or img.ndim != 2:
+                raise TypeError(f"target image of slot {tg} must be a 2-D wp.array of vec3 (I, dx, dy)")
+            if (img.shape[1], img.shape[0]) != (params.cam.width, params.cam.height):
+                raise ValueError(f"target image of slot {tg} is {img.shape[1]}x{img.shape[0]}, params say "
+                                 f"{params.cam.width}x{params.cam.height}")
+            runtime.launch_split(linearize_pairs_kernel, b1 - b0,
+                                 [b0, w_bs, w_be, w_order, w_pp, w_pk, *key_args, *pts, img, params, out_state,
+                                  out_energy, out_hcd, out_hdd, out_bd, partials], device, min_chunk=8)
+    part = partials.numpy()[:B]
+    kH = np.zeros((nk, NUM_KEY_SLOTS))
+    if B:
+        np.add.at(kH, bkey, part)
+    return PairLinearization(out_state.numpy().copy(), out_energy.numpy().copy(),
+                             out_hcd.numpy().reshape(M, 10).copy(), out_hdd.numpy().copy(), out_bd.numpy().copy(),
+                             kH[:, :100].reshape(nk, 10, 10), kH[:, 100:110])
+
+
+def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray, point_start: np.ndarray,
+                 num_slots: int, extra_h: np.ndarray | None = None, extra_b: np.ndarray | None = None, *,
+                 points_per_chunk: int = 256, device: str | None = None) -> PointSchur:
+    """Per point sums and the Schur complement over the inverse depths (see the module text).
+
+    Pairs must be point-major: point ``p`` owns pairs ``point_start[p]:point_start[p+1]`` (``point_start [n+1]``).
+    ``num_slots``: keyframe slots ``K`` (the frame parameters are ``8 K``, slot-major). ``extra_h/extra_b [n]``: added
+    to each point's ``H_dd`` / ``b_d`` (an inverse-depth prior, damping).
+    """
+    device = device or runtime.default_device()
+    M = len(lin.state)
+    ps = _arr(point_start, np.int32, (np.asarray(point_start).shape[0],), "point_start")
+    n = len(ps) - 1
+    if n < 0 or (n >= 0 and len(ps) and (ps[0] != 0 or ps[-1] != M or np.any(np.diff(ps) < 0))):
+        raise ValueError("schur_points: point_start must rise from 0 to the number of pairs")
+    if num_slots < 1 or num_slots > 30:
+        raise ValueError(f"schur_points: num_slots must be in [1, 30], got {num_slots}")
+    nf = 8 * num_slots
+    eh = np.zeros(n) if extra_h is None else _arr(extra_h, np.float64, (n,), "extra_h")
+    eb = np.zeros(n) if extra_b is None else _arr(extra_b, np.float64, (n,), "extra_b")
+    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    hdd = wp.zeros(n, dtype=wp.float64, device=device)
+    bd = wp.zeros(n, dtype=wp.float64, device=device)
+    w = wp.zeros((n, nf), dtype=wp.float64, device=device)
+    wi = wp.zeros((n, nf), dtype=wp.float64, device=device)
+    slots = wp.zeros(n, dtype=wp.int32, device=device)
+    K = num_slots
+    chunks = max(1, -(-n // points_per_chunk))
+    hp = wp.zeros((chunks, K * K, 64), dtype=wp.float64, device=device)
+    bp = wp.zeros((chunks, K, 8), dtype=wp.float64, device=device)
+    if n:
+        runtime.launch_split(schur_points_kernel, n,
+                             [f(ps, wp.int32), f(_arr(pair_key, np.int32, (M,), "pair_key"), wp.int32),
+                              f(lin.state.astype(np.int32), wp.int32), f(lin.hcd, vec10d), f(lin.hdd, wp.float64),
+                              f(lin.bd, wp.float64), f(keys.host.astype(np.int32), wp.int32),
+                              f(keys.target.astype(np.int32), wp.int32),
+                              f(keys.adj.reshape(len(keys), 36), wp.float64), f(eh, wp.float64), f(eb, wp.float64),
+                              hdd, bd, w, wi, slots], device, min_chunk=256)
+        runtime.launch_split(schur_blocks_kernel, chunks * K * K,
+                             [int(points_per_chunk), K, slots, w, wi, bd, hp, bp], device, min_chunk=K * K,
+                             align=K * K)
+    Hb = hp.numpy().sum(axis=0).reshape(K, K, 8, 8).transpose(0, 2, 1, 3).reshape(nf, nf)
+    return PointSchur(hdd.numpy(), bd.numpy(), w.numpy(), Hb, bp.numpy().sum(axis=0).reshape(nf))
