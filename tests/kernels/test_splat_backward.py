@@ -273,7 +273,11 @@ def test_backward_into_given_arrays_is_identical(wp_device):
     out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
     g2 = rast.backward(out, v_rgb, into=Into)
     for name in PARAMS:
-        assert np.array_equal(getattr(Into, name).numpy(), want[name]), name
+        got = getattr(Into, name).numpy()
+        if wp.get_device(wp_device).is_cpu:      # CPU sums run in a fixed order: bitwise the same
+            assert np.array_equal(got, want[name]), name
+        else:                                    # CUDA atomics add in a varying order: equal to round-off
+            np.testing.assert_allclose(got, want[name], rtol=1e-4, atol=1e-6 * np.abs(want[name]).max(), err_msg=name)
         assert getattr(g2, "v_" + name).ptr == getattr(Into, name).ptr
     Into.quats = wp.zeros((n, 3), dtype=wp.float32, device=wp_device)
     out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))

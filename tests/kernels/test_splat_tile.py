@@ -76,7 +76,10 @@ def test_tile_kernels_agree_with_row_kernels(wp_device, size):
     # the row kernels step exp(power) along the row by a recurrence, the tile kernels evaluate it per pixel: the
     # images agree to float rounding, and the stop decisions everywhere but where T lands within rounding of 1e-4
     for key in ("rgb", "alpha", "T_final", "coverage"):
-        np.testing.assert_allclose(b[key], a[key], atol=2e-5, rtol=0, err_msg=key)
+        # CUDA: a pixel whose transmittance lands at the 1e-4 stop can take one more Gaussian in one variant (fused
+        # multiply-adds in another order); seen once at 3.9e-5 in alpha on an H100
+        tol = 2e-5 if wp.get_device(wp_device).is_cpu else 1e-4
+        np.testing.assert_allclose(b[key], a[key], atol=tol, rtol=0, err_msg=key)
     np.testing.assert_allclose(b["depth"], a["depth"], atol=2e-5 * np.abs(a["depth"]).max(), rtol=0)
     assert (b["n_contrib"] != a["n_contrib"]).mean() < 1e-3  # measured: none differ
     for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
@@ -100,7 +103,11 @@ def test_backward_without_absgrad_changes_nothing_else(wp_device):
     assert res[0]["absgrad"].max() > 0 and not res[1]["absgrad"].any()
     for name in res[0]:
         if name != "absgrad":
-            assert np.array_equal(res[0][name], res[1][name]), name
+            if wp.get_device(wp_device).is_cpu:  # CPU: bitwise; CUDA atomics add in a varying order
+                assert np.array_equal(res[0][name], res[1][name]), name
+            else:
+                np.testing.assert_allclose(res[0][name], res[1][name], rtol=1e-4,
+                                           atol=1e-6 * np.abs(res[1][name]).max(), err_msg=name)
 
 
 @pytest.mark.parametrize("seg,absgrad", [(raster_tile.TILE_PIXELS, True), (raster_tile.TILE_PIXELS, False),

@@ -102,7 +102,7 @@ def test_point_buffers_append_keep_and_full(wp_device, geo):
 
 
 def test_warp_views_are_zero_copy(wp_device, geo):
-    im = ImmaturePoints(8)
+    im = ImmaturePoints(8, device="cpu")       # zero-copy views are the CPU storage's (a GPU copy is to_device's)
     im.append(4, uv=np.ones((4, 2), np.float32))
     w_uv = im.warp("uv")
     assert w_uv.dtype == wp.vec2 and w_uv.shape == (4,)
