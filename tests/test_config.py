@@ -19,6 +19,10 @@ def test_overrides_are_typed():
     assert cfg.window.max_frames == 5 and cfg.runtime.device == "cpu" and cfg.input.photometric is False
     with pytest.raises(ConfigError, match="expected an integer"):
         apply_overrides(Config(), ["window.max_frames=seven"])
+    # PyYAML (YAML 1.1) reads 1e12 without a dot as a string; a float setting takes it as the number
+    assert apply_overrides(Config(), ["window.affine_prior_a=1e12"]).window.affine_prior_a == 1e12
+    with pytest.raises(ConfigError, match="expected a number"):
+        apply_overrides(Config(), ["window.affine_prior_a=lots"])
     with pytest.raises(ConfigError, match="unknown key"):
         apply_overrides(Config(), ["window.max_frame=5"])
     with pytest.raises(ConfigError, match="no section"):
