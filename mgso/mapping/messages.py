@@ -33,16 +33,10 @@ import numpy as np
 
 from mgso.camera import PinholeCamera
 from mgso.geometry import orthonormalize
-from mgso.mapping.seeding import KeyframeSeedInput, PointKind
+from mgso.mapping.seeding import KeyframeSeedInput, PointKind, _frozen_array as _frozen, check_points
 
 __all__ = ["KeyframeMessage", "PoseUpdate", "MarginalizedPoints", "Stop", "MapperMessage", "PointKind",
            "map_exposure"]
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a)
-    a.setflags(write=False)
-    return a
 
 
 def _rigid(T, where: str) -> np.ndarray:
@@ -146,31 +140,11 @@ class KeyframeMessage:
             raise ValueError(f"{where}.image: non-finite values")
         object.__setattr__(self, "image", _frozen(img.astype(np.float32, copy=True)))
         object.__setattr__(self, "cam_to_world", _rigid(self.cam_to_world, f"{where}.cam_to_world"))
-        uv = np.array(self.points_uv, dtype=np.float64)
-        if uv.size == 0:
-            uv = uv.reshape(0, 2)
-        if uv.ndim != 2 or uv.shape[1] != 2:
-            raise ValueError(f"{where}.points_uv: expected (M, 2) pixels, got {uv.shape}")
-        m = len(uv)
-        object.__setattr__(self, "points_uv", _frozen(uv))
-        idepths = np.array(self.idepths, dtype=np.float64).reshape(-1)
-        if idepths.shape != (m,):
-            raise ValueError(f"{where}.idepths: expected ({m},) for {m} points, got {idepths.shape}")
-        object.__setattr__(self, "idepths", _frozen(idepths))
-        kinds = np.zeros(m, np.int8) if self.kinds is None else np.array(self.kinds).reshape(-1)
-        if kinds.shape != (m,):
-            raise ValueError(f"{where}.kinds: expected ({m},), got {kinds.shape}")
-        valid = {int(PointKind.ACTIVE), int(PointKind.MARGINALIZED), int(PointKind.IMMATURE)}
-        if m and not set(np.unique(kinds).tolist()) <= valid:
-            raise ValueError(f"{where}.kinds: values must be PointKind ACTIVE/MARGINALIZED/IMMATURE {sorted(valid)}")
-        object.__setattr__(self, "kinds", _frozen(kinds.astype(np.int8)))
-        for name, shape in (("weights", (m,)), ("colors", (m, 3))):
-            v = getattr(self, name)
-            if v is not None:
-                arr = np.array(v, dtype=np.float64 if name == "weights" else np.float32)
-                if arr.shape != shape:
-                    raise ValueError(f"{where}.{name}: expected {shape}, got {arr.shape}")
-                object.__setattr__(self, name, _frozen(arr))
+        uv, idepths, kinds, weights, colors = check_points(where, self.points_uv, self.idepths, self.kinds,
+                                                           self.weights, self.colors)
+        for name, v in (("points_uv", uv), ("idepths", idepths), ("kinds", kinds), ("weights", weights),
+                        ("colors", colors)):
+            object.__setattr__(self, name, v)
         if self.mask is not None:
             mk = np.array(self.mask, dtype=np.float32)
             if mk.shape != (cam.height, cam.width) or not np.all(np.isfinite(mk)) or np.any(mk < 0):

@@ -89,6 +89,40 @@ def _frozen_array(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def check_points(where: str, points_uv, idepths, kinds=None, weights=None, colors=None):
+    """DSO's points of one keyframe as read-only arrays ``(uv [M, 2] float64, idepths [M] float64, kinds [M] int8,
+    weights [M] float64 | None, colors [M, 3] float32 | None)``, or a ValueError naming ``where`` and the field.
+    An empty ``points_uv`` is zero points. (The seed input and the mapper's keyframe message both take points.)"""
+    uv = np.array(points_uv, dtype=np.float64)
+    if uv.size == 0:
+        uv = uv.reshape(0, 2)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"{where}.points_uv: expected (M, 2) pixel coordinates, got {uv.shape}")
+    m = len(uv)
+    idepths = np.array(idepths, dtype=np.float64).reshape(-1)
+    if idepths.shape != (m,):
+        raise ValueError(f"{where}.idepths: expected ({m},) for {m} points, got {idepths.shape}")
+    kinds = np.zeros(m, np.int8) if kinds is None else np.array(kinds).reshape(-1)
+    if kinds.shape != (m,):
+        raise ValueError(f"{where}.kinds: expected ({m},), got {kinds.shape}")
+    valid = {int(PointKind.ACTIVE), int(PointKind.MARGINALIZED), int(PointKind.IMMATURE)}
+    if m and not set(np.unique(kinds).tolist()) <= valid:
+        raise ValueError(f"{where}.kinds: values must be PointKind ACTIVE/MARGINALIZED/IMMATURE "
+                         f"({sorted(valid)}), got {sorted(set(np.unique(kinds).tolist()) - valid)}")
+    out = [_frozen_array(uv), _frozen_array(idepths), _frozen_array(kinds.astype(np.int8))]
+    for name, v, dtype, shape in (("weights", weights, np.float64, (m,)), ("colors", colors, np.float32, (m, 3))):
+        if v is None:
+            out.append(None)
+            continue
+        arr = np.array(v, dtype=dtype)
+        if name == "weights":
+            arr = arr.reshape(-1)
+        if arr.shape != shape:
+            raise ValueError(f"{where}.{name}: expected {shape}, got {arr.shape}")
+        out.append(_frozen_array(arr))
+    return tuple(out)
+
+
 @dataclass(frozen=True, eq=False)
 class KeyframeSeedInput:
     """What the seeding needs of one keyframe (the system builds it from the window; plain arrays).
@@ -139,33 +173,11 @@ class KeyframeSeedInput:
             raise ValueError("KeyframeSeedInput.cam_to_world: not a rigid transform (rotation block not orthonormal "
                              "or last row not 0 0 0 1; a Sim3 must be converted to SE3 first)")
         object.__setattr__(self, "cam_to_world", _frozen_array(T))
-        uv = np.array(self.points_uv, dtype=np.float64)
-        if uv.ndim != 2 or uv.shape[1] != 2:
-            raise ValueError(f"KeyframeSeedInput.points_uv: expected (M, 2) pixel coordinates, got {uv.shape}")
-        m = len(uv)
-        object.__setattr__(self, "points_uv", _frozen_array(uv))
-        idepths = np.array(self.idepths, dtype=np.float64).reshape(-1)
-        if idepths.shape != (m,):
-            raise ValueError(f"KeyframeSeedInput.idepths: expected ({m},) for {m} points, got {idepths.shape}")
-        object.__setattr__(self, "idepths", _frozen_array(idepths))
-        kinds = np.zeros(m, np.int8) if self.kinds is None else np.array(self.kinds).reshape(-1)
-        if kinds.shape != (m,):
-            raise ValueError(f"KeyframeSeedInput.kinds: expected ({m},), got {kinds.shape}")
-        valid = {int(PointKind.ACTIVE), int(PointKind.MARGINALIZED), int(PointKind.IMMATURE)}
-        if m and not set(np.unique(kinds).tolist()) <= valid:
-            raise ValueError(f"KeyframeSeedInput.kinds: values must be PointKind ACTIVE/MARGINALIZED/IMMATURE "
-                             f"({sorted(valid)}), got {sorted(set(np.unique(kinds).tolist()) - valid)}")
-        object.__setattr__(self, "kinds", _frozen_array(kinds.astype(np.int8)))
-        if self.weights is not None:
-            w = np.array(self.weights, dtype=np.float64).reshape(-1)
-            if w.shape != (m,):
-                raise ValueError(f"KeyframeSeedInput.weights: expected ({m},), got {w.shape}")
-            object.__setattr__(self, "weights", _frozen_array(w))
-        if self.colors is not None:
-            c = np.array(self.colors, dtype=np.float32)
-            if c.shape != (m, 3):
-                raise ValueError(f"KeyframeSeedInput.colors: expected ({m}, 3) RGB in [0, 1], got {c.shape}")
-            object.__setattr__(self, "colors", _frozen_array(c))
+        uv, idepths, kinds, weights, colors = check_points("KeyframeSeedInput", self.points_uv, self.idepths,
+                                                           self.kinds, self.weights, self.colors)
+        for name, v in (("points_uv", uv), ("idepths", idepths), ("kinds", kinds), ("weights", weights),
+                        ("colors", colors)):
+            object.__setattr__(self, name, v)
         if self.exposure is not None:
             a, b = (float(v) for v in self.exposure)
             if not (math.isfinite(a) and math.isfinite(b)):

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..geometry import se3_exp
 from ..tracking.point_residuals import evaluate_pairs, make_pairs
-from .marginalize import flag_frames_for_marginalization, flag_points_for_removal
+from .marginalize import MarginalizationSettings, flag_frames_for_marginalization, flag_points_for_removal
 from .window import MarginalizedPoints, ResidualState, Window
 
 __all__ = ["FixedWindowSettings", "FixedWindowBackEnd", "RefineResult"]
@@ -39,22 +39,15 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class FixedWindowSettings:
-    """DSO's constants (``settings.cpp``) for keeping the window, plus the refinement's own."""
+class FixedWindowSettings(MarginalizationSettings):
+    """DSO's constants for keeping the window (:class:`MarginalizationSettings`, shared with the bundle
+    adjustment), plus the refinement's own."""
 
     iterations: int = 3  # Gauss-Newton steps on the inverse depths
     refine_pose: bool = False  # then refine the newest keyframe's pose against the points
     pose_iterations: int = 5
     refine_affine: bool = True  # estimate the keyframes' affine brightness over the window (see refine_affine)
     affine_iterations: int = 2
-    min_frames: int = 5  # setting_minFrames
-    max_frames: int = 7  # setting_maxFrames
-    min_points_remaining: float = 0.05  # setting_minPointsRemaining
-    max_log_aff_fac_in_window: float = 0.7  # setting_maxLogAffFacInWindow
-    min_frame_age: int = 1  # setting_minFrameAge
-    min_good_active_res_for_marg: int = 3  # setting_minGoodActiveResForMarg
-    min_good_res_for_marg: int = 4  # setting_minGoodResForMarg
-    min_idepth_h_marg: float = 50.0  # setting_minIdepthH_marg
     frame_energy_th_n: float = 0.7  # setting_frameEnergyTHN
     frame_energy_th_fac_median: float = 1.5  # setting_frameEnergyTHFacMedian
     frame_energy_th_const_weight: float = 0.5  # setting_frameEnergyTHConstWeight
