@@ -26,6 +26,7 @@ import logging
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import warp as wp
 
@@ -83,6 +84,10 @@ class TrackingReference:
         return se3_inverse(self.world_to_cam)
 
 
+_DIAG_NEIGHBOURS = np.array([[1, 0, 1], [0, 0, 0], [1, 0, 1]], np.float32)  # DSO i+1+w, i-1-w, i+w-1, i-w+1
+_CROSS_NEIGHBOURS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
+
+
 def coarse_depth_maps(geometry: PyramidGeometry, uv: np.ndarray, idepth: np.ndarray,
                       weight: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """DSO ``makeCoarseDepthL0``: per level ``(idepth_sum [h, w], weight_sum [h, w])`` after splatting the points
@@ -108,24 +113,16 @@ def coarse_depth_maps(geometry: PyramidGeometry, uv: np.ndarray, idepth: np.ndar
         hl, wl = idl.shape
         if hl < 3 or wl < 3:
             continue
-        if lvl < 2:
-            nbrs = [(1, 1), (-1, -1), (1, -1), (-1, 1)]  # (dy, dx): DSO i+1+w, i-1-w, i+w-1, i-w+1
-        else:
-            nbrs = [(0, 1), (0, -1), (1, 0), (-1, 0)]
-        core = (slice(1, hl - 1), slice(1, wl - 1))
-        bak = wsl.copy()
-        s_id = np.zeros((hl - 2, wl - 2), np.float32)
-        s_w = np.zeros_like(s_id)
-        cnt = np.zeros_like(s_id)
-        for dy, dx in nbrs:
-            sl = (slice(1 + dy, hl - 1 + dy), slice(1 + dx, wl - 1 + dx))
-            has = bak[sl] > 0
-            s_id += np.where(has, idl[sl], 0.0)
-            s_w += np.where(has, bak[sl], 0.0)
-            cnt += has
-        fill = (bak[core] <= 0) & (cnt > 0)
-        idl[core][fill] = (s_id / np.maximum(cnt, 1))[fill]
-        wsl[core][fill] = (s_w / np.maximum(cnt, 1))[fill]
+        # the neighbours' sums by one 3x3 correlation each (OpenCV; idepth_sum is 0 wherever weight_sum is)
+        kern = _DIAG_NEIGHBOURS if lvl < 2 else _CROSS_NEIGHBOURS
+        has = (wsl > 0).astype(np.float32)
+        corr = lambda a: cv2.filter2D(a, cv2.CV_32F, kern, borderType=cv2.BORDER_CONSTANT)  # noqa: E731
+        cnt, s_id, s_w = corr(has), corr(idl), corr(wsl)
+        fill = (wsl <= 0) & (cnt > 0)
+        fill[0, :] = fill[-1, :] = False
+        fill[:, 0] = fill[:, -1] = False
+        np.divide(s_id, cnt, out=idl, where=fill)
+        np.divide(s_w, cnt, out=wsl, where=fill)
     return ids, wss
 
 
