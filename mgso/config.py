@@ -47,6 +47,8 @@ def opt(default: Any, reason: str) -> Any:
 class RuntimeConfig:
     device: str = opt("auto", "Warp device: cpu, cuda, cuda:N, or auto (CUDA when present, else CPU)")
     threads: int = opt(0, "CPU threads for split kernel launches; 0 = all available cores")
+    blas_threads: int = opt(1, "threads of NumPy's BLAS (small host matrices; more threads spin against the kernel "
+                               "workers); 0 = all cores")
     odometry_device: str = opt("", "Warp device of the odometry's kernels when it should differ from `device` (e.g. "
                                    "cpu odometry beside a cuda map: the two threads then share no CUDA stream); "
                                    "empty = `device`")

@@ -202,7 +202,7 @@ def run_sequence(seq, cfg: Config, out_dir: Path, *, stage: str | None = None,
         from mgso_kernels import runtime
         from .system import DsoOdometry
 
-        device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads)
+        device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads, blas_threads=cfg.runtime.blas_threads)
         odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
         odometry = DsoOdometry(seq.calibration.output, cfg, device=odo_device)
         run_system(seq, cfg, out_dir, odometry, odometry_name=odometry.name, progress=progress, summary=summary,

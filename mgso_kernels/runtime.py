@@ -36,6 +36,7 @@ __all__ = [
     "default_device",
     "cpu_threads",
     "set_cpu_threads",
+    "set_blas_threads",
     "split_ranges",
     "launch_split",
     "ensure_loaded",
@@ -69,13 +70,15 @@ def is_initialised() -> bool:
 
 
 def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threads: int | None = None,
-         quiet: bool = True) -> str:
+         quiet: bool = True, blas_threads: int | None = None) -> str:
     """Initialise Warp (once per process) and return the resolved default device name.
 
     ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (the first CUDA device when there is one, else the CPU).
     ``cache_dir``: where compiled kernels are kept; default :func:`default_cache_dir`. Only honoured by the first
     call in a process (Warp reads it when it initialises).
     ``threads``: CPU threads for split launches, 0 for all cores; ``None`` keeps the current setting.
+    ``blas_threads``: threads NumPy's BLAS may use (:func:`set_blas_threads`); ``None``: 1 on the first call, then
+    unchanged.
     """
     global _initialised, _default_device
     with _lock:
@@ -88,8 +91,12 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
                 wp.config.log_level = wp.LOG_WARNING
             wp.init()
             _initialised = True
+            if blas_threads is None:
+                blas_threads = 1
         if threads is not None:
             set_cpu_threads(threads)
+        if blas_threads is not None:
+            set_blas_threads(blas_threads)
         _default_device = resolve_device(device)
         return _default_device
 
@@ -136,6 +143,21 @@ def set_cpu_threads(threads: int) -> None:
     if threads < 0:
         raise ValueError(f"threads must be >= 0, got {threads}")
     _threads = int(threads)
+
+
+def set_blas_threads(threads: int) -> None:
+    """Limit the threads of the BLAS behind NumPy/SciPy (``threadpoolctl``, process-wide); 0 = all cores.
+
+    mgso's matrices on the host are small (the window's 64x64 system, a 2000x64 Schur product), and the cores are
+    already busy with :func:`launch_split`'s workers: a multi-threaded BLAS then spins against them. Measured on the
+    2-core machine while another process was busy: the Schur product ``[64, 2000] x [2000, 64]`` took 53 ms with
+    OpenBLAS's 2 threads and 1.05 ms with one. :func:`init` therefore sets 1 unless told otherwise.
+    """
+    if threads < 0:
+        raise ValueError(f"blas_threads must be >= 0, got {threads}")
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=int(threads) if threads > 0 else cpu_threads(), user_api="blas")
 
 
 def _get_pool(n: int) -> ThreadPoolExecutor:
@@ -198,11 +220,20 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
         return 1
     ensure_loaded(kernel, device)
     pool = _get_pool(len(ranges))
-    futures = [pool.submit(partial(wp.launch, kernel, dim=hi - lo, inputs=[lo, *inputs], device=device,
-                                   record_tape=record_tape))
-               for lo, hi in ranges[1:]]
-    lo, hi = ranges[0]
-    wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device=device, record_tape=record_tape)
+    if record_tape:
+        futures = [pool.submit(partial(wp.launch, kernel, dim=hi - lo, inputs=[lo, *inputs], device=device,
+                                       record_tape=True))
+                   for lo, hi in ranges[1:]]
+        lo, hi = ranges[0]
+        wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device=device, record_tape=True)
+    else:
+        # pack every chunk's arguments here (one Python thread), hand the workers ready launches: a worker then only
+        # makes the native call, which releases the GIL (0.09 ms a split launch against 0.29 ms when each worker
+        # packed its own arguments while competing for the GIL)
+        cmds = [wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device=device, record_cmd=True)
+                for lo, hi in ranges]
+        futures = [pool.submit(c.launch) for c in cmds[1:]]
+        cmds[0].launch()
     for f in futures:
         f.result()
     return len(ranges)

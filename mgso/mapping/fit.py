@@ -208,7 +208,8 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
     out.mkdir(parents=True, exist_ok=True)
     progress = progress or _no_progress
     mc, tc = cfg.mapping, cfg.mapping.train
-    dev = runtime.init(device or cfg.runtime.device, threads=cfg.runtime.threads)
+    dev = runtime.init(device or cfg.runtime.device, threads=cfg.runtime.threads,
+                       blas_threads=cfg.runtime.blas_threads)
     where = f"{seq.path}"
     if seq.groundtruth is None:
         raise FitError(f"{where}: the sequence has no poses: fit needs ground truth or a trajectory file "

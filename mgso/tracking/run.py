@@ -59,7 +59,7 @@ def _write_traj(path: Path, traj: Trajectory, fmt: str) -> None:
 
 def run_tracking(seq, cfg: Config, out_dir: Path, summary, progress, observers=()) -> Odometry:
     """Run the odometry over ``seq`` and write the stage's files; figures go into ``summary``."""
-    device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads)
+    device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads, blas_threads=cfg.runtime.blas_threads)
     cam = seq.calibration.output
     geo = geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg)
     stats = TrackingRunStats()
