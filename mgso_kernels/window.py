@@ -30,14 +30,14 @@ report the threshold as their energy (DSO ``linearize``).
 Reductions (no atomics; bitwise equal single, split over CPU cores or on a GPU):
 
 - :func:`linearize_window`: one thread per *block* of pairs of one key (pairs sorted by key) accumulates the key's
-  10x10 block ``H_cc = sum W J_c J_c^T`` and ``b_c = sum W J_c r`` in float64 and writes one row of a partial-sum
-  buffer; per pair it writes ``H_cd = sum W J_c J_d`` (10), ``H_dd = sum W J_d^2`` and ``b_d = sum W J_d r``. The
-  launch runs once per target keyframe (each with its image).
+  10x10 block ``H_cc = sum W J_c J_c^T`` and ``b_c = sum W J_c r`` and writes one row of a float64 partial-sum
+  buffer; per pair it writes ``H_cd = sum W J_c J_d`` (10), ``H_dd = sum W J_d^2`` and ``b_d = sum W J_d r``. A
+  block's affine rows are formed once from its sums (``a_rel`` is the key's). One launch covers every target (the
+  keyframes' level-0 images are one ``[slots, H, W]`` array).
 - :func:`schur_points`: one thread per point (pairs sorted by point) sums the point's ``H_dd``, ``b_d`` and its
-  frame-point block in absolute frame parameters ``w_p [8 K]`` (adjoints applied) and writes them with
-  ``w_p / H_dd`` and the mask of the slots it touches; then one thread per (chunk of points, slot, slot) sums the
-  8x8 block of ``sum_p w_p w_p^T / H_dd`` (and ``sum_p w_p b_d / H_dd``) over the chunk's points that touch both
-  slots, in float64 registers, and writes a partial; the launcher sums the chunks.
+  frame-point block in absolute frame parameters ``w_p [8 K]`` (adjoints applied); the reduced-camera terms
+  ``sum_p w_p w_p^T / H_dd`` and ``sum_p w_p b_d / H_dd`` are then one dense float64 product on the host (BLAS;
+  ``[8K, n] x [n, 8K]``, 1-2 ms for 2000 points, where a Warp reduction kernel took ~8 ms).
 
 The caller (``mgso.window.energy``) sums the partial rows, maps the key blocks to absolute parameters and solves the
 reduced camera system ``(H_cc - H_sc) x_c = -(b_c - b_sc)``, then back-substitutes ``x_d = -(b_d + w_p . x_c) / H_dd``.
@@ -59,7 +59,6 @@ from .photometric import (PATTERN, Intrinsics, vec6f, gradient_weight, huber_wei
 __all__ = [
     "PAIR_PARAMS", "FRAME_PARAMS", "NUM_KEY_SLOTS", "SLOT_H", "SLOT_B", "PairState", "WindowParams",
     "make_window_params", "WindowKeys", "PairLinearization", "PointSchur", "linearize_window", "schur_points",
-    "schur_blocks_kernel",
     "linearize_pairs_kernel", "schur_points_kernel", "vec10d", "mat1010d",
 ]
 
@@ -104,46 +103,32 @@ class WindowParams:
 
 
 @wp.func
-def pair_sums(dku: vec6f, dkv: vec6f, dd: wp.vec2, a_rel: float, s_xx: float, s_xy: float, s_yy: float,
-              s_hx: float, s_hy: float, s_x: float, s_y: float, s_hh: float, s_h: float, s_1: float, s_rx: float,
-              s_ry: float, s_rh: float, s_r: float):
-    """A pair's blocks in float64 from the pattern sums (see the kernel), split by parameter kind to keep the
-    arithmetic small: ``(H_pp 6x6, H_pa 6x4, H_aa 4x4, b_p 6, b_a 4, hcd_p 6, hcd_a 4, H_dd, b_d)`` with
-    ``J_c = (gx dKu + gy dKv, hc u + v)``, ``u = (-a, 0, a, 0)``, ``v = (0, -1, 0, a)``."""
-    x = vec6d(dku)
-    y = vec6d(dkv)
+def affine_blocks(a_rel: float, s_pu: vec6d, s_pv: vec6d, s_hh: wp.float64, s_h: wp.float64, s_1: wp.float64,
+                  s_rh: wp.float64, s_r: wp.float64):
+    """The affine parts of a block's sums, in float64: ``(H_pa 6x4, H_aa 4x4, b_a 4)``. A block lies in one key, so
+    ``a_rel`` is common to its pairs and the affine Jacobian ``hc u + v`` (``u = (-a, 0, a, 0)``, ``v = (0, -1, 0,
+    a)``) factors out of the sums: ``H_pa = (sum pu) u^T + (sum pv) v^T`` with a pair's ``pu = s_hx x + s_hy y``,
+    ``pv = s_x x + s_y y`` (``x, y``: the rows of its geometric Jacobian)."""
     a = wp.float64(a_rel)
     z = wp.float64(0.0)
     u = wp.vec4d(-a, z, a, z)
     v = wp.vec4d(z, wp.float64(-1.0), z, a)
-    px = wp.float64(s_xx) * x + wp.float64(s_xy) * y
-    py = wp.float64(s_xy) * x + wp.float64(s_yy) * y
-    pu = wp.float64(s_hx) * x + wp.float64(s_hy) * y
-    pv = wp.float64(s_x) * x + wp.float64(s_y) * y
-    Hpp = wp.outer(px, x) + wp.outer(py, y)
-    Hpa = wp.outer(pu, u) + wp.outer(pv, v)
+    Hpa = wp.outer(s_pu, u) + wp.outer(s_pv, v)
     uv = wp.outer(u, v)
-    Haa = wp.float64(s_hh) * wp.outer(u, u) + wp.float64(s_h) * (uv + wp.transpose(uv)) + wp.float64(s_1) * wp.outer(v, v)
-    bp = wp.float64(s_rx) * x + wp.float64(s_ry) * y
-    ba = wp.float64(s_rh) * u + wp.float64(s_r) * v
-    ddx = wp.float64(dd[0])
-    ddy = wp.float64(dd[1])
-    cp = ddx * px + ddy * py
-    ca = (wp.float64(s_hx) * ddx + wp.float64(s_hy) * ddy) * u + (wp.float64(s_x) * ddx + wp.float64(s_y) * ddy) * v
-    hdd = wp.float64(s_xx) * ddx * ddx + wp.float64(2.0 * s_xy) * ddx * ddy + wp.float64(s_yy) * ddy * ddy
-    bd = wp.float64(s_rx) * ddx + wp.float64(s_ry) * ddy
-    return Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd
+    Haa = s_hh * wp.outer(u, u) + s_h * (uv + wp.transpose(uv)) + s_1 * wp.outer(v, v)
+    ba = s_rh * u + s_r * v
+    return Hpa, Haa, ba
 
 
 # ------------------------------------------------------------------------------------------------ kernels
 @wp.kernel
 def linearize_pairs_kernel(offset: int,
-                           block_base: int,  # first block of this launch (one launch per target)
                            block_start: wp.array(dtype=wp.int32),  # [B] range into order
                            block_end: wp.array(dtype=wp.int32),  # [B]
                            order: wp.array(dtype=wp.int32),  # [M] pair indices sorted by key
                            pair_point: wp.array(dtype=wp.int32),  # [M] point index
                            pair_key: wp.array(dtype=wp.int32),  # [M] key index
+                           key_target: wp.array(dtype=wp.int32),  # [nk] target slot (index into dI)
                            key_R: wp.array(dtype=wp.mat33),  # [nk] target_from_host rotation, current
                            key_t: wp.array(dtype=wp.vec3),  # [nk] translation, current
                            key_R0: wp.array(dtype=wp.mat33),  # [nk] at the linearisation point
@@ -154,7 +139,7 @@ def linearize_pairs_kernel(offset: int,
                            idepth: wp.array(dtype=float),  # [n] host inverse depth
                            color: wp.array2d(dtype=float),  # [n, 8] host intensity per pattern pixel
                            weight: wp.array2d(dtype=float),  # [n, 8] host gradient weight per pattern pixel
-                           dI_t: wp.array2d(dtype=wp.vec3),  # [H, W] (I, dx, dy) of this launch's target
+                           dI: wp.array3d(dtype=wp.vec3),  # [slots, H, W] (I, dx, dy) of each keyframe
                            params: WindowParams,
                            pair_state: wp.array(dtype=wp.int32),  # [M] out: PairState
                            pair_energy: wp.array(dtype=wp.float64),  # [M] out: energy (threshold unless IN)
@@ -162,18 +147,26 @@ def linearize_pairs_kernel(offset: int,
                            pair_hdd: wp.array(dtype=wp.float64),  # [M] out: sum W J_d^2
                            pair_bd: wp.array(dtype=wp.float64),  # [M] out: sum W J_d r
                            partials: wp.array2d(dtype=wp.float64)):  # [B, NUM_KEY_SLOTS] out
-    blk = block_base + offset + wp.tid()
+    blk = offset + wp.tid()
     cam = params.cam
     Ki = inverse_K(cam)
+    # block sums in float64: the key's blocks must agree with the per-pair H_cd to float64 round-off, else the
+    # Schur complement (a difference of nearly equal terms along the weak directions) loses digits
     Hb_pp = mat66d()
-    Hb_pa = mat64d()
-    Hb_aa = wp.mat44d()
     bb_p = vec6d()
-    bb_a = wp.vec4d()
+    sb_pu = vec6d()
+    sb_pv = vec6d()
+    sb_hh = wp.float64(0.0)
+    sb_h = wp.float64(0.0)
+    sb_1 = wp.float64(0.0)
+    sb_rh = wp.float64(0.0)
+    sb_r = wp.float64(0.0)
+    a_blk = float(0.0)
     for q in range(block_start[blk], block_end[blk]):
         j = order[q]
         p = pair_point[j]
         k = pair_key[j]
+        dI_t = dI[key_target[k]]
         R = key_R[k]
         t = key_t[k]
         aff = key_aff[k]
@@ -240,25 +233,53 @@ def linearize_pairs_kernel(offset: int,
             s_ry += W * gy * r
             s_rh += W * hc * r
             s_r += W * r
-        Hpp, Hpa, Haa, bp, ba, cp, ca, hdd, bd = pair_sums(dku, dkv, dd, a_rel, s_xx, s_xy, s_yy, s_hx, s_hy, s_x,
-                                                           s_y, s_hh, s_h, s_1, s_rx, s_ry, s_rh, s_r)
         th = key_energy_th[k]
         state = int(STATE_IN)
         if not ok:
             state = STATE_OOB
         elif energy > th or wji2 < params.min_wji2:
             state = STATE_OUTLIER
-        inl = wp.where(state == STATE_IN, wp.float64(1.0), wp.float64(0.0))
-        Hb_pp += inl * Hpp
-        Hb_pa += inl * Hpa
-        Hb_aa += inl * Haa
-        bb_p += inl * bp
-        bb_a += inl * ba
         pair_state[j] = state
-        pair_energy[j] = wp.where(state == STATE_IN, wp.float64(energy), wp.float64(th))
-        pair_hcd[j] = inl * vec10d(cp[0], cp[1], cp[2], cp[3], cp[4], cp[5], ca[0], ca[1], ca[2], ca[3])
-        pair_hdd[j] = inl * hdd
-        pair_bd[j] = inl * bd
+        if state == STATE_IN:
+            a_blk = a_rel
+            # J_c = (gx x + gy y, hc u + v) with x, y the rows of the geometric Jacobian: the pose rows from the
+            # pattern sums; the affine rows factor out of the block (affine_blocks)
+            x = vec6d(dku)
+            y = vec6d(dkv)
+            xx = wp.float64(s_xx)
+            xy = wp.float64(s_xy)
+            yy = wp.float64(s_yy)
+            px = xx * x + xy * y
+            py = xy * x + yy * y
+            Hb_pp += wp.outer(px, x) + wp.outer(py, y)
+            bb_p += wp.float64(s_rx) * x + wp.float64(s_ry) * y
+            hx = wp.float64(s_hx)
+            hy = wp.float64(s_hy)
+            gx1 = wp.float64(s_x)
+            gy1 = wp.float64(s_y)
+            sb_pu += hx * x + hy * y
+            sb_pv += gx1 * x + gy1 * y
+            sb_hh += wp.float64(s_hh)
+            sb_h += wp.float64(s_h)
+            sb_1 += wp.float64(s_1)
+            sb_rh += wp.float64(s_rh)
+            sb_r += wp.float64(s_r)
+            dd0 = wp.float64(dd[0])
+            dd1 = wp.float64(dd[1])
+            cp = dd0 * px + dd1 * py
+            hu = hx * dd0 + hy * dd1
+            hv = gx1 * dd0 + gy1 * dd1
+            a64 = wp.float64(a_rel)
+            pair_energy[j] = wp.float64(energy)
+            pair_hcd[j] = vec10d(cp[0], cp[1], cp[2], cp[3], cp[4], cp[5], -a64 * hu, -hv, a64 * hu, a64 * hv)
+            pair_hdd[j] = xx * dd0 * dd0 + wp.float64(2.0) * xy * dd0 * dd1 + yy * dd1 * dd1
+            pair_bd[j] = wp.float64(s_rx) * dd0 + wp.float64(s_ry) * dd1
+        else:
+            pair_energy[j] = wp.float64(th)
+            pair_hcd[j] = vec10d()
+            pair_hdd[j] = wp.float64(0.0)
+            pair_bd[j] = wp.float64(0.0)
+    Hb_pa, Hb_aa, bb_a = affine_blocks(a_blk, sb_pu, sb_pv, sb_hh, sb_h, sb_1, sb_rh, sb_r)
     for i in range(6):
         for j in range(6):
             partials[blk, SLOT_H + i * 10 + j] = Hb_pp[i, j]
@@ -287,12 +308,8 @@ def schur_points_kernel(offset: int,
                         point_extra_b: wp.array(dtype=wp.float64),  # [n] added to b_d (prior gradient)
                         point_hdd: wp.array(dtype=wp.float64),  # [n] out: H_dd (with the extra term)
                         point_bd: wp.array(dtype=wp.float64),  # [n] out: b_d
-                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K] out (zeroed): frame-point block
-                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] out: point_w / H_dd
-                        point_slots: wp.array(dtype=wp.int32)):  # [n] out: bit mask of the slots in point_w
+                        point_w: wp.array2d(dtype=wp.float64)):  # [n, 8 K] out (zeroed): frame-point block
     p = offset + wp.tid()
-    touched = int(0)
-    nf = point_w.shape[1]
     hdd = point_extra_h[p]
     bd = point_extra_b[p]
     for j in range(point_start[p], point_start[p + 1]):
@@ -304,7 +321,6 @@ def schur_points_kernel(offset: int,
         bd += pair_bd[j]
         ht = key_host[k]
         tg = key_target[k]
-        touched = touched | (1 << ht) | (1 << tg)
         for a in range(6):
             point_w[p, 8 * tg + a] = point_w[p, 8 * tg + a] + hcd[a]
             acc = wp.float64(0.0)
@@ -319,52 +335,6 @@ def schur_points_kernel(offset: int,
         hdd = wp.float64(1e-10)
     point_hdd[p] = hdd
     point_bd[p] = bd
-    ih = wp.float64(1.0) / hdd
-    for c in range(nf):
-        point_wi[p, c] = point_w[p, c] * ih
-    point_slots[p] = touched
-
-
-@wp.kernel
-def schur_blocks_kernel(offset: int,
-                        points_per_chunk: int,
-                        num_slots: int,
-                        point_slots: wp.array(dtype=wp.int32),  # [n] bit mask of the slots a point touches
-                        point_w: wp.array2d(dtype=wp.float64),  # [n, 8 K]
-                        point_wi: wp.array2d(dtype=wp.float64),  # [n, 8 K] point_w / H_dd
-                        point_bd: wp.array(dtype=wp.float64),  # [n]
-                        h_partials: wp.array3d(dtype=wp.float64),  # [chunks, K * K, 64] out: 8x8 blocks of H_sc
-                        b_partials: wp.array3d(dtype=wp.float64)):  # [chunks, K, 8] out: 8-blocks of b_sc
-    # one thread per (chunk of points, slot s1, slot s2): the 8x8 block (s1, s2) of sum_p wi_p w_p^T in registers
-    tid = offset + wp.tid()
-    kk = num_slots * num_slots
-    chunk = tid // kk
-    rem = tid - chunk * kk
-    s1 = rem // num_slots
-    s2 = rem - s1 * num_slots
-    n = point_w.shape[0]
-    start = chunk * points_per_chunk
-    end = wp.min(start + points_per_chunk, n)
-    need = (1 << s1) | (1 << s2)
-    acc = mat88d()
-    bacc = vec8d()
-    for p in range(start, end):
-        m = point_slots[p]
-        if (m & (1 << s1)) == 0:
-            continue
-        a = vec8d(point_wi[p, 8 * s1], point_wi[p, 8 * s1 + 1], point_wi[p, 8 * s1 + 2], point_wi[p, 8 * s1 + 3],
-                  point_wi[p, 8 * s1 + 4], point_wi[p, 8 * s1 + 5], point_wi[p, 8 * s1 + 6], point_wi[p, 8 * s1 + 7])
-        b = vec8d(point_w[p, 8 * s2], point_w[p, 8 * s2 + 1], point_w[p, 8 * s2 + 2], point_w[p, 8 * s2 + 3],
-                  point_w[p, 8 * s2 + 4], point_w[p, 8 * s2 + 5], point_w[p, 8 * s2 + 6], point_w[p, 8 * s2 + 7])
-        if (m & need) == need:
-            acc += wp.outer(a, b)
-        bacc += point_bd[p] * a
-    for i in range(8):
-        for j in range(8):
-            h_partials[chunk, rem, i * 8 + j] = acc[i, j]
-    if s2 == 0:
-        for i in range(8):
-            b_partials[chunk, s1, i] = bacc[i]
 
 
 # ---------------------------------------------------------------------------------------------- launchers
@@ -460,15 +430,44 @@ def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_bloc
     return order, bs, be, bkey, ranges
 
 
+def _image_stack(target_images, slots_needed: np.ndarray, params: WindowParams, device: str) -> wp.array:
+    """``[slots, H, W]`` vec3 images: the array itself, or one made from a ``{slot: [H, W] wp.array}`` dict."""
+    W, H = params.cam.width, params.cam.height
+    if isinstance(target_images, wp.array):
+        st = target_images
+        if st.dtype != wp.vec3 or st.ndim != 3:
+            raise TypeError("target images must be a 3-D wp.array of vec3 [slots, H, W] (I, dx, dy)")
+        if (st.shape[2], st.shape[1]) != (W, H):
+            raise ValueError(f"target images are {st.shape[2]}x{st.shape[1]}, params say {W}x{H}")
+        if len(slots_needed) and int(slots_needed.max()) >= st.shape[0]:
+            raise ValueError(f"linearize_window: no image for target slot {int(slots_needed.max())} "
+                             f"(the stack has {st.shape[0]})")
+        return st
+    missing = set(slots_needed.tolist()) - set(target_images)
+    if missing:
+        raise ValueError(f"linearize_window: no image for target slot(s) {sorted(missing)}")
+    n = int(slots_needed.max()) + 1 if len(slots_needed) else 1
+    st = wp.zeros((n, H, W), dtype=wp.vec3, device=device)
+    for tg in slots_needed.tolist():
+        img = target_images[tg]
+        if not isinstance(img, wp.array) or img.dtype != wp.vec3 or img.ndim != 2:
+            raise TypeError(f"target image of slot {tg} must be a 2-D wp.array of vec3 (I, dx, dy)")
+        if (img.shape[1], img.shape[0]) != (W, H):
+            raise ValueError(f"target image of slot {tg} is {img.shape[1]}x{img.shape[0]}, params say {W}x{H}")
+        wp.copy(st[tg], img)
+    return st
+
+
 def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndarray, pair_key: np.ndarray,
                      uv: np.ndarray, idepth: np.ndarray, color: np.ndarray, weight: np.ndarray,
-                     target_images: dict, *, pairs_per_block: int = 32, device: str | None = None,
+                     target_images, *, pairs_per_block: int = 32, device: str | None = None,
                      cache: dict | None = None) -> PairLinearization:
     """Linearise ``M`` pairs (see the module text).
 
     ``pair_point [M]`` index into the point arrays ``uv [n, 2]`` (pixels), ``idepth [n]``, ``color/weight [n, 8]``;
-    ``pair_key [M]`` index into ``keys``; ``target_images``: target slot -> ``wp.array2d(vec3) [H, W]`` level-0
-    ``(I, dx, dy)`` (a keyframe pyramid's ``dI[0]``). Returns per pair and per key float64 NumPy arrays.
+    ``pair_key [M]`` index into ``keys``; ``target_images``: the level-0 ``(I, dx, dy)`` of the keyframes, a
+    ``wp.array3d(vec3) [slots, H, W]`` indexed by slot (the window's :attr:`~mgso.window.window.Window.dI0_`), or a
+    dict slot -> ``wp.array2d(vec3) [H, W]`` (copied into one). Returns per pair and per key float64 NumPy arrays.
     ``cache``: a dict the caller keeps while the pairs, ``uv``, ``color`` and ``weight`` stay the same (the iterations
     of one optimisation); the block plan, those inputs and the output buffers are made once and reused.
     """
@@ -487,12 +486,10 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
     if cache is None or "order" not in cache:
         pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
-        missing = set(np.unique(pair_target).tolist()) - set(target_images)
-        if missing:
-            raise ValueError(f"linearize_window: no image for target slot(s) {sorted(missing)}")
-        order, bs, be, bkey, ranges = _blocks_by_key(pk, pair_target, pairs_per_block)
+        stack = _image_stack(target_images, np.unique(pair_target).astype(np.int64), params, device)
+        order, bs, be, bkey, _ = _blocks_by_key(pk, pair_target, pairs_per_block)
         B = len(bs)
-        c = dict(order=order, bkey=bkey, ranges=ranges, B=B, w_bs=f(bs, wp.int32), w_be=f(be, wp.int32),
+        c = dict(order=order, bkey=bkey, B=B, stack=stack, w_bs=f(bs, wp.int32), w_be=f(be, wp.int32),
                  w_order=f(order, wp.int32), w_pp=f(pp, wp.int32), w_pk=f(pk, wp.int32), uv=f(uv, wp.vec2),
                  col=f(col, wp.float32), wgt=f(wgt, wp.float32),
                  out_state=wp.zeros(M, dtype=wp.int32, device=device),
@@ -505,25 +502,18 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
             cache.update(c)
     else:
         c = cache
-    bkey, ranges, B = c["bkey"], c["ranges"], c["B"]
-    key_args = [f(keys.R.astype(np.float32), wp.mat33), f(keys.t.astype(np.float32), wp.vec3),
-                f(keys.R0.astype(np.float32), wp.mat33), f(keys.t0.astype(np.float32), wp.vec3),
-                f(keys.aff.astype(np.float32), wp.vec3), f(keys.energy_th.astype(np.float32), wp.float32)]
+    bkey, B = c["bkey"], c["B"]
+    key_args = [f(keys.target.astype(np.int32), wp.int32), f(keys.R.astype(np.float32), wp.mat33),
+                f(keys.t.astype(np.float32), wp.vec3), f(keys.R0.astype(np.float32), wp.mat33),
+                f(keys.t0.astype(np.float32), wp.vec3), f(keys.aff.astype(np.float32), wp.vec3),
+                f(keys.energy_th.astype(np.float32), wp.float32)]
     pts = [c["uv"], f(idp, wp.float32), c["col"], c["wgt"]]
     out_state, out_energy, out_hcd, out_hdd, out_bd, partials = (
         c["out_state"], c["out_energy"], c["out_hcd"], c["out_hdd"], c["out_bd"], c["partials"])
     if B:
-        w_bs, w_be, w_order, w_pp, w_pk = c["w_bs"], c["w_be"], c["w_order"], c["w_pp"], c["w_pk"]
-        for tg, (b0, b1) in sorted(ranges.items()):
-            img = target_images[tg]
-            if not isinstance(img, wp.array) or img.dtype != wp.vec3 or img.ndim != 2:
-                raise TypeError(f"target image of slot {tg} must be a 2-D wp.array of vec3 (I, dx, dy)")
-            if (img.shape[1], img.shape[0]) != (params.cam.width, params.cam.height):
-                raise ValueError(f"target image of slot {tg} is {img.shape[1]}x{img.shape[0]}, params say "
-                                 f"{params.cam.width}x{params.cam.height}")
-            runtime.launch_split(linearize_pairs_kernel, b1 - b0,
-                                 [b0, w_bs, w_be, w_order, w_pp, w_pk, *key_args, *pts, img, params, out_state,
-                                  out_energy, out_hcd, out_hdd, out_bd, partials], device, min_chunk=8)
+        runtime.launch_split(linearize_pairs_kernel, B,
+                             [c["w_bs"], c["w_be"], c["w_order"], c["w_pp"], c["w_pk"], *key_args, *pts, c["stack"],
+                              params, out_state, out_energy, out_hcd, out_hdd, out_bd, partials], device, min_chunk=8)
     part = partials.numpy()[:B]
     kH = np.zeros((nk, NUM_KEY_SLOTS))
     if B:
@@ -535,7 +525,7 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
 
 def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray, point_start: np.ndarray,
                  num_slots: int, extra_h: np.ndarray | None = None, extra_b: np.ndarray | None = None, *,
-                 points_per_chunk: int = 256, device: str | None = None) -> PointSchur:
+                 device: str | None = None) -> PointSchur:
     """Per point sums and the Schur complement over the inverse depths (see the module text).
 
     Pairs must be point-major: point ``p`` owns pairs ``point_start[p]:point_start[p+1]`` (``point_start [n+1]``).
@@ -548,8 +538,8 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
     n = len(ps) - 1
     if n < 0 or (n >= 0 and len(ps) and (ps[0] != 0 or ps[-1] != M or np.any(np.diff(ps) < 0))):
         raise ValueError("schur_points: point_start must rise from 0 to the number of pairs")
-    if num_slots < 1 or num_slots > 30:
-        raise ValueError(f"schur_points: num_slots must be in [1, 30], got {num_slots}")
+    if num_slots < 1:
+        raise ValueError(f"schur_points: num_slots must be at least 1, got {num_slots}")
     nf = 8 * num_slots
     eh = np.zeros(n) if extra_h is None else _arr(extra_h, np.float64, (n,), "extra_h")
     eb = np.zeros(n) if extra_b is None else _arr(extra_b, np.float64, (n,), "extra_b")
@@ -557,12 +547,6 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
     hdd = wp.zeros(n, dtype=wp.float64, device=device)
     bd = wp.zeros(n, dtype=wp.float64, device=device)
     w = wp.zeros((n, nf), dtype=wp.float64, device=device)
-    wi = wp.zeros((n, nf), dtype=wp.float64, device=device)
-    slots = wp.zeros(n, dtype=wp.int32, device=device)
-    K = num_slots
-    chunks = max(1, -(-n // points_per_chunk))
-    hp = wp.zeros((chunks, K * K, 64), dtype=wp.float64, device=device)
-    bp = wp.zeros((chunks, K, 8), dtype=wp.float64, device=device)
     if n:
         runtime.launch_split(schur_points_kernel, n,
                              [f(ps, wp.int32), f(_arr(pair_key, np.int32, (M,), "pair_key"), wp.int32),
@@ -570,9 +554,8 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
                               f(lin.bd, wp.float64), f(keys.host.astype(np.int32), wp.int32),
                               f(keys.target.astype(np.int32), wp.int32),
                               f(keys.adj.reshape(len(keys), 36), wp.float64), f(eh, wp.float64), f(eb, wp.float64),
-                              hdd, bd, w, wi, slots], device, min_chunk=256)
-        runtime.launch_split(schur_blocks_kernel, chunks * K * K,
-                             [int(points_per_chunk), K, slots, w, wi, bd, hp, bp], device, min_chunk=K * K,
-                             align=K * K)
-    Hb = hp.numpy().sum(axis=0).reshape(K, K, 8, 8).transpose(0, 2, 1, 3).reshape(nf, nf)
-    return PointSchur(hdd.numpy(), bd.numpy(), w.numpy(), Hb, bp.numpy().sum(axis=0).reshape(nf))
+                              hdd, bd, w], device, min_chunk=256)
+    hdd_np, bd_np, w_np = hdd.numpy(), bd.numpy(), w.numpy()
+    # the reduced-camera term is one dense product (BLAS, float64): sum_p w_p w_p^T / H_dd and sum_p w_p b_d / H_dd
+    wi = w_np / hdd_np[:, None]
+    return PointSchur(hdd_np, bd_np, w_np, wi.T @ w_np, wi.T @ bd_np)

@@ -44,7 +44,7 @@ import scipy.linalg
 from mgso_kernels import runtime
 from mgso_kernels import window as kw
 
-from ..geometry import orthonormalize, se3_adjoint, se3_exp, se3_inverse, se3_log
+from ..geometry import hat, orthonormalize, se3_adjoint, se3_exp, se3_inverse, se3_log
 from .marginalize import MarginalizationPrior
 from .window import ResidualState, Window
 
@@ -166,13 +166,15 @@ class WindowProblem:
         for i, (h, t) in enumerate(keylist):
             self.key_index[h, t] = i
         self.keylist = keylist
+        self._key_host = np.array([k[0] for k in keylist], np.int64)
+        self._key_target = np.array([k[1] for k in keylist], np.int64)
         self.pair_key = self.key_index[self.pair_host, self.pair_target].astype(np.int32) if len(pl) else \
             np.zeros(0, np.int32)
         self.point_start = np.searchsorted(pl, np.arange(len(self.points) + 1)).astype(np.int32)
         g = window.camera
         self.params = kw.make_window_params(g.fx, g.fy, g.cx, g.cy, window.width, window.height,
                                             huber_th=settings.huber_th, grad_c2=settings.grad_c2)
-        self.images = {int(t): window.pyramids[int(t)].dI[0] for t in np.unique(self.pair_target)}
+        self.images = window.dI0_  # [K, H, W] level-0 (I, dx, dy), indexed by slot
         self._cache: dict = {}  # linearize_window's plan and buffers (the pairs are fixed for the problem)
         self.S = np.tile(frame_scale(), self.K)
         # gauge / affine priors on the scaled frame parameters
@@ -244,20 +246,25 @@ class WindowProblem:
 
     # ---------------------------------------------------------------------------------------- linearise
     def keys(self, energy_th: np.ndarray | None = None) -> kw.WindowKeys:
+        """The (host, target) keys at the current state, all at once (NumPy, batched over keys)."""
         w = self.window
-        nk = len(self.keylist)
-        R, t, R0, t0 = np.zeros((nk, 3, 3)), np.zeros((nk, 3)), np.zeros((nk, 3, 3)), np.zeros((nk, 3))
-        aff, adj, th = np.zeros((nk, 3)), np.zeros((nk, 6, 6)), np.zeros(nk)
-        for i, (h, g) in enumerate(self.keylist):
-            T = w.target_from_host(h, g)
-            T0 = w.target_from_host(h, g, zero=True)
-            R[i], t[i], R0[i], t0[i] = T[:3, :3], T[:3, 3], T0[:3, :3], T0[:3, 3]
-            a_rel, _ = w.affine_rel(h, g)
-            aff[i] = (a_rel, w.affine_[h, 1], w.affine_[g, 1])
-            adj[i] = se3_adjoint(T0)
-            th[i] = max(w.energy_th_[h], w.energy_th_[g]) if energy_th is None else energy_th[i]
-        return kw.WindowKeys(np.array([k[0] for k in self.keylist], np.int32),
-                             np.array([k[1] for k in self.keylist], np.int32), R, t, R0, t0, aff, th, adj)
+        hs, gs = self._key_host, self._key_target
+        T = w.world_to_cam_[gs] @ se3_inverse(w.world_to_cam_[hs])
+        T0 = w.world_to_cam_zero_[gs] @ se3_inverse(w.world_to_cam_zero_[hs])
+        a_h, b_h = w.affine_[hs, 0], w.affine_[hs, 1]
+        a_t, b_t = w.affine_[gs, 0], w.affine_[gs, 1]
+        e_h, e_t = w.exposure_[hs].astype(np.float64), w.exposure_[gs].astype(np.float64)
+        known = (e_h != 0) & (e_t != 0)  # DSO fromToVecExposure: an unknown exposure counts as 1 for both
+        a_rel = np.exp(a_t - a_h) * np.where(known, e_t / np.where(known, e_h, 1.0), 1.0)
+        aff = np.stack([a_rel, b_h, b_t], axis=1)
+        R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
+        adj = np.zeros((len(hs), 6, 6))  # se3_adjoint(T0), (v, w) order
+        adj[:, :3, :3] = R0
+        adj[:, :3, 3:] = hat(t0) @ R0
+        adj[:, 3:, 3:] = R0
+        th = np.maximum(w.energy_th_[hs], w.energy_th_[gs]) if energy_th is None else np.asarray(energy_th)
+        return kw.WindowKeys(hs.astype(np.int32), gs.astype(np.int32), T[:, :3, :3].copy(), T[:, :3, 3].copy(),
+                             R0.copy(), t0.copy(), aff, th.astype(np.float64), adj)
 
     def linearize_pairs(self, keys: kw.WindowKeys | None = None) -> kw.PairLinearization:
         a = self.window.active
@@ -268,20 +275,24 @@ class WindowProblem:
                                    device=self.device, cache=self._cache)
 
     def top_system(self, keys: kw.WindowKeys, lin: kw.PairLinearization):
-        """``(H_cc [8K, 8K], b_c [8K])`` raw units: the key blocks mapped to absolute frame parameters."""
+        """``(H_cc [8K, 8K], b_c [8K])`` raw units: the key blocks mapped to absolute frame parameters (pair
+        parameters ``= A (host 8, target 8)``, ``A`` from the key's adjoint; all keys at once)."""
+        nk = len(self.keylist)
         H = np.zeros((self.nf, self.nf))
         b = np.zeros(self.nf)
-        for k, (h, g) in enumerate(self.keylist):
-            A = np.zeros((10, 16))  # pair params <- (host 8, target 8)
-            A[:6, 8:14] = np.eye(6)
-            A[:6, 0:6] = -keys.adj[k]
-            A[6, 14] = A[7, 15] = 1.0
-            A[8, 6] = A[9, 7] = 1.0
-            Hk = A.T @ lin.key_H[k] @ A
-            bk = A.T @ lin.key_b[k]
-            idx = np.r_[8 * h:8 * h + 8, 8 * g:8 * g + 8]
-            H[np.ix_(idx, idx)] += Hk
-            b[idx] += bk
+        if not nk:
+            return H, b
+        A = np.zeros((nk, 10, 16))  # pair params <- (host 8, target 8)
+        A[:, :6, 8:14] = np.eye(6)
+        A[:, :6, 0:6] = -keys.adj
+        A[:, 6, 14] = A[:, 7, 15] = 1.0
+        A[:, 8, 6] = A[:, 9, 7] = 1.0
+        Hk = np.swapaxes(A, 1, 2) @ lin.key_H @ A
+        bk = np.einsum("kai,ka->ki", A, lin.key_b)
+        idx = np.concatenate([8 * self._key_host[:, None] + np.arange(8), 8 * self._key_target[:, None] + np.arange(8)],
+                             axis=1)  # [nk, 16]
+        np.add.at(H, (idx[:, :, None], idx[:, None, :]), Hk)
+        np.add.at(b, idx, bk)
         return H, b
 
     def point_extras(self):

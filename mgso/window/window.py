@@ -28,7 +28,8 @@ Who may change what (DSO's ``FullSystem.h`` habit; the same text is next to each
 field                           changed only by
 ==============================  ===========================================================================
 slots, ``order``, frame ids,    :meth:`Window.add_keyframe` and :meth:`Window.remove_keyframe` (the odometry's
-pyramids, ``rgb_``, exposure    keyframe step; the back end's frame marginalisation)
+pyramids, ``dI0_``, ``rgb_``,   keyframe step; the back end's frame marginalisation)
+exposure
 ``world_to_cam_``, ``affine_``  the back end's optimisation (``set_keyframe_state``); :meth:`add_keyframe` sets the
                                 initial value from the tracker
 ``world_to_cam_zero_``,         the back end when it fixes a linearisation point (``set_linearization_point``);
@@ -390,6 +391,12 @@ class Window:
         self.points_left_ = np.zeros(K, dtype=np.int64)
         # images: pyramids copied in by add_keyframe; RGB (level 0 size) for point colours
         self.pyramids = [ImagePyramid(geometry, device=device) for _ in range(K)]
+        # the level-0 (I, dx, dy) of every slot in one [K, h, w] array (each pyramid's dI[0] is a view of its row):
+        # the bundle adjustment's kernel reads all targets in one launch
+        l0w, l0h = geometry.level_size(0)
+        self.dI0_ = wp.zeros((K, l0h, l0w), dtype=wp.vec3, device=device)
+        for s, pyr in enumerate(self.pyramids):
+            pyr.dI[0] = self.dI0_[s]
         self.rgb_ = np.zeros((K, h, w, 3), dtype=np.float32) if keep_rgb else None
         self.order: list[int] = []  # live slots, oldest first (DSO frameHessians order)
         self._next_keyframe_id = 0
