@@ -21,13 +21,13 @@ import numpy as np
 import warp as wp
 import cv2
 
+from mgso_kernels.activation import make_depth_params, point_depth_residuals
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 from mgso_kernels.trace import TraceParams, TraceStatus, host_target_projection, make_trace_params, trace_points
 
 from ..config import TrackingConfig
 from ..window.window import ResidualState, Window
 from .pixel_selector import PixelSelector
-from .point_residuals import evaluate_pairs, make_pairs
 
 __all__ = [
     "make_immature_points", "trace_immature_points", "TraceCounts", "PointActivator", "ActivationResult",
@@ -199,16 +199,30 @@ def optimize_inverse_depths(window: Window, hosts: np.ndarray, uv: np.ndarray, c
     hosts = np.asarray(hosts)
     pt = np.concatenate([np.flatnonzero(hosts != s) for s in window.order])
     tg = np.concatenate([np.full(int(np.sum(hosts != s)), s, np.int64) for s in window.order])
-    pairs = make_pairs(window, hosts, pt, tg)
+    # keys: the (host, target) keyframe pairs, with target_from_host and the relative brightness
+    K = window.capacity
+    code = hosts[pt].astype(np.int64) * K + tg
+    key_codes, pair_key = np.unique(code, return_inverse=True)
+    key_h, key_t = key_codes // K, key_codes % K
+    Ts = [window.target_from_host(int(h), int(t)) for h, t in zip(key_h, key_t)]
+    key_aff = np.array([window.affine_rel(int(h), int(t)) for h, t in zip(key_h, key_t)]).reshape(-1, 2)
+    dev = window.device
+    g = window.camera
+    params = make_depth_params(g.fx, g.fy, g.cx, g.cy, window.width, window.height, huber_th=cfg.huber_th)
+    key_args = (key_t.astype(np.int32), np.array([T[:3, :3] for T in Ts]).reshape(-1, 3, 3),
+                np.array([T[:3, 3] for T in Ts]).reshape(-1, 3), key_aff)
+    pts = (wp.array(np.ascontiguousarray(uv, np.float32), dtype=wp.vec2, device=dev),
+           wp.array(np.ascontiguousarray(color, np.float32), dtype=wp.float32, device=dev),
+           wp.array(np.ascontiguousarray(weight, np.float32), dtype=wp.float32, device=dev))
     energy_th = 8 * cfg.outlier_th * cfg.overall_energy_th_weight ** 2
     cur = np.asarray(idepth0, dtype=np.float64).copy()
 
     def lin(idp, slack, prev_state, prev_e):
-        ev = evaluate_pairs(window, pairs, uv, color, weight, idp, weight_mode="host", huber_th=cfg.huber_th)
-        e = ev.energy
-        wgt = ev.huber * ev.grad_w
-        Hdd = np.sum(wgt * ev.d_idepth ** 2, axis=1)
-        bd = np.sum(wgt * ev.r * ev.d_idepth, axis=1)
+        ev = point_depth_residuals(params, *key_args, pt, pair_key, pts[0], idp, pts[1], pts[2], window.dI0_,
+                                   device=dev)
+        e = ev.energy.astype(np.float64)
+        Hdd = ev.hdd.astype(np.float64)
+        bd = ev.bd.astype(np.float64)
         th = energy_th * slack
         state = np.where(e > th, ResidualState.OUTLIER, ResidualState.IN).astype(np.uint8)
         e = np.minimum(e, th)
