@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -147,18 +149,75 @@ def se3_renormalize(T) -> np.ndarray:
     return make_pose(orthonormalize(T[..., :3, :3]), T[..., :3, 3])
 
 
+def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
+    """:func:`se3_exp` of one ``[6]`` vector in scalar arithmetic (the batched NumPy path costs ~0.3 ms a call in
+    small-array overhead; the tracker calls this a few dozen times a frame). Same formulas and series."""
+    v0, v1, v2, w0, w1, w2 = (float(x) for x in xi)
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = math.sqrt(t2)
+    if theta < 1e-4:
+        a, b, c = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    else:
+        st, ct = math.sin(theta), math.cos(theta)
+        a, b, c = st / theta, (1.0 - ct) / t2, (theta - st) / (t2 * theta)
+    # k = hat(w), k @ k = w w^T - t2 I
+    kk = ((w0 * w0 - t2, w0 * w1, w0 * w2), (w1 * w0, w1 * w1 - t2, w1 * w2), (w2 * w0, w2 * w1, w2 * w2 - t2))
+    k = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    T = np.zeros((4, 4))
+    v = (v0, v1, v2)
+    for i in range(3):
+        for j in range(3):
+            eye = 1.0 if i == j else 0.0
+            T[i, j] = eye + a * k[i][j] + b * kk[i][j]
+        T[i, 3] = sum(((1.0 if i == j else 0.0) + b * k[i][j] + c * kk[i][j]) * v[j] for j in range(3))
+    T[3, 3] = 1.0
+    return T
+
+
 def se3_exp(xi) -> np.ndarray:
     """``xi = (v, w)`` (..., 6) -> 4x4 pose (..., 4, 4)."""
     xi = _as64(xi)
+    if xi.shape == (6,):
+        return _se3_exp_one(xi)
     v, w = xi[..., :3], xi[..., 3:]
     R = so3_exp(w)
     t = np.einsum("...ij,...j->...i", so3_left_jacobian(w), v)
     return make_pose(R, t)
 
 
+def _se3_log_one(T: np.ndarray) -> np.ndarray:
+    """:func:`se3_log` of one 4x4 pose: the rotation by :func:`so3_log`, ``v = V(w)^-1 t`` solved in scalar arithmetic
+    (3x3, Cramer) instead of a batched ``np.linalg.solve``."""
+    w = so3_log(T[:3, :3])
+    w0, w1, w2 = (float(x) for x in w)
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = math.sqrt(t2)
+    if theta < 1e-4:
+        b, c = 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    else:
+        st, ct = math.sin(theta), math.cos(theta)
+        b, c = (1.0 - ct) / t2, (theta - st) / (t2 * theta)
+    k = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    kk = ((w0 * w0 - t2, w0 * w1, w0 * w2), (w1 * w0, w1 * w1 - t2, w1 * w2), (w2 * w0, w2 * w1, w2 * w2 - t2))
+    V = [[(1.0 if i == j else 0.0) + b * k[i][j] + c * kk[i][j] for j in range(3)] for i in range(3)]
+    t = [float(T[0, 3]), float(T[1, 3]), float(T[2, 3])]
+    det = (V[0][0] * (V[1][1] * V[2][2] - V[1][2] * V[2][1]) - V[0][1] * (V[1][0] * V[2][2] - V[1][2] * V[2][0])
+           + V[0][2] * (V[1][0] * V[2][1] - V[1][1] * V[2][0]))
+    v = []
+    for col in range(3):
+        M = [row[:] for row in V]
+        for r in range(3):
+            M[r][col] = t[r]
+        v.append((M[0][0] * (M[1][1] * M[2][2] - M[1][2] * M[2][1]) - M[0][1] * (M[1][0] * M[2][2] - M[1][2] * M[2][0])
+                  + M[0][2] * (M[1][0] * M[2][1] - M[1][1] * M[2][0])) / det)
+    return np.array([v[0], v[1], v[2], w0, w1, w2])
+
+
 def se3_log(T) -> np.ndarray:
     """4x4 pose (..., 4, 4) -> ``(v, w)`` (..., 6)."""
     T = _as64(T)
+    if T.shape == (4, 4):
+        return _se3_log_one(T)
     w = so3_log(T[..., :3, :3])
     V = so3_left_jacobian(w)
     v = np.linalg.solve(V, T[..., :3, 3:4])[..., 0]

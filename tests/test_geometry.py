@@ -141,3 +141,15 @@ def test_se3_renormalize_stops_the_doubling_of_round_off():
     assert not err(raw[-1]) < 1e-6                                  # the failure this guards against is real
     assert err(fixed[-1]) < 1e-12
     np.testing.assert_allclose(se3_renormalize(fixed[-1]), fixed[-1], atol=1e-12)   # idempotent
+
+
+def test_single_pose_paths_equal_the_batched_ones():
+    """se3_exp / se3_log take a scalar-arithmetic path for one vector / one pose (the tracker calls them dozens of
+    times a frame); it must agree with the batched NumPy path, small angles (series), large ones and near pi."""
+    rng = np.random.default_rng(11)
+    xis = [rng.normal(size=6) * s for s in (1e-8, 1e-5, 1e-3, 0.3, 2.0) for _ in range(50)]
+    xis += [np.r_[rng.normal(size=3), (np.pi - 1e-4) * a / np.linalg.norm(a)] for a in rng.normal(size=(20, 3))]
+    for xi in xis:
+        T1 = g.se3_exp(xi)
+        np.testing.assert_allclose(T1, g.se3_exp(xi[None])[0], rtol=1e-13, atol=1e-14)
+        np.testing.assert_allclose(g.se3_log(T1), g.se3_log(T1[None])[0], rtol=1e-9, atol=1e-11)

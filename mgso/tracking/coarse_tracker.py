@@ -168,12 +168,13 @@ def make_tracking_reference(window: Window, config: TrackingConfig, device: str 
     for lvl in range(g.levels):
         wl, hl = g.level_size(lvl)
         idl, wsl = ids[lvl], wss[lvl]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            depth = np.where(wsl > 0, idl / np.where(wsl > 0, wsl, 1.0), -1.0).astype(np.float32)
         img = pyr.intensity[lvl].numpy()
-        inner = np.zeros((hl, wl), bool)
-        inner[2:hl - 2, 2:wl - 2] = True
-        sel = inner & (depth > 0) & np.isfinite(img)
+        sel = wsl > 0
+        sel[:2, :] = sel[hl - 2:, :] = False
+        sel[:, :2] = sel[:, wl - 2:] = False
+        depth = np.full((hl, wl), -1.0, np.float32)
+        np.divide(idl, wsl, out=depth, where=sel)
+        sel &= (depth > 0) & np.isfinite(img)
         ys, xs = np.nonzero(sel)
         depth[~sel] = -1.0
         maps.append(depth)

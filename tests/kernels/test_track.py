@@ -104,6 +104,10 @@ def test_reduction_is_exact_float64_sum_of_the_kernels_terms(wp_device, setup):
 
 def test_split_equals_single_and_energy_only_mode(wp_device, setup):
     _, dI_h, dI_t, uv, idepth = setup
+    # enough points that a launch splits (chunks of at least tk.SPLIT_MIN_POINTS residuals)
+    reps = -(-3 * tk.SPLIT_MIN_POINTS // len(uv))
+    uv = np.tile(uv, (reps, 1))
+    idepth = np.tile(idepth, reps)
     col = ref_colors(dI_h, uv, 1)
     pair = ph.make_frame_pair(make_pose(np.eye(3), [0.01, 0.0, 0.0]))
     cam = ph.make_intrinsics(**CAM, width=W, height=H)
@@ -118,7 +122,8 @@ def test_split_equals_single_and_energy_only_mode(wp_device, setup):
     d = tk.track_system(uv, idepth, col, pair, cam, dI_tw, ws, cutoff_th=10.0)
     assert d.num_saturated > a.num_saturated and d.num_terms == a.num_terms
     with pytest.raises(ValueError, match="capacity"):
-        tk.track_system(np.zeros((3000, 2)), np.ones(3000), np.ones((3000, 1)), pair, cam, dI_tw, ws)
+        m = len(uv) + 1
+        tk.track_system(np.zeros((m, 2)), np.ones(m), np.ones((m, 1)), pair, cam, dI_tw, ws)
     with pytest.raises(ValueError, match="ref_color"):
         tk.track_system(uv, idepth, np.ones((len(uv), 8)), pair, cam, dI_tw, ws)
 
