@@ -270,6 +270,7 @@ class TrackWorkspace:
                                   device=self.device)
         self.n = 0
         self._params: dict = {}
+        self.launches: dict = {}  # runtime.launch_split's recorded launches (the same arrays every iteration)
 
     @property
     def residual(self) -> wp.array:
@@ -373,7 +374,7 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
                              [uv, idp, col, pair, cam, dI_t, photo, params, ws.residual_, ws.weight_, ws.state_,
                               ws.jacobian_, ws.partials_], dev,
                              min_chunk=max(1, SPLIT_MIN_POINTS // (ws.points_per_block * ws.pattern_size)),
-                             threads=(threads if split else 1))
+                             threads=(threads if split else 1), recorded=ws.launches)
     s = ws.partials_.numpy()[:blocks].sum(axis=0) if blocks else np.zeros(NUM_SLOTS)
     return TrackingSystem(
         H=s[SLOT_H:SLOT_H + 64].reshape(8, 8).copy(), b=s[SLOT_B:SLOT_B + 8].copy(), energy=float(s[SLOT_ENERGY]),

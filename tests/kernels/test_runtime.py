@@ -67,3 +67,29 @@ def test_resolve_device(wp_device):
             runtime.resolve_device("cuda:0")
     with pytest.raises(ValueError, match="unknown device"):
         runtime.resolve_device("tpu")
+
+
+@wp.kernel(enable_backward=False)
+def scale_add(offset: int, gain: float, src: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+    i = offset + wp.tid()
+    out[i] = gain * src[i] + float(i)
+
+
+def test_recorded_launches_follow_new_scalars_and_arrays(wp_device):
+    """launch_split(recorded=...) replays recorded launches: a changed scalar input must reach the kernel, a new array
+    must get its own recording, and the result must equal a plain launch, split over the cores or not."""
+    rng = np.random.default_rng(1)
+    src = wp.array(rng.random(20000).astype(np.float32), device=wp_device)
+    src2 = wp.array(rng.random(20000).astype(np.float32), device=wp_device)
+    out = wp.zeros(20000, dtype=wp.float32, device=wp_device)
+    ref = wp.zeros_like(out)
+    cache: dict = {}
+    for gain, s in [(2.0, src), (3.0, src), (3.0, src2), (-1.0, src)]:
+        for threads in (1, 2):
+            n = runtime.launch_split(scale_add, 20000, [gain, s, out], wp_device, min_chunk=1000, threads=threads,
+                                     recorded=cache)
+            runtime.launch_split(scale_add, 20000, [gain, s, ref], wp_device, min_chunk=1000, threads=threads)
+            np.testing.assert_array_equal(out.numpy(), ref.numpy())
+            np.testing.assert_allclose(out.numpy(), gain * s.numpy() + np.arange(20000), rtol=1e-6)
+            assert n == (threads if wp.get_device(wp_device).is_cpu else 1)
+    assert len(cache) == 4 if wp.get_device(wp_device).is_cpu else 2  # (src, src2) x (1, 2 chunks)
