@@ -266,7 +266,7 @@ class WindowConfig:
     backend: Literal["bundle", "fixed"] = opt("bundle", "bundle: DSO's joint photometric bundle adjustment with a "
                                                        "marginalisation prior (docs/window.md); fixed: the stand-in "
                                                        "(poses fixed, inverse depths refined; docs/tracking.md)")
-    iterations: int = opt(6, "Levenberg-Marquardt iterations per keyframe (DSO setting_maxOptIterations = 6)")
+    iterations: int = opt(6, "Gauss-Newton iterations per keyframe (DSO setting_maxOptIterations = 6)")
     min_frames: int = opt(5, "keyframes kept at least when marginalising (DSO setting_minFrames = 5)")
     affine_prior_a: float = opt(0.0, "prior on each keyframe's affine a (DSO setting_affineOptModeA; 0 = free as "
                                      "DSO's mode 1 without photometric calibration, DSO default 1e12)")
