@@ -275,6 +275,9 @@ class WindowConfig:
                                           "(DSO setting_idepthFixPrior = 50^2)")
     marg_weight_fac: float = opt(0.25, "factor on what is marginalised into the prior, for its inexact "
                                        "linearisation point (DSO setting_margWeightFac = 0.5^2)")
+    orthogonalize_from: int = opt(0, "project the gauge directions out of the window's steps from this iteration on "
+                                     "(0-based); DSO's SOLVER_ORTHOGONALIZE_X_LATER is 2: measured 2-6 % lower ATE "
+                                     "on KITTI/7-Scenes and 20-28 % slower (docs/window.md)")
     force_accept: bool = opt(False, "keep every step even if the energy rises (DSO setting_forceAceptStep = true); "
                                     "false: a step is kept only when the total energy goes down")
 
@@ -289,6 +292,8 @@ class WindowConfig:
             raise ConfigError(f"window.iterations must be in [1, 100], got {self.iterations}")
         if not 2 <= self.min_frames <= self.max_frames:
             raise ConfigError(f"window.min_frames must be in [2, max_frames], got {self.min_frames}")
+        if self.orthogonalize_from < 0:
+            raise ConfigError(f"window.orthogonalize_from must be >= 0, got {self.orthogonalize_from}")
 
 
 @dataclass(frozen=True)

@@ -230,7 +230,8 @@ def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
 
     bundle = BundleSettings(iterations=wc.iterations, affine_prior_a=wc.affine_prior_a,
                             affine_prior_b=wc.affine_prior_b, idepth_fix_prior=wc.idepth_fix_prior,
-                            marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept, huber_th=t.huber_th,
+                            marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept,
+                            orthogonalize_from=wc.orthogonalize_from, huber_th=t.huber_th,
                             grad_c2=t.outlier_th_sum_component, overall_energy_th_weight=t.overall_energy_th_weight)
     marg = MarginalizationSettings(min_frames=wc.min_frames, max_frames=wc.max_frames)
     return WindowOptimizer(bundle, marg, device=device)

@@ -81,7 +81,8 @@ class BundleSettings:
     lambda_accept: float = 0.25
     lambda_reject: float = 100.0
     force_accept: bool = False  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
-    orthogonalize: bool = True  # remove the gauge directions from each step (DSO SOLVER_ORTHOGONALIZE_X[_LATER])
+    orthogonalize: bool = True  # remove the gauge directions from the steps (DSO SOLVER_ORTHOGONALIZE_X[_LATER])
+    orthogonalize_from: int = 0  # ... from this iteration on, 0-based (DSO's default SOLVER_ORTHOGONALIZE_X_LATER: 2)
     initial_trans_prior: float = 1e10  # setting_initialTransPrior
     initial_rot_prior: float = 1e11  # setting_initialRotPrior
     initial_aff_a_prior: float = 1e14  # setting_initialAffAPrior
@@ -358,8 +359,9 @@ class WindowProblem:
             return x
         return x - N @ np.linalg.lstsq(N, x, rcond=1e-10)[0]
 
-    def solve(self, L: Linearization, lam: float):
-        """``(dx_c [8K] scaled, dx_d [n] scaled)`` of the damped reduced system."""
+    def solve(self, L: Linearization, lam: float, orthogonalize: bool | None = None):
+        """``(dx_c [8K] scaled, dx_d [n] scaled)`` of the damped reduced system; ``orthogonalize``: project the gauge
+        directions out of the step (default: the settings' ``orthogonalize``)."""
         idx = self.live
         # DSO solveSystemF: the diagonal of the full system times (1 + lambda), frames and points alike, i.e. the
         # top block's diagonal scaled and the Schur term divided by (1 + lambda)
@@ -376,7 +378,7 @@ class WindowProblem:
             x = np.linalg.lstsq(H, -b, rcond=None)[0]
         dx_c = np.zeros(self.nf)
         dx_c[idx] = x
-        if self.s.orthogonalize:
+        if self.s.orthogonalize if orthogonalize is None else orthogonalize:
             dx_c = self.orthogonalize(dx_c)
         # back-substitution (raw point units): H_dd dd = -(b_d + w . dx_raw)
         dx_raw = dx_c * self.S
@@ -413,7 +415,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
     history = [e0]
     for it in range(1, s.iterations + 1):
         t0 = time.perf_counter()
-        dx_c, dx_d = problem.solve(L, lam)
+        dx_c, dx_d = problem.solve(L, lam, orthogonalize=s.orthogonalize and it - 1 >= s.orthogonalize_from)
         tick("solve", t0)
         if not (np.all(np.isfinite(dx_c)) and np.all(np.isfinite(dx_d))):
             lam *= s.lambda_reject

@@ -172,3 +172,27 @@ def test_backend_optimize_writes_states_and_drops_outliers(wp_device, seq):
     newest = w.newest_slot
     np.testing.assert_array_equal(w.world_to_cam_zero_[newest], w.world_to_cam_[newest])  # DSO setEvalPT
     assert 0 < w.energy_th_[newest] < 1e6
+
+
+def test_orthogonalize_from_projects_the_later_steps_only(wp_device, seq):
+    """``orthogonalize_from = 2`` is DSO's SOLVER_ORTHOGONALIZE_X_LATER: the first two steps keep their component along
+    the gauge directions (here the scale: the first keyframe is held), the later ones have none."""
+    w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
+    s = BundleSettings(orthogonalize_from=2, iterations=4, force_accept=True, th_opt_iterations=0.0)
+    p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
+    steps = []
+    solve = p.solve
+
+    def recording(L, lam, orthogonalize=None):
+        dx_c, dx_d = solve(L, lam, orthogonalize)
+        steps.append((orthogonalize, dx_c))
+        return dx_c, dx_d
+
+    p.solve = recording
+    optimize_window(p, s)
+    N = p.nullspaces()
+    N = N / np.linalg.norm(N, axis=0)
+    assert [f for f, _ in steps] == [False, False, True, True]
+    along = [np.linalg.norm(N.T @ dx) / np.linalg.norm(dx) for _, dx in steps]
+    assert along[0] > 1e-6 and along[1] > 1e-6, along
+    assert along[2] < 1e-9 and along[3] < 1e-9, along
