@@ -25,8 +25,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import sample_dI
-from .photometric import PATTERN, Intrinsics, huber_weight, in_margins, project_RKi
+from .photometric import Intrinsics, huber_weight, make_intrinsics, sample_pattern_pixel
 
 __all__ = ["DepthParams", "make_depth_params", "DepthPairs", "point_depth_kernel", "point_depth_residuals"]
 
@@ -74,12 +73,7 @@ def point_depth_kernel(offset: int,
     h = float(0.0)
     b = float(0.0)
     for i in range(8):
-        kk, nrm = project_RKi(c[0] + PATTERN[i, 0], c[1] + PATTERN[i, 1], d, RKi, t, cam)
-        ku = kk[0]
-        kv = kk[1]
-        inside = nrm[2] > 0.0 and in_margins(ku, kv, cam.width, cam.height, params.border_lo, params.border_hi)
-        s = sample_dI(img, ku, kv)  # clamped: memory-safe even when outside
-        good = inside and wp.isfinite(s)
+        nrm, s, good = sample_pattern_pixel(c[0], c[1], i, d, RKi, t, cam, params.border_lo, params.border_hi, img)
         if not good:
             ok = False
         r = wp.where(good, s[0] - (aff[0] * color[p, i] + aff[1]), 0.0)
@@ -103,9 +97,7 @@ def make_depth_params(fx: float, fy: float, cx: float, cy: float, width: int, he
     if not (fx > 0 and fy > 0) or width < 8 or height < 8:
         raise ValueError(f"bad intrinsics fx={fx} fy={fy} size {width}x{height}")
     p = DepthParams()
-    c = Intrinsics()
-    c.fx, c.fy, c.cx, c.cy, c.width, c.height = float(fx), float(fy), float(cx), float(cy), int(width), int(height)
-    p.cam = c
+    p.cam = make_intrinsics(fx, fy, cx, cy, width, height)
     p.huber_th, p.border_lo, p.border_hi = float(huber_th), float(border_lo), float(border_hi)
     return p
 

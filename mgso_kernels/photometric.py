@@ -51,7 +51,8 @@ __all__ = [
     "ProjectionStatus", "STATUS_OK", "STATUS_OOB", "STATUS_BEHIND",
     "vec6f", "vec8f", "mat82f", "Intrinsics", "FramePair", "PhotometricParams", "PixelResidual",
     "make_intrinsics", "make_frame_pair", "make_photometric_params", "affine_from_to",
-    "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "pose_jacobian",
+    "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "sample_pattern_pixel",
+    "pose_jacobian",
     "huber_weight", "gradient_weight", "photometric_residual",
     "evaluate_patch_kernel", "extract_patterns_kernel", "PatchResiduals", "evaluate_patches", "HostPatterns",
     "extract_patterns",
@@ -205,6 +206,20 @@ def projection_jacobians(n: wp.vec3, h: wp.vec2, idepth: float, R: wp.mat33, t: 
 def in_margins(x: float, y: float, width: int, height: int, lo: float, hi: float) -> bool:
     """DSO's projection test: ``lo < x < width - hi`` and ``lo < y < height - hi`` (NaN -> False)."""
     return x > lo and y > lo and x < float(width) - hi and y < float(height) - hi
+
+
+@wp.func
+def sample_pattern_pixel(cu: float, cv: float, i: int, idepth: float, RKi: wp.mat33, t: wp.vec3, cam: Intrinsics,
+                         lo: float, hi: float, dI_t: wp.array2d(dtype=wp.vec3)):
+    """Pattern pixel ``i`` of the host pixel ``(cu, cv)`` with inverse depth ``idepth``, projected into a target
+    (:func:`project_RKi`) and sampled there: ``(n = (u_n, v_n, drescale), s = (I, gx, gy), good)``; ``good`` when the
+    projection is in front, inside DSO's margins ``lo < x < w - hi`` (and the bilinear footprint) and the sample is
+    finite. The sample is clamped, so memory-safe even when not good."""
+    kk, nrm = project_RKi(cu + PATTERN[i, 0], cv + PATTERN[i, 1], idepth, RKi, t, cam)
+    inside = in_margins(kk[0], kk[1], cam.width, cam.height, lo, hi)
+    inside = inside and bilinear_inside(kk[0], kk[1], cam.width, cam.height) and nrm[2] > 0.0
+    s = sample_dI(dI_t, kk[0], kk[1])
+    return nrm, s, inside and wp.isfinite(s)
 
 
 @wp.func

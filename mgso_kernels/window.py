@@ -52,9 +52,8 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import bilinear_inside, sample_dI
-from .photometric import (PATTERN, Intrinsics, vec6f, gradient_weight, huber_weight, in_margins, inverse_K, project_pixel,
-                          project_RKi, projection_jacobians)
+from .photometric import (Intrinsics, gradient_weight, huber_weight, inverse_K, make_intrinsics, project_pixel,
+                          projection_jacobians, sample_pattern_pixel)
 
 __all__ = [
     "PAIR_PARAMS", "FRAME_PARAMS", "NUM_KEY_SLOTS", "SLOT_H", "SLOT_B", "PairState", "WindowParams",
@@ -200,13 +199,8 @@ def linearize_pairs_kernel(offset: int,
         energy = float(0.0)
         wji2 = float(0.0)
         for i in range(8):
-            kk, nrm = project_RKi(c[0] + PATTERN[i, 0], c[1] + PATTERN[i, 1], d, RKi, t, cam)
-            ku = kk[0]
-            kv = kk[1]
-            inside = in_margins(ku, kv, cam.width, cam.height, params.border_lo, params.border_hi)
-            inside = inside and bilinear_inside(ku, kv, cam.width, cam.height) and nrm[2] > 0.0
-            s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
-            good = inside and wp.isfinite(s)
+            nrm, s, good = sample_pattern_pixel(c[0], c[1], i, d, RKi, t, cam, params.border_lo, params.border_hi,
+                                                dI_t)
             if not good:
                 ok = False
             hc = color[p, i] - b_h
@@ -346,9 +340,7 @@ def make_window_params(fx: float, fy: float, cx: float, cy: float, width: int, h
     if not (fx > 0 and fy > 0) or width < 8 or height < 8:
         raise ValueError(f"bad intrinsics fx={fx} fy={fy} size {width}x{height}")
     p = WindowParams()
-    c = Intrinsics()
-    c.fx, c.fy, c.cx, c.cy, c.width, c.height = float(fx), float(fy), float(cx), float(cy), int(width), int(height)
-    p.cam = c
+    p.cam = make_intrinsics(fx, fy, cx, cy, width, height)
     p.huber_th, p.grad_c2 = float(huber_th), float(grad_c2)
     p.border_lo, p.border_hi, p.min_wji2 = float(border_lo), float(border_hi), float(min_wji2)
     return p
@@ -404,13 +396,13 @@ def _arr(a, dtype, shape, name):
 
 
 def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_block: int):
-    """Pairs sorted by (target, key); blocks of at most ``pairs_per_block`` pairs that never straddle a key.
-    Returns ``order, block_start, block_end, block_key, target_block_ranges``."""
+    """Pairs sorted by (target, key) (a thread's pairs read one image); blocks of at most ``pairs_per_block`` pairs
+    that never straddle a key. Returns ``order, block_start, block_end, block_key``."""
     order = np.lexsort((pair_key, pair_target)).astype(np.int32)
     keys = pair_key[order]
     M = len(order)
     if M == 0:
-        return order, np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int64), {}
+        return order, np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int64)
     cuts = np.flatnonzero(np.diff(keys)) + 1
     seg_start = np.concatenate([[0], cuts])
     seg_end = np.concatenate([cuts, [M]])
@@ -421,13 +413,7 @@ def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_bloc
         ends.append(np.minimum(b + pairs_per_block, e))
     bs = np.concatenate(starts).astype(np.int32)
     be = np.concatenate(ends).astype(np.int32)
-    bkey = keys[bs].astype(np.int64)
-    btarget = pair_target[order][bs]
-    ranges = {}
-    for tg in np.unique(btarget):
-        idx = np.flatnonzero(btarget == tg)
-        ranges[int(tg)] = (int(idx[0]), int(idx[-1]) + 1)
-    return order, bs, be, bkey, ranges
+    return order, bs, be, keys[bs].astype(np.int64)
 
 
 def _image_stack(target_images, slots_needed: np.ndarray, params: WindowParams, device: str) -> wp.array:
@@ -487,7 +473,7 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     if cache is None or "order" not in cache:
         pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
         stack = _image_stack(target_images, np.unique(pair_target).astype(np.int64), params, device)
-        order, bs, be, bkey, _ = _blocks_by_key(pk, pair_target, pairs_per_block)
+        order, bs, be, bkey = _blocks_by_key(pk, pair_target, pairs_per_block)
         B = len(bs)
         c = dict(order=order, bkey=bkey, B=B, stack=stack, w_bs=f(bs, wp.int32), w_be=f(be, wp.int32),
                  w_order=f(order, wp.int32), w_pp=f(pp, wp.int32), w_pk=f(pk, wp.int32), uv=f(uv, wp.vec2),

@@ -256,12 +256,8 @@ class WindowProblem:
         hs, gs = self._key_host, self._key_target
         T = w.world_to_cam_[gs] @ se3_inverse(w.world_to_cam_[hs])
         T0 = w.world_to_cam_zero_[gs] @ se3_inverse(w.world_to_cam_zero_[hs])
-        a_h, b_h = w.affine_[hs, 0], w.affine_[hs, 1]
-        a_t, b_t = w.affine_[gs, 0], w.affine_[gs, 1]
-        e_h, e_t = w.exposure_[hs].astype(np.float64), w.exposure_[gs].astype(np.float64)
-        known = (e_h != 0) & (e_t != 0)  # DSO fromToVecExposure: an unknown exposure counts as 1 for both
-        a_rel = np.exp(a_t - a_h) * np.where(known, e_t / np.where(known, e_h, 1.0), 1.0)
-        aff = np.stack([a_rel, b_h, b_t], axis=1)
+        a_rel = np.array([w.affine_rel(h, g)[0] for h, g in self.keylist])
+        aff = np.stack([a_rel, w.affine_[hs, 1], w.affine_[gs, 1]], axis=1).reshape(len(hs), 3)
         R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
         adj = np.zeros((len(hs), 6, 6))  # se3_adjoint(T0), (v, w) order
         adj[:, :3, :3] = R0
