@@ -92,4 +92,4 @@ def test_recorded_launches_follow_new_scalars_and_arrays(wp_device):
             np.testing.assert_array_equal(out.numpy(), ref.numpy())
             np.testing.assert_allclose(out.numpy(), gain * s.numpy() + np.arange(20000), rtol=1e-6)
             assert n == (threads if wp.get_device(wp_device).is_cpu else 1)
-    assert len(cache) == 4 if wp.get_device(wp_device).is_cpu else 2  # (src, src2) x (1, 2 chunks)
+    assert len(cache) == (4 if wp.get_device(wp_device).is_cpu else 2)  # (src, src2) x (1, 2 chunks)
