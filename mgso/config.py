@@ -275,11 +275,12 @@ class WindowConfig:
                                           "(DSO setting_idepthFixPrior = 50^2)")
     marg_weight_fac: float = opt(0.25, "factor on what is marginalised into the prior, for its inexact "
                                        "linearisation point (DSO setting_margWeightFac = 0.5^2)")
-    orthogonalize_from: int = opt(0, "project the gauge directions out of the window's steps from this iteration on "
-                                     "(0-based); DSO's SOLVER_ORTHOGONALIZE_X_LATER is 2: measured 2-6 % lower ATE "
-                                     "on KITTI/7-Scenes and 20-28 % slower (docs/window.md)")
-    force_accept: bool = opt(False, "keep every step even if the energy rises (DSO setting_forceAceptStep = true); "
-                                    "false: a step is kept only when the total energy goes down")
+    orthogonalize_from: int = opt(2, "project the gauge directions out of the window's steps from this iteration on "
+                                     "(0-based); 2 = DSO's default SOLVER_ORTHOGONALIZE_X_LATER, 0 = every step "
+                                     "(DSO's SOLVER_ORTHOGONALIZE_X); docs/window.md compares them")
+    force_accept: bool = opt(True, "keep every step even if the energy rises (DSO's default setting_forceAceptStep); "
+                                   "false: a step is kept only when the total energy goes down, else undone and "
+                                   "retried with more damping")
 
     def __post_init__(self):
         if not 2 <= self.max_frames <= 16:

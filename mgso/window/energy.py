@@ -18,18 +18,19 @@ Energy (DSO's, ``r^2`` convention; the system is ``H = J^T W J``, ``b = J^T W r`
   (``setting_initialTransPrior = 1e10``, ``setting_initialRotPrior = 1e11``, ``setting_initialAffA/BPrior = 1e14``
   on its scaled parameters) is folded into the marginalisation prior with it; the initialiser's points
   (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` towards their initial inverse depth
-  (``idepth_zero``), folded into the prior too when they leave. And, as DSO (``SOLVER_ORTHOGONALIZE_X``), each step
-  is projected off the gauge directions of the frame parameters (:meth:`WindowProblem.nullspaces`: scale always,
-  the 6 pose directions once no keyframe is held), so that first-estimate inconsistencies cannot drive the window
-  along its null space. Other
+  (``idepth_zero``), folded into the prior too when they leave. And, as DSO's default
+  (``SOLVER_ORTHOGONALIZE_X_LATER``), each step from the third on (``orthogonalize_from``) is projected off the gauge
+  directions of the frame parameters (:meth:`WindowProblem.nullspaces`: scale always, the 6 pose directions once no
+  keyframe is held), so that first-estimate inconsistencies cannot drive the window along its null space. Other
   keyframes' affine parameters get ``affine_prior_a/b`` (DSO ``setting_affineOptModeA/B``; 0 = free, DSO's mode 1).
 
 Each iteration: linearise every candidate pair (Warp), accumulate the key blocks and the Schur complement over the
 inverse depths (Warp, per-block partials), add the priors, multiply the diagonal by ``1 + lambda``, solve the
-``8 K x 8 K`` reduced system by a dense float64 Cholesky, back-substitute the inverse depths, and keep the step only if
-the total energy goes down (``lambda *= 0.25``), else restore (``lambda *= 100``), DSO's schedule from ``lambda =
-0.1``. At most ``iterations`` (DSO 6) steps; stop early when the mean squared step is below DSO's thresholds
-(``setting_thOptIterations``). Points are not first-estimate: their inverse depth is linearised where it is (DSO moves
+``8 K x 8 K`` reduced system by a dense float64 Cholesky, back-substitute the inverse depths, and take the step.
+DSO's defaults: ``lambda = 1e-5`` (``SOLVER_FIX_LAMBDA``) and every finite step kept (``setting_forceAceptStep``,
+``force_accept``); with ``force_accept = False`` a step is kept only if the total energy goes down (``lambda *=
+0.25``), else undone and retried (``lambda *= 100``). At most ``iterations`` (DSO 6) steps; stop early when the
+mean squared step is below DSO's thresholds (``setting_thOptIterations``). Points are not first-estimate: their inverse depth is linearised where it is (DSO moves
 ``idepth_zero`` of a point every step), while the keyframes' geometric Jacobians stay at the linearisation points.
 """
 
@@ -80,9 +81,9 @@ class BundleSettings:
     lambda_min: float = 1e-5
     lambda_accept: float = 0.25
     lambda_reject: float = 100.0
-    force_accept: bool = False  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
+    force_accept: bool = True  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
     orthogonalize: bool = True  # remove the gauge directions from the steps (DSO SOLVER_ORTHOGONALIZE_X[_LATER])
-    orthogonalize_from: int = 0  # ... from this iteration on, 0-based (DSO's default SOLVER_ORTHOGONALIZE_X_LATER: 2)
+    orthogonalize_from: int = 2  # ... from this iteration on, 0-based (DSO's default SOLVER_ORTHOGONALIZE_X_LATER: 2)
     initial_trans_prior: float = 1e10  # setting_initialTransPrior
     initial_rot_prior: float = 1e11  # setting_initialRotPrior
     initial_aff_a_prior: float = 1e14  # setting_initialAffAPrior
@@ -421,7 +422,7 @@ def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dic
         t0 = time.perf_counter()
         L_new = problem.linearize()
         tick("linearize", t0)
-        if L_new.energy < L.energy or s.force_accept:
+        if L_new.energy < L.energy or (s.force_accept and np.isfinite(L_new.energy)):
             L = L_new
             accepted += 1
             history.append(L.energy)

@@ -89,13 +89,13 @@ def test_marginalizing_a_keyframe_and_its_points_matches_the_full_solve(wp_devic
     np.testing.assert_allclose(dxd_rest, dxd_full[~involve][order], rtol=1e-5, atol=1e-7 * np.abs(dxd_full).max())
 
 
-def _solve_from(seq, noise, rounds=2):
+def _solve_from(seq, noise, rounds=2, **settings):
     """Optimise a window started ``noise`` away from the truth; between rounds the linearisation points move to the
     current state (what the odometry does for the newest keyframe). Returns (window, truth, start error, histories,
     final energy)."""
     w, truth = window_from_sequence(seq, FRAMES, points_per_kf=120, pose_noise=noise, depth_noise=12 * noise, seed=2)
     err0 = np.array([np.linalg.norm(se3_log(w.world_to_cam_[s] @ se3_inverse(truth[s]))) for s in w.order[1:]])
-    s = BundleSettings(iterations=10)
+    s = BundleSettings(**{"iterations": 10, **settings})
     hist = []
     for _ in range(rounds):
         for slot in w.order:
@@ -112,8 +112,9 @@ def test_energy_descends_and_noise_free_window_converges_to_truth(wp_device, seq
     cm / 10 % depth away it must reach that minimum: energy within 3 %, poses within a third of the start error.
     (DSO's solver is Gauss-Newton with lambda 1e-5; from this start it ends 2.7 % above the energy reached from the
     truth, poses 1-15 % of the start error away; Levenberg-Marquardt from lambda 0.1 ended 1.6 % above.)"""
-    w0, truth, _, _, e_truth = _solve_from(seq, 0.0)
-    w1, _, err0, hist, e1 = _solve_from(seq, 0.008)
+    kept = dict(force_accept=False, orthogonalize_from=0)  # steps kept by energy, every step projected
+    w0, truth, _, _, e_truth = _solve_from(seq, 0.0, **kept)
+    w1, _, err0, hist, e1 = _solve_from(seq, 0.008, **kept)
     for h in hist:
         assert np.all(np.diff(h) < 0), h  # every kept step lowers the energy
     assert len(hist[0]) >= 4  # it did move
@@ -127,6 +128,40 @@ def test_energy_descends_and_noise_free_window_converges_to_truth(wp_device, seq
     assert np.all(near < 0.01), near
     idepth = true_idepth(seq, w1, FRAMES)
     assert np.median(np.abs(w1.active.idepth / idepth - 1)) < 0.04
+
+
+def _scale_aligned_errors(poses, reference, slots):
+    """Pose errors (se3 norm) of ``poses`` against ``reference`` for ``slots[1:]``, relative to the first slot and
+    after the one gauge freedom left when the first keyframe is held, the scale, is aligned (least squares)."""
+    rel = lambda T: [T[s] @ se3_inverse(T[slots[0]]) for s in slots[1:]]  # noqa: E731
+    A, B = rel(poses), rel(reference)
+    ta = np.concatenate([T[:3, 3] for T in A])
+    scale = ta @ np.concatenate([T[:3, 3] for T in B]) / (ta @ ta)
+    out = []
+    for Ta, Tb in zip(A, B):
+        T = Ta.copy()
+        T[:3, 3] *= scale
+        out.append(np.linalg.norm(se3_log(T @ se3_inverse(Tb))))
+    return np.array(out)
+
+
+def test_dso_default_solver_converges_up_to_scale(wp_device, seq):
+    """DSO's defaults (every step kept, the first two not projected off the gauge): the unprojected steps may move the
+    window along its scale, so the check is up to that gauge. From 1-2.6 cm / 10 % depth away it must reach the energy
+    reached from the truth (within 3 %) and, scale aligned, poses within a third of the start error of that solution,
+    which itself is within 1 cm of the truth. (Measured: energy 0.6 % above, poses 4-27 % of the start error, the
+    scale 3.7 % off after 20 steps; the truth-started solution 0.003-0.008 (se3 norm) from the truth.)"""
+    defaults = BundleSettings()
+    assert defaults.force_accept and defaults.orthogonalize_from == 2
+    w0, truth, _, _, e_truth = _solve_from(seq, 0.0)
+    w1, _, err0, hist, e1 = _solve_from(seq, 0.008)
+    assert len(hist[0]) >= 4  # it did move
+    assert e1 < 1.03 * e_truth, (e1, e_truth)
+    order = list(w1.order)
+    gap = _scale_aligned_errors(w1.world_to_cam_, w0.world_to_cam_, order)
+    assert np.all(gap < 0.35 * err0), (gap, err0)
+    near = _scale_aligned_errors(w0.world_to_cam_, truth, order)
+    assert np.all(near < 0.01), near
 
 
 def test_prior_bookkeeping(wp_device, seq):
