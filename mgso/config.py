@@ -153,6 +153,11 @@ class TrackingConfig:
     coarse_max_cutoff_repeat: float = opt(50.0, "largest cutoff multiplier (levelCutoffRepeat < 50)")
     coarse_abort_factor: float = opt(1.5, "a motion hypothesis is abandoned on a level whose RMSE exceeds this x "
                                           "the best so far (trackNewestCoarse minResForAbort)")
+    skip_duplicate_frames: bool = opt(True, "a frame whose image is identical to the previous one (a repeated "
+                                            "frame, common from webcams and some recordings) takes the previous "
+                                            "frame's pose instead of being tracked: its RMSE of 0 against a keyframe "
+                                            "would otherwise become DSO's baseline (then every motion hypothesis is "
+                                            "tried on the next frame and it always becomes a keyframe)")
     retrack_threshold: float = opt(1.5, "try the next motion hypothesis until the RMSE is below this x the last "
                                         "frame's (setting_reTrackThreshold)")
     coarse_rotation_hypotheses: bool = opt(True, "after constant/double/half/zero motion also try 26 small "

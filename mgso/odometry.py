@@ -8,7 +8,8 @@ tracking and mapping threads, with typed messages between the halves:
 
 - :meth:`Odometry.track` (tracking side): builds the frame's pyramid, runs the initialiser or the coarse tracker,
   decides keyframe or not, detects tracking loss, and returns a :class:`TrackedFrame` (the frame's pyramid travels
-  with it).
+  with it). A frame that repeats the previous image exactly takes the previous frame's pose untracked
+  (``FrameStatus.DUPLICATE``, ``tracking.skip_duplicate_frames``).
 - :meth:`Odometry.map` (mapping side): for a keyframe, traces the immature points, lets the back end flag frames,
   adds the keyframe, activates points, optimises, builds the next tracking reference, marginalises points, selects new
   immature points and drops flagged keyframes; for other frames, traces. The new :class:`~mgso.tracking.
@@ -80,6 +81,7 @@ class FrameStatus(str, Enum):
     TRACKED = "tracked"
     LOST = "lost"  # tracking failed on this frame; a new segment starts
     INIT_FAILED = "init_failed"  # the initialiser gave up; it restarts from this frame
+    DUPLICATE = "duplicate"  # the same image as the previous frame: its pose is the previous frame's (not tracked)
 
 
 class LossReason(str, Enum):
@@ -190,7 +192,7 @@ class TrackedFrame:
     """The message from the tracking half to the mapping half (DSO ``deliverTrackedFrame``)."""
 
     record: FrameRecord
-    pyramid: ImagePyramid  # owned by the message until mapped
+    pyramid: ImagePyramid | None  # owned by the message until mapped; None for a duplicate frame
     exposure: float
     rgb: Any  # callable or array giving the frame's RGB (only read for keyframes)
     need_keyframe: bool
@@ -306,6 +308,8 @@ class Odometry:
         self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
         self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
         self._prev_rec: FrameRecord | None = None  # the previous tracked frame (this segment)
+        self._prev_image: np.ndarray | None = None  # the previous frame's adjusted image (duplicate detection)
+        self.num_duplicates = 0
 
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
@@ -325,13 +329,23 @@ class Odometry:
                                                                  self.geometry.input_height):
             raise ValueError(f"frame {getattr(frame, 'index', '?')}: gray image is {gray.shape}, the odometry was set "
                              f"up for {self.geometry.input_width}x{self.geometry.input_height}")
-        pyr = self._pool.acquire()
         img = self.geometry.adjust(gray)
         img = np.where(np.isfinite(img), img, 0.0).astype(np.float32)
-        pyr.build(img)
         exposure = float(getattr(frame, "exposure_ms", None) or 0.0)
         rec = FrameRecord(int(frame.index), float(frame.timestamp), self.segment, FrameStatus.INITIALIZING)
+        duplicate = self._prev_image is not None and np.array_equal(img, self._prev_image)
+        self._prev_image = img
+        if duplicate and self.config.tracking.skip_duplicate_frames and self.initialized:
+            prev = self.frames[-1] if self.frames else None
+            if prev is not None and prev.pose_valid and prev.segment == self.segment:
+                tf = self._duplicate(rec, prev, exposure)
+                self.frames.append(rec)
+                tf.result.time_track_s = time.perf_counter() - t0
+                self.observer.on_frame(tf.result)
+                return tf
         self.frames.append(rec)
+        pyr = self._pool.acquire()
+        pyr.build(img)
         rgb = (lambda f=frame: f.rgb)
         if not self.initialized:
             tf = self._track_initializer(rec, pyr, exposure, rgb)
@@ -343,6 +357,8 @@ class Odometry:
 
     def map(self, tracked: TrackedFrame) -> None:
         """The mapping half (DSO ``makeKeyFrame`` / ``makeNonKeyFrame``)."""
+        if tracked.pyramid is None:  # a duplicate frame: nothing to map
+            return
         try:
             if tracked.initialize is not None:
                 self._start_window(tracked)
@@ -539,8 +555,9 @@ class Odometry:
         cfg = self.config.tracking
         ref = self.tracker.reference
         ref_c2w = self._ref_cam_to_world(ref.keyframe_id)
-        prev = self.frames[-2] if len(self.frames) >= 2 else None
-        prev2 = self.frames[-3] if len(self.frames) >= 3 else None
+        before = [f for f in self.frames[-8:-1] if f.status != FrameStatus.DUPLICATE]  # repeats tell no motion
+        prev = before[-1] if before else None
+        prev2 = before[-2] if len(before) >= 2 else None
         last = prev.cam_to_world if prev is not None and prev.pose_valid and prev.segment == self.segment else None
         prelast = (prev2.cam_to_world if prev2 is not None and prev2.pose_valid and prev2.segment == self.segment
                    else None)
@@ -571,6 +588,24 @@ class Odometry:
                              self.to_world(rec.segment, rec.cam_to_world), dec.need,
                              dec.reason.value if dec.need else "", track=tr)
         return TrackedFrame(rec, pyr, exposure, rgb, dec.need, dec.reason.value, result)
+
+    def _duplicate(self, rec: FrameRecord, prev: FrameRecord, exposure: float) -> TrackedFrame:
+        """A repeated image: the previous frame's pose, kept relative to the same keyframe (to the previous frame
+        itself when it is a keyframe) so that it follows the window's corrections. The tracker, the keyframe policy
+        and the immature points do not see it: its RMSE of 0 against a keyframe would become the baseline every later
+        frame is judged by."""
+        self.num_duplicates += 1
+        rec.status = FrameStatus.DUPLICATE
+        if prev.keyframe_id >= 0:
+            rec.tracking_ref, rec.cam_to_tracking_ref = prev.keyframe_id, np.eye(4)
+        else:
+            rec.tracking_ref, rec.cam_to_tracking_ref = prev.tracking_ref, prev.cam_to_tracking_ref
+        rec.affine = prev.affine
+        rec.cam_to_world = prev.cam_to_world.copy()
+        log.debug("frame %d repeats frame %d: pose copied", rec.index, prev.index)
+        result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment,
+                             self.to_world(rec.segment, rec.cam_to_world), False)
+        return TrackedFrame(rec, None, exposure, None, False, "", result)
 
     def _loss(self, tr: TrackResult) -> LossReason | None:
         cfg = self.config.tracking

@@ -95,15 +95,17 @@ def run_tracking(seq, cfg: Config, out_dir: Path, summary, progress, observers=(
     figures = {
         "frames": n, "frames_with_pose": tracked, "fraction_tracked": tracked / n if n else 0.0,
         "keyframes": len(kfs), "segments": odo.segment + 1, "tracking_lost": odo.num_lost,
+        "repeated_frames": odo.num_duplicates,
         "status_counts": dict(counts), "points": int(len(pts)), "wall_s": wall, "fps": n / wall if wall else 0.0,
         "track_ms_median": float(np.median(track_ms)) if track_ms else None,
         "map_ms_median": float(np.median(map_ms)) if map_ms else None,
         "device": device, "image_size": [geo.width, geo.height], "pyramid_levels": geo.levels,
     }
     summary.figures.update(figures)
-    summary.messages.append(f"tracked {tracked}/{n} frames ({100.0 * tracked / max(n, 1):.1f}%), {len(kfs)} keyframes, "
-                            f"{odo.num_lost} tracking losses, {len(pts)} points; {n / wall if wall else 0:.2f} "
-                            f"frames/s ({geo.width}x{geo.height}, {device})")
+    repeats = f" ({odo.num_duplicates} repeated images: pose of the frame before)" if odo.num_duplicates else ""
+    summary.messages.append(f"tracked {tracked}/{n} frames ({100.0 * tracked / max(n, 1):.1f}%){repeats}, "
+                            f"{len(kfs)} keyframes, {odo.num_lost} tracking losses, {len(pts)} points; "
+                            f"{n / wall if wall else 0:.2f} frames/s ({geo.width}x{geo.height}, {device})")
     gt = seq.groundtruth
     ates = []
     if gt is not None and tracked >= 3:

@@ -1,12 +1,15 @@
 """The odometry loop on synthetic sequences: initialisation, tracking, keyframes, observer events, and bad inputs
 (a black frame, a frame of noise, a sudden jump) reported as tracking loss with recovery in a new segment."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from mgso import synthetic
 from mgso.config import Config
 from mgso.eval import compute_ate
+from mgso.io.sequence import Frame
 from mgso.observers import Observer
 from mgso.odometry import FrameStatus, LossReason, Odometry, geometry_for
 from tracking_helpers import frames_of
@@ -77,6 +80,40 @@ def test_frame_poses_are_chained_to_their_keyframes(wp_device, clean_run):
             np.testing.assert_allclose(f.cam_to_world, kf.cam_to_world @ f.cam_to_tracking_ref, atol=1e-9)
         if f.keyframe_id >= 0:
             np.testing.assert_allclose(f.cam_to_world, odo.keyframes[f.keyframe_id].cam_to_world, atol=1e-9)
+
+
+def test_repeated_frames_take_the_previous_pose(wp_device, seq160, clean_run):
+    """A frame that repeats the previous image (dropped frames filled in by the camera driver: 43 of the first 500
+    7-Scenes frames) gets the previous frame's pose without being tracked. Tracked, a repeat of a keyframe has an
+    RMSE of 0 against it, and that becomes the reference's first RMSE, which every later frame is judged by (DSO
+    would then try every motion hypothesis on the next frame and make it a keyframe)."""
+    odo0, _, res0 = clean_run
+    first_tracked = [r.status for r in res0].index(FrameStatus.INITIALIZED)
+    kf_frames = sorted(k.frame_index for k in odo0.keyframes.values() if k.frame_index > first_tracked)
+    repeat = set(kf_frames[:2]) | {first_tracked + 4}
+    frames, dups = [], []
+    for f in frames_of(seq160):
+        frames.append(Frame(len(frames), f.timestamp, f.gray, rgb=f.rgb))
+        if f.index in repeat:
+            dups.append(len(frames))
+            frames.append(Frame(len(frames), f.timestamp + 0.5 / seq160.spec.fps, f.gray, rgb=f.rgb))
+    odo, _, results = run(seq160, frames)
+    assert odo.num_duplicates == len(dups) == 3
+    assert [i for i, r in enumerate(results) if r.status == FrameStatus.DUPLICATE] == dups
+    for i in dups:
+        np.testing.assert_allclose(results[i].cam_to_world, results[i - 1].cam_to_world, atol=1e-9)
+        np.testing.assert_allclose(odo.frames[i].cam_to_world, odo.frames[i - 1].cam_to_world, atol=1e-12)
+        assert results[i].track is None and not results[i].is_keyframe
+    assert not odo.segment and all(r.status == FrameStatus.TRACKED for r in results[first_tracked + 1:]
+                                   if r.status != FrameStatus.DUPLICATE)
+    first = [r.track.first_rmse for r in results if r.track is not None]
+    assert min(first) > 0.5, min(first)
+    # tracked instead, the repeat of a keyframe is where a first RMSE of 0 comes from
+    cfg = Config()
+    cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, skip_duplicate_frames=False))
+    odo_t, _, results_t = run(seq160, frames[:dups[1] + 1], cfg)
+    assert odo_t.num_duplicates == 0
+    assert min(r.track.first_rmse for r in results_t if r.track is not None) < 1e-3
 
 
 def bad_frames(kind, seq160, seq_jump):
