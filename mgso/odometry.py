@@ -601,7 +601,7 @@ class Odometry:
         else:
             rec.tracking_ref, rec.cam_to_tracking_ref = prev.tracking_ref, prev.cam_to_tracking_ref
         rec.affine = prev.affine
-        rec.cam_to_world = prev.cam_to_world.copy()
+        rec.cam_to_world = self._chained_pose(prev)  # with the window's latest correction of its keyframe
         log.debug("frame %d repeats frame %d: pose copied", rec.index, prev.index)
         result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment,
                              self.to_world(rec.segment, rec.cam_to_world), False)

@@ -101,7 +101,8 @@ def test_repeated_frames_take_the_previous_pose(wp_device, seq160, clean_run):
     assert odo.num_duplicates == len(dups) == 3
     assert [i for i, r in enumerate(results) if r.status == FrameStatus.DUPLICATE] == dups
     for i in dups:
-        np.testing.assert_allclose(results[i].cam_to_world, results[i - 1].cam_to_world, atol=1e-9)
+        # at tracking time: the previous frame's pose with the window's latest correction of its keyframe (< 1 mm)
+        np.testing.assert_allclose(results[i].cam_to_world, results[i - 1].cam_to_world, atol=2e-3)
         np.testing.assert_allclose(odo.frames[i].cam_to_world, odo.frames[i - 1].cam_to_world, atol=1e-12)
         assert results[i].track is None and not results[i].is_keyframe
     assert not odo.segment and all(r.status == FrameStatus.TRACKED for r in results[first_tracked + 1:]
