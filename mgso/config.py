@@ -278,6 +278,11 @@ class WindowConfig:
     affine_prior_b: float = opt(0.0, "prior on each keyframe's affine b (DSO setting_affineOptModeB; DSO default 1e8)")
     idepth_fix_prior: float = opt(2500.0, "prior weight on the initialiser's inverse depths: holds the scale "
                                           "(DSO setting_idepthFixPrior = 50^2)")
+    idepth_fix_prior_anchored: bool = opt(False, "false: DSO's prior, centred on the point's current inverse depth "
+                                                 "(it stiffens the point, no pull); true: centred on the "
+                                                 "initialiser's value (mgso before 2026-11-22)")
+    idepth_fix_prior_marg_fac: float = opt(360000.0, "that prior times this when such a point is marginalised "
+                                                     "(DSO setting_idepthFixPriorMargFac = 600^2)")
     marg_weight_fac: float = opt(0.25, "factor on what is marginalised into the prior, for its inexact "
                                        "linearisation point (DSO setting_margWeightFac = 0.5^2)")
     orthogonalize_from: int = opt(2, "project the gauge directions out of the window's steps from this iteration on "

@@ -232,6 +232,8 @@ def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
 
     bundle = BundleSettings(iterations=wc.iterations, affine_prior_a=wc.affine_prior_a,
                             affine_prior_b=wc.affine_prior_b, idepth_fix_prior=wc.idepth_fix_prior,
+                            idepth_fix_prior_anchored=wc.idepth_fix_prior_anchored,
+                            idepth_fix_prior_marg_fac=wc.idepth_fix_prior_marg_fac,
                             marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept,
                             orthogonalize_from=wc.orthogonalize_from, huber_th=t.huber_th,
                             grad_c2=t.outlier_th_sum_component, overall_energy_th_weight=t.overall_energy_th_weight)

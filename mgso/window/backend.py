@@ -154,7 +154,11 @@ class WindowOptimizer:
         keys = problem.keys()
         lin = problem.linearize_pairs(keys)
         eh, eb = problem.point_extras()
-        sc = kw.schur_points(lin, keys, problem.pair_key, problem.point_start, problem.K, eh, eb, device=problem.device)
+        # DSO marginalizePointsF: an initialiser point's depth prior is multiplied by setting_idepthFixPriorMargFac as
+        # it is folded, so that its residuals enter the prior as if its depth were known: they hold the scale
+        fac = s.idepth_fix_prior_marg_fac
+        sc = kw.schur_points(lin, keys, problem.pair_key, problem.point_start, problem.K, eh * fac, eb * fac,
+                             device=problem.device)
         Htop, btop = problem.top_system(keys, lin)
         S = problem.S
         delta_raw = problem.delta() * S

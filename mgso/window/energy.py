@@ -17,12 +17,15 @@ Energy (DSO's, ``r^2`` convention; the system is ``H = J^T W J``, ``b = J^T W r`
   fixes 6 of the monocular window's 7 gauge freedoms (and the global brightness); when it leaves, DSO's prior on it
   (``setting_initialTransPrior = 1e10``, ``setting_initialRotPrior = 1e11``, ``setting_initialAffA/BPrior = 1e14``
   on its scaled parameters) is folded into the marginalisation prior with it; the initialiser's points
-  (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` towards their initial inverse depth
-  (``idepth_zero``), folded into the prior too when they leave. And, as DSO's default
-  (``SOLVER_ORTHOGONALIZE_X_LATER``), each step from the third on (``orthogonalize_from``) is projected off the gauge
-  directions of the frame parameters (:meth:`WindowProblem.nullspaces`: scale always, the 6 pose directions once no
-  keyframe is held), so that first-estimate inconsistencies cannot drive the window along its null space. Other
-  keyframes' affine parameters get ``affine_prior_a/b`` (DSO ``setting_affineOptModeA/B``; 0 = free, DSO's mode 1).
+  (``has_depth_prior``) carry ``setting_idepthFixPrior = 50^2`` on their inverse depth, as DSO centred on the
+  current value (DSO moves ``idepth_zero`` every step: no gradient, it stiffens them; ``idepth_fix_prior_anchored``
+  centres it on the initialiser's value instead) and multiplied by ``setting_idepthFixPriorMargFac = 600^2`` when
+  they are folded into the marginalisation prior, where their residuals then act as if the depth were known. And,
+  as DSO's default (``SOLVER_ORTHOGONALIZE_X_LATER``), each step from the third on (``orthogonalize_from``) is
+  projected off the gauge directions of the frame parameters (:meth:`WindowProblem.nullspaces`: scale always, the 6
+  pose directions once no keyframe is held), so that first-estimate inconsistencies cannot drive the window along
+  its null space. Other keyframes' affine parameters get ``affine_prior_a/b`` (DSO ``setting_affineOptModeA/B``; 0 =
+  free, DSO's mode 1).
 
 Each iteration: linearise every candidate pair (Warp), accumulate the key blocks and the Schur complement over the
 inverse depths (Warp, per-block partials), add the priors, multiply the diagonal by ``1 + lambda``, solve the
@@ -30,8 +33,9 @@ inverse depths (Warp, per-block partials), add the priors, multiply the diagonal
 DSO's defaults: ``lambda = 1e-5`` (``SOLVER_FIX_LAMBDA``) and every finite step kept (``setting_forceAceptStep``,
 ``force_accept``); with ``force_accept = False`` a step is kept only if the total energy goes down (``lambda *=
 0.25``), else undone and retried (``lambda *= 100``). At most ``iterations`` (DSO 6) steps; stop early when the
-mean squared step is below DSO's thresholds (``setting_thOptIterations``). Points are not first-estimate: their inverse depth is linearised where it is (DSO moves
-``idepth_zero`` of a point every step), while the keyframes' geometric Jacobians stay at the linearisation points.
+mean squared step is below DSO's thresholds (``setting_thOptIterations``). Points are not first-estimate: their
+inverse depth is linearised where it is (DSO moves ``idepth_zero`` of a point every step), while the keyframes'
+geometric Jacobians stay at the linearisation points.
 """
 
 from __future__ import annotations
@@ -91,6 +95,8 @@ class BundleSettings:
     affine_prior_a: float = 0.0  # setting_affineOptModeA (DSO mode 1, no photometric calibration: 0)
     affine_prior_b: float = 0.0  # setting_affineOptModeB
     idepth_fix_prior: float = 50.0 * 50.0  # setting_idepthFixPrior
+    idepth_fix_prior_anchored: bool = False  # false: DSO's (no gradient, curvature only); true: pulls to the start
+    idepth_fix_prior_marg_fac: float = 600.0 * 600.0  # setting_idepthFixPriorMargFac: that prior x this when folded
     marg_weight_fac: float = 0.5 * 0.5  # setting_margWeightFac
     huber_th: float = 9.0  # setting_huberTH
     grad_c2: float = 2500.0  # setting_outlierTHSumComponent
@@ -197,7 +203,10 @@ class WindowProblem:
                 p[7] = settings.affine_prior_b
             self.frame_prior[8 * slot:8 * slot + 8] = p
         self.depth_prior = np.where(a.has_depth_prior[self.points], settings.idepth_fix_prior, 0.0)
-        self.idepth_prior_centre = a.idepth_zero[self.points].astype(np.float64)
+        # DSO moves a point's idepth_zero to its state every step, so its prior has no gradient and only stiffens
+        # the point; anchored (mgso before 2026-11-22), it pulls towards the initialiser's inverse depth
+        self.idepth_prior_centre = (a.idepth_zero[self.points].astype(np.float64) if settings.idepth_fix_prior_anchored
+                                    else None)
         # the segment's first keyframe is held exactly (its prior is infinite while it is in the window; the finite
         # DSO prior above is what the marginalisation folds in when it leaves)
         free = [s for s in self.order if s not in first_slots]
@@ -298,9 +307,12 @@ class WindowProblem:
         return H, b
 
     def point_extras(self):
-        """Inverse-depth prior of the initialiser's points: ``(extra_h, extra_b)`` raw."""
+        """Inverse-depth prior of the initialiser's points: ``(extra_h, extra_b)`` raw (``extra_b`` is 0 with DSO's
+        prior, whose centre is the point's current inverse depth)."""
         d = self.window.active.idepth[self.points].astype(np.float64)
         eh = self.depth_prior / SCALE_IDEPTH ** 2
+        if self.idepth_prior_centre is None:
+            return eh, np.zeros_like(eh)
         return eh, eh * (d - self.idepth_prior_centre)
 
     def linearize(self, keys: kw.WindowKeys | None = None) -> Linearization:
@@ -316,8 +328,9 @@ class WindowProblem:
         b = (btop - sc.b_sc) * S + self.frame_prior * delta
         e_photo = float(np.sum(lin.energy))
         d = self.window.active.idepth[self.points].astype(np.float64)
-        e = e_photo + float(np.sum(self.frame_prior * delta * delta)) + float(
-            np.sum(self.depth_prior * (d - self.idepth_prior_centre) ** 2))
+        e = e_photo + float(np.sum(self.frame_prior * delta * delta))
+        if self.idepth_prior_centre is not None:
+            e += float(np.sum(self.depth_prior * (d - self.idepth_prior_centre) ** 2))
         if self.prior is not None and not self.prior.empty:
             H = H + self.prior.H
             b = b + self.prior.gradient(delta)

@@ -61,7 +61,7 @@ def test_marginalizing_a_keyframe_and_its_points_matches_the_full_solve(wp_devic
     """Fold every point that involves keyframe X into the prior, marginalise X, solve the rest: the same solution for
     the remaining keyframes and points as the full system (marg_weight_fac = 1; exact by the Schur identity)."""
     w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
-    s = BundleSettings(orthogonalize=False, marg_weight_fac=1.0)
+    s = BundleSettings(orthogonalize=False, marg_weight_fac=1.0, idepth_fix_prior_marg_fac=1.0)  # exact identity
     first = (w.order[0],)
     X = w.order[2]
     a = w.active
@@ -162,6 +162,51 @@ def test_dso_default_solver_converges_up_to_scale(wp_device, seq):
     assert np.all(gap < 0.35 * err0), (gap, err0)
     near = _scale_aligned_errors(w0.world_to_cam_, truth, order)
     assert np.all(near < 0.01), near
+
+
+def test_depth_prior_is_dso_s_curvature_only_unless_anchored(wp_device, seq):
+    """The initialiser's points (``has_depth_prior``, here the first keyframe's) get ``idepth_fix_prior`` on H_dd; as
+    DSO (which moves ``idepth_zero`` to the point every step) it adds no gradient and no energy, so moving such a point
+    off its first inverse depth changes nothing but the residuals; anchored, it pulls back towards that value."""
+    w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
+    a = w.active
+    prior_pts = np.flatnonzero(a.has_depth_prior)
+    assert len(prior_pts) and not a.has_depth_prior.all()
+    a.idepth[prior_pts] *= 1.1  # off the centre an anchored prior would pull to
+    out = {}
+    for anchored in (False, True):
+        s = BundleSettings(idepth_fix_prior_anchored=anchored)
+        p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
+        out[anchored] = (p, p.linearize())
+    (p0, L0), (_, L1) = out[False], out[True]
+    on = a.has_depth_prior[p0.points]
+    np.testing.assert_allclose(L1.schur.hdd, L0.schur.hdd, rtol=1e-12)  # the same curvature either way ...
+    d = a.idepth[p0.points].astype(np.float64)
+    pull = 2500.0 * (d - a.idepth_zero[p0.points])
+    np.testing.assert_allclose(L1.schur.bd[on] - L0.schur.bd[on], pull[on], rtol=1e-5)  # ... a pull only anchored
+    np.testing.assert_array_equal(L1.schur.bd[~on], L0.schur.bd[~on])
+    assert L0.energy == pytest.approx(L0.energy_photo + float(np.sum(p0.frame_prior * p0.delta() ** 2)))
+    assert L1.energy > L0.energy
+
+
+def test_marginalised_initialiser_points_hold_the_scale(wp_device, seq):
+    """DSO ``marginalizePointsF``: an initialiser point's depth prior is multiplied by
+    ``setting_idepthFixPriorMargFac = 600^2`` as it is folded, so that its residuals enter the prior as if its depth
+    were known. Folding the first keyframe's points: with the factor the prior's curvature along the window's scale
+    direction is many times larger than without; points without a depth prior fold the same either way."""
+    w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
+    a = w.active
+    priors = {}
+    for fac in (1.0, 600.0 ** 2):
+        for pts in (np.flatnonzero(a.has_depth_prior), np.flatnonzero(~a.has_depth_prior)):
+            be = WindowOptimizer(BundleSettings(idepth_fix_prior_marg_fac=fac))
+            be.fold_points(w, pts)
+            priors[fac, bool(a.has_depth_prior[pts[0]])] = be.prior.H.copy()
+    N = WindowProblem(w, BundleSettings(), None, first_slots=(w.order[0],)).nullspaces()[:, -1]  # the scale
+    curv = {k: float(N @ H @ N) for k, H in priors.items()}
+    assert curv[600.0 ** 2, True] > 10 * curv[1.0, True], curv
+    same = priors[1.0, False]
+    np.testing.assert_allclose(priors[600.0 ** 2, False], same, rtol=1e-9, atol=1e-9 * np.abs(same).max())
 
 
 def test_prior_bookkeeping(wp_device, seq):
