@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import resource
 import threading
@@ -50,13 +49,12 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence as TSeq
 
 import cv2
 import numpy as np
-from mgso_kernels import runtime
 
 from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_inverse
 from mgso.io.trajectory import Trajectory, write_kitti, write_tum
 from mgso.mapping.mapper import Mapper, MapperStats
-from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
+from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate, map_exposure
 from mgso.observers import Observer, ObserverList
 
 __all__ = ["Odometry", "OdometryFrame", "DsoOdometry", "System", "SystemResult", "FrameLog", "PointCloud", "Player",

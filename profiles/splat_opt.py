@@ -22,7 +22,6 @@ import time
 import numpy as np
 import warp as wp
 
-from mgso_kernels import adam as kadam
 from mgso_kernels import loss as kloss
 from mgso_kernels import runtime
 
