@@ -35,6 +35,17 @@ from mgso_kernels import runtime  # noqa: E402
 DEFAULT = ("kitti00_0-159", "7scenes_redkitchen_0-499")
 
 
+def _cpu_steal() -> tuple[int, int] | None:
+    """(steal, total) jiffies of the machine from /proc/stat (Linux), None elsewhere: on a shared virtual machine the
+    hypervisor's share (steal) slows every run, so a wall time is only comparable with one taken at the same share."""
+    try:
+        with open("/proc/stat") as fh:
+            v = [int(x) for x in fh.readline().split()[1:]]
+        return v[7], sum(v[:8])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def run_one(path: Path, cfg: Config, device: str, frames: int | None) -> dict:
     seq = open_sequence(path, config=cfg.input)
     cam = seq.calibration.output
@@ -42,6 +53,7 @@ def run_one(path: Path, cfg: Config, device: str, frames: int | None) -> dict:
     n = 0
     map_ms = []
     kf_ms = []
+    st0, c0 = _cpu_steal(), time.process_time()
     t0 = time.perf_counter()
     for f in seq.frames():
         if frames is not None and n >= frames:
@@ -53,10 +65,14 @@ def run_one(path: Path, cfg: Config, device: str, frames: int | None) -> dict:
                 kf_ms.append(r.time_map_s * 1000)
         n += 1
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - c0
+    st1 = _cpu_steal()
     odo.finish()
     traj = odo.trajectory()
     out = {"frames": n, "frames_with_pose": len(traj), "segments": odo.segment + 1, "keyframes": len(odo.keyframes),
            "wall_s": round(wall, 1), "fps": round(n / wall, 3), "ms_per_frame": round(1000 * wall / max(n, 1), 1),
+           "cpu_ms_per_frame": round(1000 * cpu / max(n, 1), 1),  # all threads of the process
+           "steal_pct": (round(100 * (st1[0] - st0[0]) / max(st1[1] - st0[1], 1), 1) if st0 and st1 else None),
            "keyframe_map_ms_median": round(float(np.median(kf_ms)), 1) if kf_ms else None}
     gt = seq.groundtruth
     if gt is not None and len(traj) >= 3:
