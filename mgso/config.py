@@ -305,6 +305,9 @@ class WindowConfig:
             raise ConfigError(f"window.min_frames must be in [2, max_frames], got {self.min_frames}")
         if self.orthogonalize_from < 0:
             raise ConfigError(f"window.orthogonalize_from must be >= 0, got {self.orthogonalize_from}")
+        if not (self.idepth_fix_prior >= 0 and self.idepth_fix_prior_marg_fac >= 0):
+            raise ConfigError("window.idepth_fix_prior and window.idepth_fix_prior_marg_fac must be >= 0, got "
+                              f"{self.idepth_fix_prior} and {self.idepth_fix_prior_marg_fac}")
 
 
 @dataclass(frozen=True)

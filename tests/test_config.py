@@ -29,6 +29,8 @@ def test_overrides_are_typed():
         apply_overrides(Config(), ["nowhere.x=5"])
     with pytest.raises(ConfigError, match="section.key=value"):
         apply_overrides(Config(), ["window"])
+    with pytest.raises(ConfigError, match="idepth_fix_prior_marg_fac must be >= 0"):
+        apply_overrides(Config(), ["window.idepth_fix_prior_marg_fac=-1"])
 
 
 def test_profile_inheritance_and_roundtrip(tmp_path):
