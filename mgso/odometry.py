@@ -335,9 +335,9 @@ class Odometry:
         img = np.where(np.isfinite(img), img, 0.0).astype(np.float32)
         exposure = float(getattr(frame, "exposure_ms", None) or 0.0)
         rec = FrameRecord(int(frame.index), float(frame.timestamp), self.segment, FrameStatus.INITIALIZING)
-        duplicate = self._prev_image is not None and np.array_equal(img, self._prev_image)
-        self._prev_image = img
-        if duplicate and self.config.tracking.skip_duplicate_frames and self.initialized:
+        prev_img, self._prev_image = self._prev_image, img
+        if (self.config.tracking.skip_duplicate_frames and self.initialized and prev_img is not None
+                and np.array_equal(img, prev_img)):
             prev = self.frames[-1] if self.frames else None
             if prev is not None and prev.pose_valid and prev.segment == self.segment:
                 tf = self._duplicate(rec, prev, exposure)
