@@ -1,0 +1,278 @@
+"""Where the map's dB go: the mapper fed by the DSO odometry, by its recording with true poses, and by the oracle.
+
+The odometry is run once per sequence and its stream (every frame's pose and messages, the final messages and
+trajectories) is recorded into ``--cache`` (keyed by the sequence, the image size and the odometry's settings); every
+mapping variant then replays that stream into a fresh :class:`mgso.system.System`, so a variant costs the mapper's
+time only and every variant sees the same odometry. The sources (``--source``, several allowed):
+
+- ``dso``: the recorded DSO odometry as it ran (what ``mgso run`` maps);
+- ``dso-gtpose``: the same keyframes, images, points and affine brightness, but every pose replaced by the ground
+  truth; DSO's points keep their inverse depth in their host keyframe, scaled by the Sim(3) alignment's scale (the
+  decomposition's "(b) true poses, DSO's points");
+- ``oracle``: :class:`mgso.oracle.OracleOdometry` (true poses and depth-map points, a keyframe every 10 frames;
+  "(c)"), not recorded.
+
+Prints **one JSON line**: per source the figures of ``metrics.json`` (PSNR / SSIM MonoGS, Gaussians, map MB, ATE,
+steps, densification) and the wall time.
+
+    MGSO_DATA=../shared/data python profiles/mapping.py ../shared/data/7scenes_redkitchen_0-499 \
+        --source dso --source dso-gtpose [--downscale 1] [--set mapping.train.refine_poses=true ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copyreg
+import dataclasses
+import hashlib
+import json
+import logging
+import pickle
+import sys
+import time
+from pathlib import Path
+from types import MappingProxyType, SimpleNamespace
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _mappingproxy(d: dict) -> MappingProxyType:
+    return MappingProxyType(d)
+
+
+copyreg.pickle(MappingProxyType, lambda m: (_mappingproxy, (dict(m),)))   # PoseUpdate's read-only mappings
+sys.path.insert(0, str(ROOT))
+
+FIGURES = ("ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db", "ssim_monogs",
+           "num_gaussians", "map_size_mb", "keyframes", "mapping_iterations_per_s")
+
+
+# ------------------------------------------------------------------------------------------- recording
+@dataclasses.dataclass
+class Recording:
+    frames: list            # OdometryFrame per processed frame (messages included)
+    final: list             # odometry.finish()
+    trajectory: object      # Trajectory
+    keyframe_trajectory: object
+    name: str
+
+
+class ReplayOdometry:
+    """An :class:`mgso.system.Odometry` that plays a :class:`Recording` back (``process`` ignores the frame)."""
+
+    def __init__(self, rec: Recording):
+        self.rec = rec
+        self.name = rec.name + " (replayed)"
+        self._k = 0
+
+    def process(self, frame):
+        r = self.rec.frames[self._k]
+        self._k += 1
+        return r
+
+    def finish(self):
+        return list(self.rec.final)
+
+    def trajectory(self):
+        return self.rec.trajectory
+
+    def keyframe_trajectory(self):
+        return self.rec.keyframe_trajectory
+
+
+def _odometry_key(cfg, seq_path: str) -> str:
+    from mgso.config import config_to_dict
+
+    d = config_to_dict(cfg)
+    keep = {k: d[k] for k in ("input", "tracking", "window", "runtime") if k in d}
+    keep["runtime"] = {k: v for k, v in keep["runtime"].items() if k not in ("threads", "blas_threads")}
+    h = hashlib.sha1(json.dumps([str(Path(seq_path).resolve()), keep], sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def record(seq, cfg, device, cache: Path, seq_path: str) -> Recording:
+    from mgso.system import DsoOdometry
+
+    path = cache / f"{seq.name}-{_odometry_key(cfg, seq_path)}.pkl"
+    if path.is_file():
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    odo = DsoOdometry(seq.calibration.output, cfg, device=device)
+    frames = [odo.process(f) for f in seq.frames()]
+    final = list(odo.finish())
+    rec = Recording(frames, final, odo.trajectory(), odo.keyframe_trajectory(), odo.name)
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as fh:
+        pickle.dump(rec, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(path)
+    return rec
+
+
+def with_true_poses(rec: Recording, gt) -> Recording:
+    """``rec`` with every pose replaced by the ground truth at its timestamp, DSO's points moved with their host
+    keyframe and scaled by the Sim(3) alignment's scale (DSO's arbitrary scale -> metres)."""
+    from mgso.eval import compute_ate
+    from mgso.io.trajectory import Trajectory
+    from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate
+
+    al = compute_ate(rec.trajectory, gt, align="sim3", max_diff=0.01)
+    s = float(al.alignment.scale)
+    ts_gt = gt.timestamps
+
+    def true(t):
+        k = int(np.argmin(np.abs(ts_gt - t)))
+        if abs(ts_gt[k] - t) > 0.01:
+            return None
+        return gt.cam_to_world[k]
+
+    kf_pose: dict[int, np.ndarray] = {}      # keyframe id -> (DSO c2w at its latest, true c2w)
+    kf_true: dict[int, np.ndarray] = {}
+    kf_ts = {}
+
+    def fix(msgs):
+        out = []
+        for m in msgs:
+            if isinstance(m, KeyframeMessage):
+                T = true(m.timestamp)
+                if T is None:
+                    continue
+                kf_pose[m.keyframe_id] = m.cam_to_world
+                kf_true[m.keyframe_id] = T
+                kf_ts[m.keyframe_id] = m.timestamp
+                out.append(dataclasses.replace(m, cam_to_world=T, idepths=np.asarray(m.idepths) / s))
+            elif isinstance(m, PoseUpdate):
+                for k, T in m.cam_to_world.items():
+                    if k in kf_pose:
+                        kf_pose[k] = T
+                poses = {k: kf_true[k] for k in m.cam_to_world if k in kf_true}
+                out.append(PoseUpdate(poses, affine=dict(m.affine)))
+            elif isinstance(m, MarginalizedPoints):
+                h = m.host_keyframe_id
+                if h not in kf_pose:
+                    continue
+                pc = (np.asarray(m.points) - kf_pose[h][:3, 3]) @ kf_pose[h][:3, :3]   # in the host camera
+                T = kf_true[h]
+                out.append(dataclasses.replace(m, points=(s * pc) @ T[:3, :3].T + T[:3, 3]))
+            else:
+                out.append(m)
+        return tuple(out)
+
+    frames = []
+    for r in rec.frames:
+        T = true(r.timestamp) if r.cam_to_world is not None else None
+        frames.append(dataclasses.replace(r, cam_to_world=T, messages=fix(r.messages)))
+    final = list(fix(rec.final))
+
+    def retime(traj):
+        keep = [i for i, t in enumerate(traj.timestamps) if true(t) is not None]
+        return Trajectory(traj.timestamps[keep], np.stack([true(traj.timestamps[i]) for i in keep]))
+
+    return Recording(frames, final, retime(rec.trajectory), retime(rec.keyframe_trajectory),
+                     rec.name + " with true poses")
+
+
+# ------------------------------------------------------------------------------------------------ run
+def _one(args) -> dict:
+    import warp as wp
+
+    if hasattr(wp.config, "log_level"):
+        wp.config.log_level = logging.WARNING
+    from mgso.config import load_config, save_config
+    from mgso.io import open_sequence
+    from mgso.oracle import OracleOdometry
+    from mgso.system import System, write_outputs
+    from mgso_kernels import runtime
+
+    over = [f"runtime.device={args.device}", "system.mode=deterministic", "system.eval_photo_slam=false",
+            "mapping.capacity=500000", *args.set]
+    cfg = load_config(None, over)
+    if args.downscale > 1:
+        cam = open_sequence(args.one, config=cfg.input).calibration.output
+        over = [f"input.width={cam.width // args.downscale}", f"input.height={cam.height // args.downscale}"] + over
+        cfg = load_config(None, over)
+    device = runtime.init(args.device, threads=cfg.runtime.threads)
+    seq = open_sequence(args.one, config=cfg.input)
+    out = Path(args.out) / f"{seq.name}-{args.source}-{args.tag}"
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.yaml")
+    t0 = time.perf_counter()
+    if args.source == "oracle":
+        try:
+            odo = OracleOdometry.from_sequence(seq, keyframe_every=10, points=600, idepth_noise=0.02)
+        except ValueError as exc:
+            return {"skipped": str(exc)}
+        frames = seq.frames()
+    else:
+        rec = record(seq, cfg, device, Path(args.cache), args.one)
+        if args.source == "dso-gtpose":
+            if seq.groundtruth is None:
+                return {"skipped": "no ground truth"}
+            rec = with_true_poses(rec, seq.groundtruth)
+        odo = ReplayOdometry(rec)
+        frames = [SimpleNamespace(index=r.index, timestamp=r.timestamp) for r in rec.frames]
+    t_map = time.perf_counter()
+    system = System(odo, cfg, device=device)
+    result = system.run(frames)
+    m = write_outputs(result, system.mapper, seq, cfg, out, odometry_name=odo.name)
+    fig = {k: m.get(k) for k in FIGURES}
+    fig["steps"] = m["mapper"]["steps"]
+    fig["densify"] = m["mapper"]["densify"]
+    fig["gaussians_seeded"] = m["mapper"]["gaussians_seeded"]
+    sr = system.mapper.stats.seed_results
+    fig["seeding"] = {"seedings": len(sr), "candidates": int(sum(r.num_candidates for r in sr)),
+                      "rejected_visibility": int(sum(r.num_rejected_visibility for r in sr)),
+                      "added": int(sum(r.num_added for r in sr)),
+                      "added_first_keyframe": int(sr[0].num_added) if sr else 0}
+    fig["mapper_stats"] = {k: v for k, v in m["mapper"].items() if k.startswith("align")}
+    mono = [r for r in m.get("render") or [] if r.get("protocol_key") == "monogs"]
+    fig["psnr_per_frame"] = {f["frame"]: round(f["psnr_db"], 2) for f in mono[0]["frames"]} if mono else {}
+    fig["wall_s"] = round(time.perf_counter() - t0, 1)
+    fig["mapping_wall_s"] = round(time.perf_counter() - t_map, 1)
+    fig["out"] = str(out)
+    return fig
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("paths", nargs="*", help="sequences (default: the shared 7-Scenes excerpt)")
+    ap.add_argument("--source", action="append", choices=["dso", "dso-gtpose", "oracle"],
+                    help="what feeds the mapper (repeatable; default dso)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--downscale", type=int, default=1, help="divide the image size (2: 320x240 for 7-Scenes)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="setting (repeatable)")
+    ap.add_argument("--tag", default="default", help="names the output folder of this variant")
+    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "mgso" / "odometry-recordings"))
+    ap.add_argument("--out", default="/tmp/mgso-profile-mapping")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.one:
+        args.source = (args.source or ["dso"])[0]
+        print(json.dumps(_one(args)))
+        return 0
+    import os
+    import subprocess
+
+    data = Path(os.environ.get("MGSO_DATA", ROOT.parent / "shared" / "data"))
+    paths = args.paths or [str(data / "7scenes_redkitchen_0-499")]
+    res = {"settings": args.set, "downscale": args.downscale, "tag": args.tag, "sequences": {}}
+    for p in paths:
+        for src in args.source or ["dso"]:
+            cmd = [sys.executable, __file__, "--one", p, "--source", src, "--device", args.device, "--downscale",
+                   str(args.downscale), "--tag", args.tag, "--cache", args.cache, "--out", args.out]
+            for s in args.set:
+                cmd += ["--set", s]
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            key = f"{Path(p).name}:{src}"
+            if r.returncode != 0:
+                res["sequences"][key] = {"error": r.stderr.strip().splitlines()[-1:] or [f"exit {r.returncode}"]}
+                continue
+            res["sequences"][key] = json.loads(r.stdout.strip().splitlines()[-1])
+    print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
