@@ -365,6 +365,8 @@ class DensifyConfig:
     prune_scale3d: float = opt(0.1, "after the first reset, prune max scale above this x scene extent (3DGS, gsplat)")
     prune_screen_px: float = opt(0.0, "after the first reset, prune screen radius above this many pixels; 0 = off "
                                       "(3DGS's 20 px never fires, graphdeco issue #123; gsplat defaults it off)")
+    max_aspect: float = opt(0.0, "at each refine, shorten axes longer than this x the Gaussian's shortest axis "
+                                 "(needles that disagreeing views stretch become discs); 0 = off (3DGS)")
     prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")
 
 
@@ -385,6 +387,9 @@ class TrainConfig:
                                "(Photo-SLAM's per-keyframe times of use)")
     sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
                                         "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
+    depth_weight: float = opt(0.0, "weight of the sparse depth term: mean relative error between the render's "
+                                   "expected depth and the view's depth points (MGSO: DSO's points of the keyframe); "
+                                   "0 = off")
     refine_poses: bool = opt(False, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
                                     "(left perturbation); off: poses are trusted (ground truth, DSO's window)")
     lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
@@ -412,6 +417,8 @@ class TrainConfig:
             problems.append("pyramid_levels must be >= 1 and pyramid_uses >= 0")
         if not self.min_scene_extent > 0:
             problems.append(f"min_scene_extent must be > 0, got {self.min_scene_extent}")
+        if not self.depth_weight >= 0:
+            problems.append(f"depth_weight must be >= 0, got {self.depth_weight}")
         if not 0 < self.init_depth_range[0] < self.init_depth_range[1]:
             problems.append(f"init_depth_range must be (near, far) with 0 < near < far, got {self.init_depth_range}")
         if not 0 < self.init_opacity < 1:
@@ -450,6 +457,9 @@ class SeedingConfig:
     fill_max_subdivisions: int = opt(4, "cap of k above (at most k^2 = 16 points per triangle)")
     visibility_threshold: float = opt(0.5, "keep a candidate only where the map's alpha is below this (the pixel is "
                                            "mostly empty; SplaTAM's silhouette threshold 0.5)")
+    depth_tolerance: float = opt(0.0, "also keep a candidate the map covers when the map's expected depth there is "
+                                      "off the point's by more than this fraction (the map has no surface where "
+                                      "the odometry measured one; SplaTAM's depth-error rule); 0 = alpha only")
     alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
                                   "at 2)")
     min_new_gaussians: int = opt(30, "add nothing when fewer candidates survive the visibility filter (MGSO: 30)")
@@ -472,6 +482,8 @@ class SeedingConfig:
             problems.append(f"fill_max_subdivisions must be >= 1, got {self.fill_max_subdivisions}")
         if not 0.0 < self.visibility_threshold <= 1.0:
             problems.append(f"visibility_threshold must be in (0, 1], got {self.visibility_threshold}")
+        if not self.depth_tolerance >= 0:
+            problems.append(f"depth_tolerance must be >= 0, got {self.depth_tolerance}")
         if self.alpha_downscale < 1:
             problems.append(f"alpha_downscale must be >= 1, got {self.alpha_downscale}")
         if self.min_new_gaussians < 0:
@@ -510,6 +522,9 @@ class MapperConfig:
                                      "whole map nearly transparent, so the next keyframes' visibility test would "
                                      "seed everywhere again (SplaTAM and MGSO's seeding rule add by coverage)")
 
+    exposure: Literal["odometry", "exposure_time", "none"] = opt(
+        "odometry", "each view's brightness model in training and evaluation: odometry = DSO's affine (a, b) and the "
+                    "exposure time; exposure_time = the exposure time's gain only; none = the image as it is")
     def __post_init__(self):
         problems = []
         if self.iterations_per_keyframe < 0 or self.final_iterations < 0:
@@ -518,6 +533,8 @@ class MapperConfig:
             problems.append(f"queue_size must be >= 1, got {self.queue_size}")
         if not 0.0 <= self.newest_probability <= 1.0:
             problems.append(f"newest_probability must be in [0, 1], got {self.newest_probability}")
+        if self.exposure not in ("odometry", "exposure_time", "none"):
+            problems.append(f"exposure must be 'odometry', 'exposure_time' or 'none', got {self.exposure!r}")
         if self.init not in ("dso", "random"):
             problems.append(f"init must be 'dso' or 'random', got {self.init!r}")
         if self.min_train_views < 1:

@@ -507,12 +507,16 @@ def _empty_gaussians(sh_degree: int) -> GaussianArrays:
 
 
 def plan_seeds(msg: KeyframeSeedInput, cfg: SeedingConfig, alpha: np.ndarray | None = None,
-               neighbour_means: np.ndarray | None = None, sh_degree: int = 0) -> SeedPlan:
+               neighbour_means: np.ndarray | None = None, sh_degree: int = 0,
+               depth: np.ndarray | None = None) -> SeedPlan:
     """The array part of the seeding (no map, no Warp): candidates, visibility filter, new Gaussians.
 
     ``alpha``: the current map's accumulated alpha seen from the keyframe, (H, W) or an integer downscale of it
     (:func:`sample_alpha`); ``None`` = an empty map (every candidate passes). ``neighbour_means`` (K, 3): the map's
-    Gaussians near the view, neighbours for the scales. ``sh_degree``: the map's.
+    Gaussians near the view, neighbours for the scales. ``sh_degree``: the map's. ``depth``: the map's accumulated
+    depth in the same layout as ``alpha``; with ``cfg.depth_tolerance > 0`` a candidate the map covers is kept too
+    when the map's expected depth there differs from the candidate's by more than that fraction (the map has no
+    surface where the odometry measured one: SplaTAM's depth-error rule with the odometry's points).
     """
     t0 = time.perf_counter()
     if not cfg.enabled:
@@ -527,6 +531,10 @@ def plan_seeds(msg: KeyframeSeedInput, cfg: SeedingConfig, alpha: np.ndarray | N
     else:
         a = sample_alpha(alpha, cand.uv, cam.width, cam.height)
     keep = a < cfg.visibility_threshold
+    if depth is not None and alpha is not None and cfg.depth_tolerance > 0 and cand.n:
+        d_sum = sample_alpha(depth, cand.uv, cam.width, cam.height)
+        expected = d_sum / np.maximum(a, 1e-6)
+        keep |= np.abs(expected - cand.depth) > cfg.depth_tolerance * cand.depth
     survivors = int(keep.sum())
     counts = dict(num_points_in=cand.num_points_in, num_invalid=cand.num_invalid, num_candidates=cand.n,
                   num_fill=cand.fill.n, num_triangles=cand.fill.num_triangles,
@@ -565,9 +573,11 @@ class Coverage:
     alpha: np.ndarray
     visible: np.ndarray
     downscale: int
+    depth: np.ndarray | None = None     # (h, w) accumulated depth sum_i w_i z_i (expected depth = depth / alpha)
 
 
-def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndarray, downscale: int = 2) -> Coverage:
+def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndarray, downscale: int = 2,
+                    with_depth: bool = False) -> Coverage:
     """Render the map's accumulated alpha from a keyframe at 1/``downscale`` resolution (``Rasterizer.render_alpha``).
 
     The reduced camera follows docs/rasteriser.md: ``fx / s, fy / s, (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5``,
@@ -584,10 +594,16 @@ def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndar
     if w < 1 or h < 1:
         raise ValueError(f"render_coverage: a {cam.width}x{cam.height} image cannot be downscaled by {s}")
     if gmap.n == 0:
-        return Coverage(np.zeros((h, w), np.float32), np.zeros(0, bool), s)
+        return Coverage(np.zeros((h, w), np.float32), np.zeros(0, bool), s,
+                        np.zeros((h, w), np.float32) if with_depth else None)
     rc = make_camera(cam.fx / s, cam.fy / s, (cam.cx + 0.5) / s - 0.5, (cam.cy + 0.5) / s - 0.5, w, h,
                      np.asarray(world_to_cam, dtype=np.float64))
     p = gmap.float_params()
+    if with_depth:          # the full forward: alpha and depth (the colours come along)
+        out = rasterizer.forward(p.means, p.log_scales, p.quats, p.opacity_logits, p.sh, rc, (0.0, 0.0, 0.0),
+                                 sh_degree=0)
+        return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s,
+                        np.array(out.depth.numpy(), dtype=np.float32, copy=True))
     out = rasterizer.render_alpha(p.means, p.log_scales, p.quats, p.opacity_logits, rc)
     return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s)
 
@@ -605,11 +621,13 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     alpha = None
     neighbours = None
     if gmap.n > 0:
-        cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale)
+        cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale,
+                              with_depth=cfg.depth_tolerance > 0)
         alpha = cov.alpha
         if cov.visible.any():
             neighbours = gmap.means.numpy()[cov.visible]
-    plan = plan_seeds(msg, cfg, alpha, neighbours, sh_degree=gmap.sh_degree)
+    plan = plan_seeds(msg, cfg, alpha, neighbours, sh_degree=gmap.sh_degree,
+                      depth=None if alpha is None else cov.depth)
     res = plan.result
     g = plan.gaussians
     if g.n == 0:
