@@ -184,14 +184,18 @@ class TrainStep:
         psnr = _psnr(out.rgb.numpy(), image_np, exposure, mask_np) if with_psnr else None
         t = self._clock(t, times, "loss")
 
-        g = self.rasterizer.backward(out, res.v_rendered_hw3, into=gmap.float_grads(),   # into the map's buffers
+        v_depth = v_alpha = None
+        if tc.depth_weight > 0 and view.depth_z is not None and len(view.depth_z):
+            v_depth, v_alpha = self._depth_term(out, view, level, tc.depth_weight)
+        g = self.rasterizer.backward(out, res.v_rendered_hw3, v_depth, v_alpha,
+                                     into=gmap.float_grads(),   # into the map's buffers
                                      absgrad=want_stats and self._wants_absgrad)
         if want_stats:
             gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H,
                                   g.absgrad.view(wp.vec2) if self._wants_absgrad else None)
         radii = g.radii.numpy()
         num_visible = int(np.count_nonzero(radii))
-        v_pose = g.v_pose.numpy().astype(np.float64) if tc.refine_poses else None
+        v_pose = g.v_pose.numpy().astype(np.float64) if tc.refine_poses and not view.fixed_pose else None
         t = self._clock(t, times, "backward")
 
         gmap.optimizer_step(step)
@@ -212,6 +216,30 @@ class TrainStep:
                           l1=res.l1, ssim=res.ssim, psnr=psnr,
                           exposure=(float(view.exposure[0]), float(view.exposure[1])), num_gaussians=gmap.n,
                           num_visible=num_visible, refine=refine, times=times)
+
+    @staticmethod
+    def _depth_term(out, view: TrainView, level: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
+        """Gradients (d/d depth, d/d alpha) of ``weight * mean_p |D(p) / alpha(p) - z_p| / z_p`` over the view's depth
+        points where the render covers them (alpha > 0.5): the expected depth of the rendered surface against the
+        odometry's depth, relative (the odometry's scale is arbitrary). Keeps Gaussians on the surfaces the
+        odometry measured: a floater in front of a point pulls its depth and is pushed back or made transparent."""
+        H, W = out.alpha.shape
+        f = 0.5 ** level
+        u = np.clip(np.floor(view.depth_uv[:, 0] * f + 0.5 * f).astype(np.int64), 0, W - 1)
+        v = np.clip(np.floor(view.depth_uv[:, 1] * f + 0.5 * f).astype(np.int64), 0, H - 1)
+        alpha = out.alpha.numpy()[v, u].astype(np.float64)
+        D = out.depth.numpy()[v, u].astype(np.float64)
+        z = view.depth_z
+        ok = alpha > 0.5
+        v_depth = np.zeros((H, W), np.float32)
+        v_alpha = np.zeros((H, W), np.float32)
+        if not ok.any():
+            return v_depth, v_alpha
+        u, v, alpha, D, z = u[ok], v[ok], alpha[ok], D[ok], z[ok]
+        g = weight * np.sign(D / alpha - z) / z / len(z)
+        np.add.at(v_depth, (v, u), (g / alpha).astype(np.float32))
+        np.add.at(v_alpha, (v, u), (-g * D / alpha ** 2).astype(np.float32))
+        return v_depth, v_alpha
 
     # ------------------------------------------------------------------------------------------ render
     def render(self, gmap: GaussianMap, camera: PinholeCamera, world_to_cam: np.ndarray, *,

@@ -117,8 +117,15 @@ class TrainView:
         self.exposure_adam = AdamState.zeros(2)
         # ONLY changed by the trainer's pose refinement.
         self.pose_adam = AdamState.zeros(6)
+        # Set once by the owner: the trainer's pose refinement leaves this view where it is (the map's gauge: MGSO's
+        # mapper fixes its first keyframe, as the odometry does).
+        self.fixed_pose = False
         # ONLY changed by the trainer: training steps run on this view.
         self.uses = 0
+        # Optional sparse depth of this view: (M, 2) pixels and (M,) camera z (MGSO: the odometry's points seen by
+        # the keyframe); set once by the owner (the mapper) before training, read by the trainer's depth term.
+        self.depth_uv: np.ndarray | None = None
+        self.depth_z: np.ndarray | None = None
         self._levels: dict[int, tuple[np.ndarray, PinholeCamera, np.ndarray | None]] = {
             0: (self.image, camera, mask)}
         self._device_arrays: dict[tuple[int, str], tuple[wp.array, wp.array | None]] = {}
@@ -149,6 +156,15 @@ class TrainView:
             self._levels[level] = (downsample_2x2(img), cam.scaled(0.5),
                                    None if mask is None else downsample_2x2(mask[..., None])[..., 0])
         return self._levels[level]
+
+    def set_depth_points(self, uv: np.ndarray, z: np.ndarray) -> None:
+        """Sparse depth of the view (``uv`` (M, 2) level-0 pixels, ``z`` (M,) camera z > 0), for the trainer's depth
+        term (``mapping.train.depth_weight``); points outside the image or with a bad depth are dropped."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        z = np.asarray(z, np.float64).reshape(-1)
+        ok = (np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5)
+              & (uv[:, 0] < self.camera.width - 0.5) & (uv[:, 1] < self.camera.height - 0.5))
+        self.depth_uv, self.depth_z = uv[ok], z[ok]
 
     def device_arrays(self, level: int, device: str) -> tuple[wp.array, wp.array | None]:
         """Warp arrays of the image (``vec3 [H, W]``) and mask (``float32 (H, W)``) at ``level`` on ``device``:
