@@ -69,6 +69,7 @@ class RefineResult:
     pruned_world: int = 0               # ... for max scale > prune_scale3d x extent (and not the above)
     pruned_screen: int = 0              # ... for screen radius > prune_screen_px (and none of the above)
     skipped_capacity: int = 0           # grow candidates left out because the map was full
+    clamped_aspect: int = 0             # Gaussians whose longest axes were shortened to max_aspect x the shortest
     n_before: int = 0
     n_after: int = 0
 
@@ -103,6 +104,8 @@ class DefaultStrategy:
             problems.append(f"reset_opacity_value must be in (0, 1), got {c.reset_opacity_value}")
         if not 0.0 <= c.prune_opacity < 1.0:
             problems.append(f"prune_opacity must be in [0, 1), got {c.prune_opacity}")
+        if c.max_aspect != 0 and not c.max_aspect >= 1:
+            problems.append(f"max_aspect must be 0 (off) or >= 1, got {c.max_aspect}")
         for name in ("grow_grad2d", "grow_grad2d_abs", "absgs_split_grad2d", "percent_dense", "split_scale_factor",
                      "prune_scale3d", "prune_screen_px"):
             if getattr(c, name) < 0:
@@ -141,11 +144,12 @@ class DefaultStrategy:
         if self.is_refine_step(step):
             cloned, split, skipped = self._grow(gmap, state, step, extent)
             p_opa, p_world, p_screen = self._prune(gmap, step, extent)
+            clamped = self.clamp_aspect(gmap)
             gmap.reset_stats()
             state.refines += 1
             res = dataclasses.replace(res, refined=True, cloned=cloned, split=split, skipped_capacity=skipped,
                                       pruned=p_opa + p_world + p_screen, pruned_opacity=p_opa, pruned_world=p_world,
-                                      pruned_screen=p_screen)
+                                      pruned_screen=p_screen, clamped_aspect=clamped)
         if c.reset_every > 0 and step > 0 and step % c.reset_every == 0:
             gmap.reset_opacity(c.reset_opacity_value)
             state.last_reset_step = step
@@ -217,6 +221,20 @@ class DefaultStrategy:
         world &= ~low
         screen &= ~(low | world)
         return low, world, screen
+
+    def clamp_aspect(self, gmap: GaussianMap) -> int:
+        """Shorten every axis longer than ``max_aspect`` x the Gaussian's shortest one to that length (0 = off):
+        needles, which views that disagree (a drifting odometry) stretch to fit one view, become discs. Returns how
+        many Gaussians changed."""
+        r = self.cfg.max_aspect
+        if r <= 0 or gmap.n == 0:
+            return 0
+        ls = gmap.log_scales.numpy().reshape(gmap.n, 3)
+        cap = ls.min(axis=1, keepdims=True) + np.float32(np.log(r))
+        over = (ls > cap).any(axis=1)
+        if over.any():
+            gmap.log_scales.assign(np.minimum(ls, cap).astype(np.float32))
+        return int(over.sum())
 
     def _prune(self, gmap: GaussianMap, step: int, extent: float) -> tuple[int, int, int]:
         low, world, screen = self.prune_masks(gmap, step, extent)

@@ -149,3 +149,18 @@ def test_bad_settings_are_named():
         DefaultStrategy(DensifyConfig(refine_every=0))
     with pytest.raises(ValueError, match="grad_mode"):
         DefaultStrategy(dataclasses.replace(DensifyConfig(), grad_mode="nope"))
+
+
+def test_max_aspect_turns_needles_into_discs_only_when_set(wp_device):
+    """``max_aspect``: at a refine, axes longer than max_aspect x the shortest are shortened to that length; the
+    shortest axis and the Gaussians within the bound keep their scales. Off (0, 3DGS) nothing changes."""
+    ls = np.log(np.array([[1.0, 1.0, 1.0], [1.0, 2.0, 50.0], [0.1, 5.0, 0.3], [0.2, 0.2, 1.9]], np.float32))
+    for aspect, want in ((0.0, np.exp(ls)), (10.0, [[1, 1, 1], [1, 2, 10], [0.1, 1.0, 0.3], [0.2, 0.2, 1.9]])):
+        gm = GaussianMap(capacity=8, sh_degree=0, device=wp_device, scene_extent=EXTENT)
+        gm.add(np.zeros((4, 3)), ls, np.tile([1, 0, 0, 0], (4, 1)), np.zeros(4), np.zeros((4, 3)), step=0)
+        strat = DefaultStrategy(DensifyConfig(refine_start_step=0, refine_every=10, max_aspect=aspect))
+        res = strat.step_post_backward(gm, strat.initialize_state(0), 10)
+        assert res.refined and res.clamped_aspect == (2 if aspect else 0)
+        np.testing.assert_allclose(np.exp(gm.log_scales.numpy()), want, rtol=1e-5)
+    with pytest.raises(ValueError, match="max_aspect"):
+        DefaultStrategy(DensifyConfig(max_aspect=0.5))
