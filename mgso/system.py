@@ -54,7 +54,7 @@ from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_inverse
 from mgso.io.trajectory import Trajectory, write_kitti, write_tum
 from mgso.mapping.mapper import Mapper, MapperStats
-from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate, map_exposure
+from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate
 from mgso.observers import Observer, ObserverList
 
 __all__ = ["Odometry", "OdometryFrame", "DsoOdometry", "System", "SystemResult", "FrameLog", "PointCloud", "Player",
@@ -390,7 +390,7 @@ class System:
 # ----------------------------------------------------------------------------------------------- outputs
 #: Every key of metrics.json (tests check them; docs/mgso.md explains each).
 METRICS_KEYS = (
-    "ate", "render", "ate_all_frames_m", "ate_keyframes_m", "psnr_monogs_db", "ssim_monogs", "psnr_photo_slam_db",
+    "ate", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db", "ssim_monogs", "psnr_photo_slam_db",
     "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb", "tracking_fps", "mapping_iterations_per_s",
     "end_to_end_fps", "frames", "keyframes", "mode", "interrupted", "odometry", "device", "image_size",
     "timing_s", "mapper", "sequence", "protocols",
@@ -473,9 +473,25 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
             except ImportError as exc:
                 log.warning("no trajectory plot: %s", exc)
 
+    # ---- the map's refinement of the poses (mapping.train.refine_poses): a second
+    # trajectory, the odometry's moved by the keyframes' corrections; the map is in its frame
+    refined = mapper.refined_trajectory(traj) if mapper.refines_poses else None
+    ate_refined = None
+    if refined is not None:
+        write_tum(out / "trajectory_refined.txt", refined)
+        written.append("trajectory_refined.txt")
+        if gt is not None and len(refined) >= 3:
+            try:
+                ate_refined = compute_ate(refined, gt, align="sim3", label="all frames, refined by the map",
+                                          max_diff=0.01)
+                ate_results.append(ate_refined)
+            except EvaluationError as exc:
+                log.warning("no ATE of the map-refined trajectory: %s", exc)
+
     # ---- rendering quality at the tracked poses (final estimates; no alignment needed: the map is in their frame)
     renders = []
-    pose_at = {float(t): T for t, T in zip(traj.timestamps, traj.cam_to_world)}
+    render_traj = refined if refined is not None else traj
+    pose_at = {float(t): T for t, T in zip(render_traj.timestamps, render_traj.cam_to_world)}
     log_ = result.frame_log
     tracked = [k for k in range(len(log_)) if log_.timestamp[k] in pose_at]
     tracked_idx = [log_.index[k] for k in tracked]
@@ -489,7 +505,7 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     def exposure_of(k: int):
         if not sc.eval_exposure:
             return None
-        return map_exposure(log_.affine[k], log_.exposure_ms[k], mapper.reference_exposure_ms)
+        return mapper.exposure_for(log_.affine[k], log_.exposure_ms[k])
 
     def pairs(indices, save: bool, bar):
         for i in indices:
@@ -530,6 +546,7 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     metrics_extra = {
         "ate_all_frames_m": None if ate_all is None else ate_all.rmse,
         "ate_keyframes_m": None if ate_kf is None else ate_kf.rmse,
+        "ate_refined_all_frames_m": None if ate_refined is None else ate_refined.rmse,
         "psnr_monogs_db": by_key["monogs"].mean_psnr if "monogs" in by_key else None,
         "ssim_monogs": by_key["monogs"].mean_ssim if "monogs" in by_key else None,
         "psnr_photo_slam_db": by_key["photo-slam"].mean_psnr if "photo-slam" in by_key else None,
@@ -560,8 +577,11 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
             "ate": "RMSE of positions after Sim(3) Umeyama alignment (evo_ape -as), on all frames with a pose and on "
                    "keyframes",
             "psnr_monogs_db": MONOGS.name, "psnr_photo_slam_db": PHOTO_SLAM.name,
-            "render_poses": "the odometry's final poses (no alignment: the map is in the odometry's frame)",
-            "render_exposure": ("each frame's exposure from the odometry (DSO's affine and exposure time)"
+            "render_poses": ("the odometry's final poses moved by the map's keyframe corrections "
+                             "(trajectory_refined.txt; no alignment: the map is in their frame)" if refined is not None
+                             else "the odometry's final poses (no alignment: the map is in the odometry's frame)"),
+            "render_exposure": (f"each frame's exposure by mapping.mapper.exposure = {cfg.mapping.mapper.exposure} "
+                                "(odometry: DSO's affine and exposure time), as in training"
                                 if sc.eval_exposure else "none (the map's radiance)"),
             "map_size_mb": "map.ply as written, 10^6 bytes",
             "peak_memory_mb": "resource.getrusage(RUSAGE_SELF).ru_maxrss: peak resident set size of the whole "

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mgso.config import Config
-from mgso.geometry import se3_inverse
+from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.mapping.messages import KeyframeMessage, MapperMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, plan_seeds,
@@ -88,7 +88,8 @@ class MapperStats:
     queue_wait_seconds: float = 0.0
     max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
-                                                   "skipped_capacity": 0, "opacity_resets": 0})
+                                                   "skipped_capacity": 0, "opacity_resets": 0,
+                                                   "clamped_aspect": 0})
     seed_results: list = field(default_factory=list)   # SeedResult per seeding, in order
     stopped_by: str = ""                    # "stop" (end of stream) or "interrupt"
 
@@ -154,6 +155,10 @@ class Mapper:
         # DSO's part of each view's exposure, so that a refined (a, b) shifts the view and keeps what was learned.
         self._dso_exposure: dict[int, tuple[float, float]] = {}
         self._exposure_ms: dict[int, float | None] = {}
+        # The odometry's latest pose of each keyframe (camera-to-world). A view's pose in the map is
+        # ``correction(kid) @ odometry pose``: identity unless the map refines poses (mapping.train.refine_poses).
+        self._odo_c2w: dict[int, np.ndarray] = {}
+        self._latest_kid: int | None = None
         self.reference_exposure_ms: float | None = None   # the first keyframe's exposure time (None: unknown)
         self._last_step: StepResult | None = None
         self._thread: threading.Thread | None = None
@@ -309,11 +314,23 @@ class Mapper:
             raise ValueError(f"keyframe {kid} reached the map twice")
         if self.reference_exposure_ms is None and msg.exposure_ms:
             self.reference_exposure_ms = msg.exposure_ms
-        exposure = msg.map_exposure(self.reference_exposure_ms)
-        view = TrainView(kid, msg.image, msg.camera, msg.world_to_cam, mask=msg.mask, exposure=exposure,
+        exposure = self.exposure_for(msg.affine, msg.exposure_ms)
+        w2c = msg.world_to_cam
+        if self.refines_poses and self._latest_kid is not None:
+            # the odometry's drift since the previous keyframe is small: start from that keyframe's correction
+            w2c = se3_inverse(self.correction(self._latest_kid) @ msg.cam_to_world)
+        view = TrainView(kid, msg.image, msg.camera, w2c, mask=msg.mask, exposure=exposure,
                          timestamp=msg.timestamp, name=f"keyframe {kid} (frame {msg.frame_index})")
-        res = self._seed(msg.seed_input(exposure=exposure), self.mc.seeding)
+        seed_in = msg.seed_input(exposure=exposure)
+        if self.refines_poses:
+            seed_in = dataclasses.replace(seed_in, cam_to_world=view.cam_to_world)
+        res = self._seed(seed_in, self.mc.seeding)
+        if self.mc.train.depth_weight > 0 and msg.num_points:
+            view.set_depth_points(msg.points_uv, 1.0 / np.asarray(msg.idepths, np.float64))
+        view.fixed_pose = len(self.views) == 0          # the first keyframe holds the map's gauge
         self.views.add(view)
+        self._odo_c2w[kid] = np.array(msg.cam_to_world, dtype=np.float64)
+        self._latest_kid = kid
         self._dso_exposure[kid] = exposure
         self._exposure_ms[kid] = msg.exposure_ms
         self.stats.keyframes += 1
@@ -326,12 +343,15 @@ class Mapper:
             if kid not in self.views:
                 self.stats.poses_unknown += 1
                 continue
+            if self.refines_poses:      # keep what the map corrected, move with the odometry
+                c2w = self.correction(kid) @ c2w
+            self._odo_c2w[kid] = np.array(msg.cam_to_world[kid], dtype=np.float64)
             self.views.set_pose(kid, se3_inverse(c2w))
             self.stats.poses_applied += 1
         for kid, ab in msg.affine.items():
             if kid not in self.views:
                 continue
-            new = map_exposure(ab, self._exposure_ms.get(kid), self.reference_exposure_ms)
+            new = self.exposure_for(ab, self._exposure_ms.get(kid))
             old = self._dso_exposure[kid]
             view = self.views[kid]
             self.views.set_exposure(kid, view.exposure[0] + new[0] - old[0], view.exposure[1] + new[1] - old[1])
@@ -343,7 +363,7 @@ class Mapper:
         if not self.cfg.seed_marginalized or len(msg) == 0 or msg.host_keyframe_id not in self.views:
             return
         view = self.views[msg.host_keyframe_id]
-        T = view.world_to_cam
+        T = se3_inverse(self._odo_c2w[msg.host_keyframe_id])     # the points are in the odometry's world
         pc = msg.points @ T[:3, :3].T + T[:3, 3]
         cam = view.camera
         z = pc[:, 2]
@@ -358,6 +378,55 @@ class Mapper:
         weights = None if msg.weights is None else msg.weights[ok]
         seed_in = _as_seed_input(view, uv[ok], 1.0 / z[ok], msg.colors[ok], weights)
         self._seed(seed_in, dataclasses.replace(self.mc.seeding, fill=False))
+
+    def exposure_for(self, affine: tuple[float, float], exposure_ms: float | None) -> tuple[float, float]:
+        """The trainer's exposure ``(a', b')`` of an image with the odometry's affine brightness ``affine`` (0-255)
+        and exposure time ``exposure_ms``, by ``mapping.mapper.exposure``: ``odometry`` (DSO's affine and the
+        exposure time, :func:`~mgso.mapping.messages.map_exposure`), ``exposure_time`` (the exposure time's gain
+        only) or ``none`` (the image as it is). Evaluation renders use the same rule."""
+        mode = self.cfg.exposure
+        if mode == "none":
+            return 0.0, 0.0
+        if mode == "exposure_time":
+            return map_exposure((0.0, 0.0), exposure_ms, self.reference_exposure_ms)
+        return map_exposure(affine, exposure_ms, self.reference_exposure_ms)
+
+    # ------------------------------------------------------------------------------------- map-refined poses
+    @property
+    def refines_poses(self) -> bool:
+        """Whether the map corrects the odometry's keyframe poses (``mapping.train.refine_poses``)."""
+        return bool(self.mc.train.refine_poses)
+
+    def correction(self, keyframe_id: int) -> np.ndarray:
+        """The map's correction of a keyframe's pose: the rigid ``W`` with ``map pose = W @ odometry pose``
+        (camera-to-world; identity when the map refines no pose)."""
+        return self.views[keyframe_id].cam_to_world @ se3_inverse(self._odo_c2w[keyframe_id])
+
+    def refined_trajectory(self, trajectory):
+        """``trajectory`` (the odometry's poses, camera-to-world) moved by the map's keyframe corrections: a frame
+        between two keyframes takes the geodesic interpolation (in time) of their corrections, a frame before the
+        first or after the last keyframe that keyframe's. Unchanged when the map refines no pose."""
+        from mgso.io.trajectory import Trajectory
+
+        ids = [k for k in self.views.ids() if k in self._odo_c2w and self.views[k].timestamp is not None]
+        if not self.refines_poses or not ids or len(trajectory) == 0:
+            return trajectory
+        ids.sort(key=lambda k: self.views[k].timestamp)
+        kts = np.array([float(self.views[k].timestamp) for k in ids])
+        W = [self.correction(k) for k in ids]
+        out = np.empty_like(trajectory.cam_to_world)
+        for i, (t, T) in enumerate(zip(trajectory.timestamps, trajectory.cam_to_world)):
+            j = int(np.searchsorted(kts, t, side="right"))
+            if j == 0:
+                C = W[0]
+            elif j >= len(ids):
+                C = W[-1]
+            else:
+                a = (t - kts[j - 1]) / max(kts[j] - kts[j - 1], 1e-12)
+                C = W[j - 1] @ se3_exp(a * se3_log(se3_inverse(W[j - 1]) @ W[j]))
+            out[i] = C @ T
+            out[i][:3, :3] = orthonormalize(out[i][:3, :3])
+        return Trajectory(trajectory.timestamps.copy(), out)
 
     # ------------------------------------------------------------------------------------------ seeding
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
@@ -432,6 +501,7 @@ class Mapper:
             d["split"] += f.split
             d["pruned"] += f.pruned
             d["skipped_capacity"] += f.skipped_capacity
+            d["clamped_aspect"] += f.clamped_aspect
             d["opacity_resets"] += int(f.opacity_reset)
         return r
 

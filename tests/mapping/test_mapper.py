@@ -116,6 +116,26 @@ def test_keyframes_seed_views_and_train(wp_device, seq, cam):
     assert stats.final_steps == 4 and stats.steps == 10 and stats.stopped_by == "stop"
 
 
+@pytest.mark.parametrize("mode", ["odometry", "exposure_time", "none"])
+def test_exposure_modes_set_each_views_brightness_model(wp_device, seq, cam, mode):
+    """``mapping.mapper.exposure``: DSO's affine and the exposure time (odometry), the exposure time alone, or
+    nothing; a pose update's affine moves a view only where the mode reads DSO's affine."""
+    mp = Mapper(_cfg(f"mapping.mapper.exposure={mode}"), device=wp_device)
+    mp.submit(_kf(seq, cam, 0, exposure_ms=10.0))
+    mp.submit(_kf(seq, cam, 4, exposure_ms=20.0, affine=(0.1, 3.0)))
+    mp.process_pending()
+    want = {"odometry": (0.1 + math.log(2.0), 3.0 / 255.0), "exposure_time": (math.log(2.0), 0.0),
+            "none": (0.0, 0.0)}[mode]
+    assert mp.view_exposure(4) == pytest.approx(want)
+    assert mp.exposure_for((0.1, 3.0), 20.0) == pytest.approx(want)    # what evaluation renders use
+    mp.submit(PoseUpdate({4: seq.cam_to_world[4]}, affine={4: (0.3, 6.0)}))
+    mp.process_pending()
+    moved = {"odometry": (0.3 + math.log(2.0), 6.0 / 255.0)}.get(mode, want)
+    assert mp.view_exposure(4) == pytest.approx(moved)
+    with pytest.raises(ConfigError, match="exposure"):
+        load_config(None, ["mapping.mapper.exposure=auto"])
+
+
 def test_pose_update_moves_views_and_shifts_exposure(wp_device, seq, cam):
     noisy = seq.cam_to_world[0] @ se3_exp([0.05, 0, 0, 0, 0.02, 0])
     mp = Mapper(_cfg("mapping.train.learn_exposure=true"), device=wp_device)
@@ -225,3 +245,49 @@ def test_submit_rejects_other_objects(wp_device):
     with pytest.raises(ValueError, match="Stop"):
         mp.handle(Stop())
     assert isinstance(PointKind.ACTIVE, int)
+
+
+# ------------------------------------------------------------------------------------- map-refined poses
+def test_map_corrections_survive_pose_updates_and_move_every_frame(wp_device, seq, cam):
+    """With pose refinement on, a keyframe's map pose is ``W @ odometry pose``: a pose update from the odometry moves
+    the odometry's part and keeps ``W``; the refined trajectory moves each frame by the geodesic interpolation (in
+    time) of its neighbouring keyframes' corrections, and the first keyframe (the gauge) is not refined. With
+    refinement off the trajectory is returned unchanged (the negative control)."""
+    from mgso.geometry import se3_log
+    from mgso.io.trajectory import Trajectory
+
+    for on in (True, False):
+        mp = Mapper(_cfg(f"mapping.train.refine_poses={str(on).lower()}", "mapping.train.lr_pose_translation=0",
+                         "mapping.train.lr_pose_rotation=0", "mapping.mapper.iterations_per_keyframe=0"),
+                    device=wp_device)
+        for i in (0, 4, 8):
+            mp.submit(_kf(seq, cam, i))
+        mp.process_pending()
+        assert mp.views[0].fixed_pose and not mp.views[4].fixed_pose
+        # what the map refined (here set by hand): keyframe 4 moved by W4, keyframe 8 by W8
+        W = {0: np.eye(4), 4: se3_exp([0.02, 0.0, -0.01, 0.0, 0.01, 0.0]), 8: se3_exp([0.0, 0.03, 0.0, 0.02, 0, 0])}
+        for k in (4, 8):
+            mp.views.set_pose(k, se3_inverse(W[k] @ seq.cam_to_world[k]))
+        if on:
+            for k in (0, 4, 8):
+                np.testing.assert_allclose(mp.correction(k), W[k], atol=1e-12)
+        new8 = seq.cam_to_world[8] @ se3_exp([0.01, 0, 0, 0, 0, 0.005])
+        mp.submit(PoseUpdate({8: new8}))
+        mp.process_pending()
+        if on:
+            np.testing.assert_allclose(mp.views[8].cam_to_world, W[8] @ new8, atol=1e-12)
+        else:
+            np.testing.assert_allclose(mp.views[8].cam_to_world, new8, atol=1e-12)
+        ts = np.array([seq.timestamps[0], seq.timestamps[2], seq.timestamps[6], seq.timestamps[8] + 1.0])
+        poses = np.stack([seq.cam_to_world[0], seq.cam_to_world[2], seq.cam_to_world[6], new8])
+        traj = Trajectory(ts, poses)
+        out = mp.refined_trajectory(traj)
+        if not on:
+            assert out is traj
+            continue
+        np.testing.assert_allclose(out.cam_to_world[0], poses[0], atol=1e-9)           # before keyframe 0's time: W0
+        half = W[4] @ se3_exp(0.5 * se3_log(se3_inverse(W[4]) @ W[8]))                  # frame 6: half way 4 -> 8
+        a2 = (ts[1] - ts[0]) / (seq.timestamps[4] - ts[0])                              # frame 2: between 0 and 4
+        np.testing.assert_allclose(out.cam_to_world[1], se3_exp(a2 * se3_log(W[4])) @ poses[1], atol=1e-9)
+        np.testing.assert_allclose(out.cam_to_world[2], half @ poses[2], atol=1e-9)
+        np.testing.assert_allclose(out.cam_to_world[3], W[8] @ poses[3], atol=1e-9)    # after the last: W8
