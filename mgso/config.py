@@ -387,9 +387,9 @@ class TrainConfig:
                                "(Photo-SLAM's per-keyframe times of use)")
     sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
                                         "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
-    depth_weight: float = opt(0.0, "weight of the sparse depth term: mean relative error between the render's "
-                                   "expected depth and the view's depth points (MGSO: DSO's points of the keyframe); "
-                                   "0 = off")
+    depth_weight: float = opt(0.2, "weight of the sparse depth term: mean relative error between the render's "
+                                   "expected depth and the view's depth points (MGSO: DSO's points of the keyframe; "
+                                   "`mgso fit`'s views have none); 0 = off")
     refine_poses: bool = opt(False, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
                                     "(left perturbation); off: poses are trusted (ground truth, DSO's window)")
     lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
@@ -457,9 +457,10 @@ class SeedingConfig:
     fill_max_subdivisions: int = opt(4, "cap of k above (at most k^2 = 16 points per triangle)")
     visibility_threshold: float = opt(0.5, "keep a candidate only where the map's alpha is below this (the pixel is "
                                            "mostly empty; SplaTAM's silhouette threshold 0.5)")
-    depth_tolerance: float = opt(0.0, "also keep a candidate the map covers when the map's expected depth there is "
+    depth_tolerance: float = opt(0.1, "also keep a candidate the map covers when the map's expected depth there is "
                                       "off the point's by more than this fraction (the map has no surface where "
-                                      "the odometry measured one; SplaTAM's depth-error rule); 0 = alpha only")
+                                      "the odometry measured one; SplaTAM's depth-error rule; docs/seeding.md); 0 = "
+                                      "alpha only")
     alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
                                   "at 2)")
     min_new_gaussians: int = opt(30, "add nothing when fewer candidates survive the visibility filter (MGSO: 30)")
@@ -523,8 +524,12 @@ class MapperConfig:
                                      "seed everywhere again (SplaTAM and MGSO's seeding rule add by coverage)")
 
     exposure: Literal["odometry", "exposure_time", "none"] = opt(
-        "odometry", "each view's brightness model in training and evaluation: odometry = DSO's affine (a, b) and the "
-                    "exposure time; exposure_time = the exposure time's gain only; none = the image as it is")
+        "exposure_time", "each view's brightness model in training and evaluation: odometry = DSO's affine (a, b) and "
+                         "the exposure time; exposure_time = the exposure time's gain only (without photometric "
+                         "calibration DSO's affine drifts in its gauge: docs/mgso.md); none = the image as it is")
+    refine_every: int = opt(300, "the mapper's densification interval in steps, in place of mapping.densify."
+                                 "refine_every (3DGS's 100, what `mgso fit` uses): keyframes that disagree make "
+                                 "densification every 100 steps grow floaters (docs/mapping.md); 0 = mapping.densify's")
     def __post_init__(self):
         problems = []
         if self.iterations_per_keyframe < 0 or self.final_iterations < 0:
@@ -533,6 +538,8 @@ class MapperConfig:
             problems.append(f"queue_size must be >= 1, got {self.queue_size}")
         if not 0.0 <= self.newest_probability <= 1.0:
             problems.append(f"newest_probability must be in [0, 1], got {self.newest_probability}")
+        if self.refine_every < 0:
+            problems.append(f"refine_every must be >= 0, got {self.refine_every}")
         if self.exposure not in ("odometry", "exposure_time", "none"):
             problems.append(f"exposure must be 'odometry', 'exposure_time' or 'none', got {self.exposure!r}")
         if self.init not in ("dso", "random"):

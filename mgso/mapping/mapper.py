@@ -145,6 +145,8 @@ class Mapper:
         self.views = ViewSet()
         self.sampler = LeastUsedSampler(self.cfg.newest_probability, seed=seed)
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
+        if self.cfg.refine_every > 0:
+            densify = dataclasses.replace(densify, refine_every=self.cfg.refine_every)
         step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
         self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
                                train_step=step, seed=seed)
@@ -449,14 +451,14 @@ class Mapper:
         keyframe with a depth uniform over its points' depth range (what the odometry knows), coloured from the
         image (as radiance), with the seeding's scale rule and opacity."""
         gmap = self.gmap
-        alpha, neighbours = None, None
+        alpha, depth, neighbours = None, None, None
         if gmap.n > 0:
             cov = render_coverage(gmap, self.trainer.train_step.rasterizer, seed_in.camera, seed_in.world_to_cam,
-                                  scfg.alpha_downscale)
-            alpha = cov.alpha
+                                  scfg.alpha_downscale, with_depth=scfg.depth_tolerance > 0)
+            alpha, depth = cov.alpha, cov.depth
             if cov.visible.any():
                 neighbours = gmap.means.numpy()[cov.visible]
-        plan = plan_seeds(seed_in, scfg, alpha, neighbours, sh_degree=gmap.sh_degree)
+        plan = plan_seeds(seed_in, scfg, alpha, neighbours, sh_degree=gmap.sh_degree, depth=depth)
         n = min(plan.gaussians.n, gmap.capacity - gmap.n)
         res = plan.result
         if n <= 0:

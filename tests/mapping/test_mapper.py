@@ -42,8 +42,11 @@ def _kf(seq, cam, i, kid=None, pose=None, **kw):
 
 
 def _cfg(*over):
+    # DSO's affine as the views' exposure and the alpha rule alone: what these tests check (the defaults' other
+    # modes have their own tests)
     return load_config(None, ["mapping.mapper.iterations_per_keyframe=3", "mapping.mapper.final_iterations=4",
-                              "mapping.capacity=20000", *over])
+                              "mapping.capacity=20000", "mapping.mapper.exposure=odometry",
+                              "mapping.seeding.depth_tolerance=0", *over])
 
 
 # ------------------------------------------------------------------------------------------------ messages

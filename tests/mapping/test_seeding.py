@@ -359,7 +359,7 @@ def _covering_map(seq, cam, device, frame=0, stride=2, cols=None):
 def test_seed_keyframe_adds_nothing_where_the_map_covers_the_view(seq, cam, rast, wp_device):
     uv = _grid_points(cam, step=4)
     msg = _message(seq, cam, uv, frame=1)
-    cfg = SeedingConfig()
+    cfg = SeedingConfig(depth_tolerance=0.0)            # the alpha rule alone (the depth rule: its own test)
     # an empty map: every candidate is added
     empty = GaussianMap(20_000, 0, wp_device)
     r0 = sd.seed_keyframe(empty, rast, msg, cfg, step=7)
@@ -383,7 +383,7 @@ def test_seed_keyframe_fills_only_the_uncovered_part(seq, cam, rast, wp_device):
     msg = _message(seq, cam, uv, frame=0)
     gm = _covering_map(seq, cam, wp_device, cols=cam.width // 2)      # the left half is mapped
     n0 = gm.n
-    r = sd.seed_keyframe(gm, rast, msg, SeedingConfig(), step=3)
+    r = sd.seed_keyframe(gm, rast, msg, SeedingConfig(depth_tolerance=0.0), step=3)   # the alpha rule alone
     assert r.status is sd.SeedStatus.ADDED and r.num_added == gm.n - n0 > 200
     assert r.num_rejected_visibility > 0.35 * r.num_candidates
     new_means = gm.means.numpy()[n0:].astype(np.float64)
