@@ -226,7 +226,6 @@ def _one(args) -> dict:
                       "rejected_visibility": int(sum(r.num_rejected_visibility for r in sr)),
                       "added": int(sum(r.num_added for r in sr)),
                       "added_first_keyframe": int(sr[0].num_added) if sr else 0}
-    fig["mapper_stats"] = {k: v for k, v in m["mapper"].items() if k.startswith("align")}
     mono = [r for r in m.get("render") or [] if r.get("protocol_key") == "monogs"]
     fig["psnr_per_frame"] = {f["frame"]: round(f["psnr_db"], 2) for f in mono[0]["frames"]} if mono else {}
     fig["wall_s"] = round(time.perf_counter() - t0, 1)
