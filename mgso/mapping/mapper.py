@@ -18,8 +18,9 @@ Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
 :class:`~mgso.mapping.views.LeastUsedSampler` (least used keyframes, the newest more often), Gaussian-pyramid levels
 (``mapping.train.pyramid_levels``) and densification / pruning by the strategy (``mapping.densify``).
 
-**Exposure.** Each view's exposure ``(a', b')`` (the loss compares ``exp(a') render + b'`` with the keyframe) starts
-from DSO's affine brightness and exposure time (:func:`~mgso.mapping.messages.map_exposure`), so the map stores
+**Exposure.** Each view's exposure ``(a', b')`` (the loss compares ``exp(a') render + b'`` with the keyframe) follows
+``mapping.mapper.exposure`` (:meth:`Mapper.exposure_for`); with ``odometry`` it starts from DSO's affine brightness
+and exposure time (:func:`~mgso.mapping.messages.map_exposure`), so the map stores
 radiance at the first keyframe's exposure, not each image's brightness; seed colours are converted to radiance the
 same way. With ``mapping.train.learn_exposure`` the trainer learns a correction on top (its own Adam per view); a
 pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change and keeps the learned correction.
