@@ -390,7 +390,8 @@ class System:
 # ----------------------------------------------------------------------------------------------- outputs
 #: Every key of metrics.json (tests check them; docs/mgso.md explains each).
 METRICS_KEYS = (
-    "ate", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db", "ssim_monogs", "psnr_photo_slam_db",
+    "ate", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db",
+    "ssim_monogs", "psnr_photo_slam_db",
     "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb", "tracking_fps", "mapping_iterations_per_s",
     "end_to_end_fps", "frames", "keyframes", "mode", "interrupted", "odometry", "device", "image_size",
     "timing_s", "mapper", "sequence", "protocols",
