@@ -128,9 +128,8 @@ def with_true_poses(rec: Recording, gt) -> Recording:
             return None
         return gt.cam_to_world[k]
 
-    kf_pose: dict[int, np.ndarray] = {}      # keyframe id -> (DSO c2w at its latest, true c2w)
-    kf_true: dict[int, np.ndarray] = {}
-    kf_ts = {}
+    kf_pose: dict[int, np.ndarray] = {}      # keyframe id -> DSO's latest camera-to-world
+    kf_true: dict[int, np.ndarray] = {}      # keyframe id -> the true camera-to-world
 
     def fix(msgs):
         out = []
@@ -141,7 +140,6 @@ def with_true_poses(rec: Recording, gt) -> Recording:
                     continue
                 kf_pose[m.keyframe_id] = m.cam_to_world
                 kf_true[m.keyframe_id] = T
-                kf_ts[m.keyframe_id] = m.timestamp
                 out.append(dataclasses.replace(m, cam_to_world=T, idepths=np.asarray(m.idepths) / s))
             elif isinstance(m, PoseUpdate):
                 for k, T in m.cam_to_world.items():

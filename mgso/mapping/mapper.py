@@ -52,8 +52,8 @@ from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.mapping.messages import KeyframeMessage, MapperMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
-from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, plan_seeds,
-                                  render_coverage, seed_keyframe, seed_scales)
+from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
+                                  plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.strategy import DefaultStrategy
 from mgso.mapping.trainer import StepResult, Trainer, TrainStep
 from mgso.mapping.views import LeastUsedSampler, TrainView, ViewSet
@@ -452,13 +452,7 @@ class Mapper:
         keyframe with a depth uniform over its points' depth range (what the odometry knows), coloured from the
         image (as radiance), with the seeding's scale rule and opacity."""
         gmap = self.gmap
-        alpha, depth, neighbours = None, None, None
-        if gmap.n > 0:
-            cov = render_coverage(gmap, self.trainer.train_step.rasterizer, seed_in.camera, seed_in.world_to_cam,
-                                  scfg.alpha_downscale, with_depth=scfg.depth_tolerance > 0)
-            alpha, depth = cov.alpha, cov.depth
-            if cov.visible.any():
-                neighbours = gmap.means.numpy()[cov.visible]
+        alpha, depth, neighbours = map_seen_from(gmap, self.trainer.train_step.rasterizer, seed_in, scfg)
         plan = plan_seeds(seed_in, scfg, alpha, neighbours, sh_degree=gmap.sh_degree, depth=depth)
         n = min(plan.gaussians.n, gmap.capacity - gmap.n)
         res = plan.result

@@ -45,7 +45,7 @@ from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap, rgb_to_sh_dc
 __all__ = [
     "PointKind", "SeedStatus", "KeyframeSeedInput", "FillPoints", "SeedCandidates", "SeedResult", "SeedPlan",
     "Coverage", "sample_pattern_colors", "backproject", "delaunay_fill", "make_candidates", "sample_alpha",
-    "seed_scales", "gaussians_from_seeds", "plan_seeds", "render_coverage", "seed_keyframe",
+    "seed_scales", "gaussians_from_seeds", "plan_seeds", "render_coverage", "map_seen_from", "seed_keyframe",
 ]
 
 log = logging.getLogger(__name__)
@@ -608,6 +608,19 @@ def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndar
     return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s)
 
 
+def map_seen_from(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: SeedingConfig
+                  ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """What the seeding tests a keyframe's candidates against: the map's coverage ``alpha`` and accumulated ``depth``
+    (only with ``cfg.depth_tolerance > 0``) at 1/``alpha_downscale`` resolution, and the means of the Gaussians
+    visible from the keyframe (neighbours for the scales). ``(None, None, None)`` for an empty map."""
+    if gmap.n == 0:
+        return None, None, None
+    cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale,
+                          with_depth=cfg.depth_tolerance > 0)
+    neighbours = gmap.means.numpy()[cov.visible] if cov.visible.any() else None
+    return cov.alpha, cov.depth, neighbours
+
+
 def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: SeedingConfig, step: int) -> SeedResult:
     """MGSO's seeding of one keyframe into ``gmap``: render the coverage, plan, add (new rows get
     ``created_step = step``). Call it between training iterations (it changes the map's structure).
@@ -618,16 +631,8 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     t0 = time.perf_counter()
     if not cfg.enabled:
         return SeedResult(msg.keyframe_id, SeedStatus.DISABLED, num_points_in=msg.num_points)
-    alpha = None
-    neighbours = None
-    if gmap.n > 0:
-        cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale,
-                              with_depth=cfg.depth_tolerance > 0)
-        alpha = cov.alpha
-        if cov.visible.any():
-            neighbours = gmap.means.numpy()[cov.visible]
-    plan = plan_seeds(msg, cfg, alpha, neighbours, sh_degree=gmap.sh_degree,
-                      depth=None if alpha is None else cov.depth)
+    alpha, depth, neighbours = map_seen_from(gmap, rasterizer, msg, cfg)
+    plan = plan_seeds(msg, cfg, alpha, neighbours, sh_degree=gmap.sh_degree, depth=depth)
     res = plan.result
     g = plan.gaussians
     if g.n == 0:
