@@ -197,7 +197,7 @@ class Rasterizer:
         self.pair_gauss_ = _Buffer(wp.int32)
         self.splats_ = _Buffer(_common.vec8)
         self.splat_rgbz_ = _Buffer(wp.vec4)
-        self.pair_grads_ = _Buffer(_raster_bwd.vec12)
+        self.pair_grads_ = _Buffer(_common.vec12)
         # per tile
         self.ranges_ = _Buffer(wp.int32, (2,))
         # per pixel (exact size; reallocated only when the resolution changes)

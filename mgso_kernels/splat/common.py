@@ -7,18 +7,29 @@ at 0.99, and a pixel stops once its transmittance would fall below 1e-4.
 blending): ``(mean_x, mean_y, a, b, c, opacity, exp(-a), r2)`` with the conic ``(a, b, c)``
 (``power = -0.5 (a dx^2 + c dy^2) - b dx dy``) and ``r2`` the squared Mahalanobis radius of the *cut-off ellipse*
 ``d^T conic d <= r2`` outside which ``opacity exp(power) < 1/255`` (see :func:`cutoff_r2`).
+
+The blend kernels' lane vectors live here too, so that the row kernels (``raster``), their backward (``raster_bwd``)
+and the tile-per-thread kernels (``raster_tile``) share them without importing each other: ``vec16`` / ``vec16i``
+hold one value per pixel of a tile row (``TILE_SIZE`` lanes), ``vec12`` one (tile, Gaussian) pair's gradient
+accumulators (see ``raster_bwd.gather_gaussian_grads``).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
+from .camera import TILE_SIZE
+
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["vec6", "vec8", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN", "R2_ABS_MARGIN", "cutoff_r2"]
+__all__ = ["vec6", "vec8", "vec12", "vec16", "vec16i", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN",
+           "R2_ABS_MARGIN", "cutoff_r2"]
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
+vec12 = wp.types.vector(length=12, dtype=wp.float32)
+vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
+vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)

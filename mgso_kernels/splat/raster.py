@@ -37,15 +37,12 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
-from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8
+from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "vec16", "vec16i", "row_span",
            "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
-
-vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
-vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 
 TS = wp.constant(TILE_SIZE)
 SEGMENT_WIDTHS = (1, 2, 4, 8, 16, TILE_SIZE * TILE_SIZE)  # pixels per thread the blend kernels accept; 256 = a

@@ -30,14 +30,12 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
-from .common import ALPHA_MAX, ALPHA_MIN, vec8
-from .raster import row_span, segment_threads, span_exp_start, tile_row, vec16, vec16i
+from .common import ALPHA_MAX, ALPHA_MIN, vec8, vec12, vec16, vec16i
+from .raster import row_span, segment_threads, span_exp_start, tile_row
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["rasterize_backward", "gather_gaussian_grads", "vec12"]
-
-vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
 
 @wp.kernel

@@ -41,9 +41,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
-from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8
-from .raster import vec16, vec16i
-from .raster_bwd import vec12
+from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec12, vec16, vec16i
 
 wp.set_module_options({
     "enable_backward": False,
