@@ -1,7 +1,8 @@
 """When a tracked frame becomes a keyframe (DSO ``FullSystem::addActiveFrame``'s "BRIGHTNESS CHECK").
 
-A small strategy object (design.md 3.7): thresholds from :class:`~mgso.config.TrackingConfig`, one method that takes
-the tracker's result and says yes or no, with the reason as a value. DSO's rule, with ``w + h`` the image size:
+A small strategy object (docs/tracking.md, "Keyframes"): thresholds from :class:`~mgso.config.TrackingConfig`,
+one method that takes the tracker's result and says yes or no, with the reason as a value. DSO's rule, with ``w + h``
+the image size:
 
 ``kfGlobalWeight * (maxShiftWeightT * sqrt(flow_t) + maxShiftWeightR * sqrt(flow_r) + maxShiftWeightRT *
 sqrt(flow_rt)) / (w + h) + kfGlobalWeight * maxAffineWeight * |log a_rel| > 1``, or the RMSE above twice the first

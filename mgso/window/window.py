@@ -2,7 +2,7 @@
 marginalised point cloud (DSO's ``FullSystem::frameHessians`` with each frame's ``immaturePoints`` /
 ``pointHessians``, and ``EnergyFunctional``'s point storage).
 
-Layout (design.md 3.1-3.2: one owner, capacity-bounded struct-of-arrays, views of the live part):
+Layout (docs/window.md: one owner, capacity-bounded struct-of-arrays, views of the live part):
 
 - **Keyframes** live in ``capacity`` slots (``window.max_frames + 1``: DSO adds the new keyframe before it drops the
   ones flagged for marginalisation, so the window briefly holds one more). A slot is an index into every per-keyframe
