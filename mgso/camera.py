@@ -1,4 +1,7 @@
-"""Camera models, undistortion to a pinhole camera, photometric calibration, and calibration files.
+"""Camera models, undistortion to a pinhole camera, photometric calibration.
+
+Calibration *files* are read in :mod:`mgso.io` (``mgso.io.calibration`` for DSO ``camera.txt`` and plain intrinsics,
+each dataset's own format beside its reader); this module never imports :mod:`mgso.io`.
 
 Conventions (used everywhere in mgso):
 
@@ -21,12 +24,14 @@ Models (``d(xn)``):
 
 Undistortion (:class:`Undistorter`) builds remap tables once (OpenCV's ``initUndistortRectifyMap`` for RadTan,
 ``cv2.fisheye.initUndistortRectifyMap`` for equidistant, our own for FOV) and applies ``cv2.remap`` per frame
-(bilinear, zero outside the input). A pinhole input without distortion whose output camera equals the input camera is
+(bilinear; output pixels without a source hold the nearest input pixel and are False in ``valid_mask``). A pinhole input without distortion whose output camera equals the input camera is
 passed through untouched (bit-exact, no copy); one that only changes size is resized (``cv2.resize``, area filter when
 shrinking), with intrinsics scaled by the pixel-centre rule.
 
-Output cameras (DSO ``camera.txt`` line 3): ``crop`` (largest rectangle of valid pixels, no black border; DSO's
-search, reimplemented), ``full`` (the whole input visible: bounding box of the undistorted image border), ``none``
+Output cameras (DSO ``camera.txt`` line 3): ``keep`` (ours, the default for a distorted lens: the field of view of
+``full``, pulled in only until every pixel without a source lies in the outer :data:`KEEP_BORDER_PX` rows and columns,
+which the odometry ignores), ``crop`` (a rectangle of valid pixels, no black border; DSO's search, reimplemented,
+which zooms a pincushion lens such as TUM freiburg1 1.37x), ``full`` (the whole input visible: bounding box of the undistorted image border), ``none``
 (the input intrinsics scaled to the output size; for a distorted lens the image is still undistorted, unlike DSO,
 which silently keeps the distortion), or explicit ``fx fy cx cy 0`` (relative when ``cx, cy < 1``, else absolute).
 
@@ -39,30 +44,29 @@ undistortion, in the input image geometry (as DSO does), so it is never remapped
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Union
 
 import cv2
 import numpy as np
-import yaml
 
 __all__ = [
     "CalibrationError", "CameraModel", "PinholeCamera", "RadTanCamera", "EquidistantCamera", "FOVCamera",
     "OutputSpec", "CameraSpec", "Undistorter", "PhotometricCalibration", "Calibration", "RECTIFY_MODES",
-    "crop_output_camera", "full_output_camera", "make_output_camera",
-    "read_camera_file", "read_dso_camera_txt", "read_plain_intrinsics", "read_kitti_calib", "read_euroc_sensor_yaml",
-    "read_replica_cam_params", "read_inverse_response", "read_vignette", "tum_rgbd_default",
-    "TUM_RGBD_FREIBURG", "REPLICA_NICE_SLAM", "SEVEN_SCENES_COLOR", "load_calibration",
+    "KEEP_BORDER_PX", "crop_output_camera", "full_output_camera", "keep_output_camera", "make_output_camera",
+    "output_camera_and_mode", "read_inverse_response", "read_vignette",
 ]
 
 log = logging.getLogger(__name__)
 
-RECTIFY_MODES = ("crop", "full", "none")
+RECTIFY_MODES = ("keep", "crop", "full", "none")
+#: ``keep``: output pixels without a source in the input may only lie this many pixels from the image border (rows and
+#: columns 0..2 and W-3..W-1): DSO's pixel selection never takes a pixel within 4 px of the border, nor reads a
+#: gradient there (central differences of pixels 3..5 for pixel 4), so such a border costs the odometry nothing.
+KEEP_BORDER_PX = 3
 
 
 class CalibrationError(ValueError):
@@ -532,11 +536,84 @@ def full_output_camera(model: CameraModel, width: int, height: int) -> PinholeCa
     return PinholeCamera(fx, fy, -x0 * fx, -y0 * fy, width, height)
 
 
+def _source_inside(model: CameraModel, xn: np.ndarray) -> np.ndarray:
+    """Normalised points whose input pixel lies in ``[0, W-1] x [0, H-1]`` (the bilinear source is inside the
+    input; the definition of :attr:`Undistorter.valid_mask`)."""
+    uv, ok = model.pixel_from_normalized(xn)
+    return ok & (uv[:, 0] >= 0) & (uv[:, 0] <= model.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= model.height - 1)
+
+
+def keep_output_camera(model: CameraModel, width: int, height: int, border: int = KEEP_BORDER_PX) -> PinholeCamera:
+    """The pinhole camera of size ``width x height`` that keeps the input's field of view: the ``full`` box (the
+    whole input visible), each side pulled in by 0.2 % a step while the rectangle ``border`` pixels inside the output
+    image still has a pixel without a source in the input. Pixels without a source then only lie in the outer
+    ``border`` rows and columns (:data:`KEEP_BORDER_PX`), where the odometry never selects nor differentiates.
+
+    Unlike :func:`crop_output_camera` (DSO's search) no side is shrunk for the sake of another: DSO's rule "when
+    both dimensions have offenders, shrink only the wider one" zooms a pincushion lens such as TUM freiburg1's
+    1.37x horizontally (docs/datasets.md). Raises :class:`CalibrationError` where ``full`` is impossible (a view
+    beyond 90 degrees off axis) or no such rectangle exists.
+    """
+    full = full_output_camera(model, width, height)
+    W, H = int(width), int(height)
+    b = int(border)
+    if not (0 <= b and 2 * b < min(W, H) - 1):
+        raise CalibrationError(f"keep: border {border} px does not fit a {W}x{H} image")
+    x0, x1 = -full.cx / full.fx, (W - 1.0 - full.cx) / full.fx
+    y0, y1 = -full.cy / full.fy, (H - 1.0 - full.cy) / full.fy
+    if not (x0 < 0 < x1 and y0 < 0 < y1):
+        raise CalibrationError(f"keep: the principal point of {model.model_name} camera {model.describe()} is "
+                               "not inside the image")
+    cols = np.arange(b, W - b, dtype=np.float64)
+    rows = np.arange(b, H - b, dtype=np.float64)
+    for _ in range(5000):
+        sx, sy = (x1 - x0) / (W - 1.0), (y1 - y0) / (H - 1.0)  # normalised units per output pixel
+        xs, ys = x0 + cols * sx, y0 + rows * sy
+        xl, xr, yt, yb = x0 + b * sx, x0 + (W - 1 - b) * sx, y0 + b * sy, y0 + (H - 1 - b) * sy
+        bad_l = not _source_inside(model, np.stack([np.full(len(ys), xl), ys], 1)).all()
+        bad_r = not _source_inside(model, np.stack([np.full(len(ys), xr), ys], 1)).all()
+        bad_t = not _source_inside(model, np.stack([xs, np.full(len(xs), yt)], 1)).all()
+        bad_b = not _source_inside(model, np.stack([xs, np.full(len(xs), yb)], 1)).all()
+        if not (bad_l or bad_r or bad_t or bad_b):
+            break
+        if bad_l:
+            x0 *= 0.998
+        if bad_r:
+            x1 *= 0.998
+        if bad_t:
+            y0 *= 0.998
+        if bad_b:
+            y1 *= 0.998
+    else:
+        raise CalibrationError(f"keep: no rectangle {b} px inside the image sees only the input for "
+                               f"{model.describe()}")
+    fx = (W - 1.0) / (x1 - x0)
+    fy = (H - 1.0) / (y1 - y0)
+    return PinholeCamera(fx, fy, -x0 * fx, -y0 * fy, W, H)
+
+
+def output_camera_and_mode(model: CameraModel, output: Union[str, OutputSpec, PinholeCamera] = "none",
+                           size: tuple[int, int] | None = None) -> tuple[PinholeCamera, str]:
+    """:func:`make_output_camera` and the mode it used: ``keep`` falls back to ``crop`` (with a warning) for a lens
+    whose whole view does not fit a pinhole image (beyond 90 degrees off axis)."""
+    mode = output if isinstance(output, str) else (
+        "explicit" if isinstance(output, PinholeCamera) else output.mode)
+    try:
+        return make_output_camera(model, output, size), mode
+    except CalibrationError as exc:
+        if mode != "keep":
+            raise
+        log.warning("rectify keep impossible (%s); using crop", exc)
+        spec = output if isinstance(output, OutputSpec) else OutputSpec(mode="keep")
+        return make_output_camera(model, dataclasses.replace(spec, mode="crop"), size), "crop"
+
+
 def make_output_camera(model: CameraModel, output: Union[str, OutputSpec, PinholeCamera] = "none",
                        size: tuple[int, int] | None = None) -> PinholeCamera:
     """The undistorted pinhole camera for ``model``.
 
-    ``output``: ``crop`` / ``full`` / ``none``, an :class:`OutputSpec`, or a :class:`PinholeCamera` (used as is).
+    ``output``: ``keep`` / ``crop`` / ``full`` / ``none``, an :class:`OutputSpec`, or a :class:`PinholeCamera` (used
+    as is).
     ``size``: output ``(width, height)``; ``None`` = the spec's size, else the input size. A lens without
     distortion gets the input intrinsics scaled to the output size whatever the mode (so that it is passed through
     untouched at the same size).
@@ -559,6 +636,8 @@ def make_output_camera(model: CameraModel, output: Union[str, OutputSpec, Pinhol
         return model.pinhole().resized(w, h) if (w, h) != model.size else model.pinhole()
     if spec.mode == "crop":
         return crop_output_camera(model, w, h)
+    if spec.mode == "keep":
+        return keep_output_camera(model, w, h)
     return full_output_camera(model, w, h)
 
 
@@ -567,8 +646,13 @@ class Undistorter:
     """Maps input images (model's geometry) to the output pinhole camera; remap tables are built once.
 
     ``kind``: ``passthrough`` (no distortion, same camera: the input array is returned as is), ``resize`` (no
-    distortion, scaled camera: ``cv2.resize``), or ``remap`` (``cv2.remap`` with float32 tables; bilinear; output
-    pixels whose source falls outside the input are 0 and ``valid_mask`` is False there).
+    distortion, scaled camera: ``cv2.resize``), or ``remap`` (``cv2.remap`` with float32 tables; bilinear).
+
+    ``valid_mask`` (bool ``[H_out, W_out]``, read-only) is False at the output pixels that have no source: their
+    ray, through the lens model in float64, lands outside ``[0, W_in - 1] x [0, H_in - 1]`` or outside the model's
+    invertible region. :meth:`apply` fills them with the nearest input pixel (edge replicate), not black, so that
+    they make no artificial edge for gradient-based pixel selection; :meth:`apply_nearest` (depth, labels) leaves
+    them 0. ``invalid_pixels`` counts them.
     """
 
     def __init__(self, input_camera: CameraModel, output_camera: PinholeCamera):
@@ -586,10 +670,22 @@ class Undistorter:
             self.kind = "remap"
             self.map_x, self.map_y = self._build_maps()
         if self.kind == "remap":
-            W, H = input_camera.size
-            self.valid_mask = (self.map_x >= 0) & (self.map_x <= W - 1) & (self.map_y >= 0) & (self.map_y <= H - 1)
+            self.valid_mask = self._source_mask()
         else:
             self.valid_mask = np.ones((output_camera.height, output_camera.width), dtype=bool)
+        self.valid_mask.setflags(write=False)  # shared by every frame
+        self.invalid_pixels = int(self.valid_mask.size - np.count_nonzero(self.valid_mask))
+
+    def _source_mask(self) -> np.ndarray:
+        out = self.output
+        uu, vv = np.meshgrid(np.arange(out.width, dtype=np.float64), np.arange(out.height, dtype=np.float64))
+        xn = np.stack([(uu.ravel() - out.cx) / out.fx, (vv.ravel() - out.cy) / out.fy], axis=1)
+        return _source_inside(self.input, xn).reshape(out.height, out.width)
+
+    @property
+    def valid_fraction(self) -> float:
+        """Share of the output pixels that have a source in the input."""
+        return 1.0 - self.invalid_pixels / self.valid_mask.size
 
     @property
     def passthrough(self) -> bool:
@@ -623,8 +719,10 @@ class Undistorter:
         my[bad] = -16.0
         return np.ascontiguousarray(mx, dtype=np.float32), np.ascontiguousarray(my, dtype=np.float32)
 
-    def apply(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-        """Undistort an image ``[H_in, W_in(, C)]`` of any dtype OpenCV remaps (uint8, uint16, float32)."""
+    def apply(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR, *, fill_edge: bool = True) -> np.ndarray:
+        """Undistort an image ``[H_in, W_in(, C)]`` of any dtype OpenCV remaps (uint8, uint16, float32).
+
+        Output pixels without a source (``~valid_mask``) hold the nearest input pixel (``fill_edge``) or 0."""
         if image.shape[:2] != (self.input.height, self.input.width):
             raise ValueError(f"image of size {image.shape[1]}x{image.shape[0]} given to an undistorter for "
                              f"{self.input.width}x{self.input.height}")
@@ -636,11 +734,19 @@ class Undistorter:
             if interpolation == cv2.INTER_LINEAR and shrink:
                 interp = cv2.INTER_AREA
             return cv2.resize(image, self.output.size, interpolation=interp)
-        return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if not fill_edge or not self.invalid_pixels:
+            return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=0)
+        return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
     def apply_nearest(self, image: np.ndarray) -> np.ndarray:
-        """Undistort with nearest-neighbour sampling (depth maps, masks, labels: no mixing of values)."""
-        return self.apply(image, interpolation=cv2.INTER_NEAREST)
+        """Undistort with nearest-neighbour sampling (depth maps, masks, labels: no mixing of values); pixels
+        without a source are 0."""
+        out = self.apply(image, interpolation=cv2.INTER_NEAREST, fill_edge=False)
+        if self.invalid_pixels:
+            out = out.copy() if out is image else out
+            out[~self.valid_mask] = 0
+        return out
 
     def source_pixels(self, uv_out) -> np.ndarray:
         """Input-image pixel ``(N, 2)`` that each output pixel ``(N, 2)`` samples (NaN where outside the model)."""
@@ -821,10 +927,10 @@ class Calibration:
     def create(cls, model: CameraModel, output: Union[str, OutputSpec, PinholeCamera] = "none",
                size: tuple[int, int] | None = None, photometric: PhotometricCalibration | None = None,
                source: str = "") -> "Calibration":
-        """Build from a lens model and an output choice (see :func:`make_output_camera`)."""
-        mode = output if isinstance(output, str) else (
-            "explicit" if isinstance(output, PinholeCamera) else output.mode)
-        return cls(model, make_output_camera(model, output, size), photometric, mode, source)
+        """Build from a lens model and an output choice (see :func:`make_output_camera`; ``keep`` falls back to
+        ``crop`` where the lens sees beyond 90 degrees, see :func:`output_camera_and_mode`)."""
+        camera, mode = output_camera_and_mode(model, output, size)
+        return cls(model, camera, photometric, mode, source)
 
     @classmethod
     def from_spec(cls, spec: CameraSpec, *, rectify: str | None = None, size: tuple[int, int] | None = None,
@@ -843,6 +949,13 @@ class Calibration:
     @property
     def input_size(self) -> tuple[int, int]:
         return self.input.size
+
+    @property
+    def valid_mask(self) -> np.ndarray | None:
+        """bool ``[H_out, W_out]`` (read-only, shared): False where an output pixel has no source in the input;
+        ``None`` when every pixel has one. What :attr:`mgso.io.Frame.valid` carries."""
+        u = self.undistorter
+        return u.valid_mask if u.invalid_pixels else None
 
     @property
     def output_size(self) -> tuple[int, int]:
@@ -872,365 +985,6 @@ class Calibration:
 
     def describe(self) -> dict:
         return {"input": self.input.describe(), "output": self.output.describe(), "output_mode": self.output_mode,
-                "undistortion": self.undistorter.kind, "photometric": self.photometric.describe(),
+                "undistortion": self.undistorter.kind, "valid_fraction": self.undistorter.valid_fraction,
+                "photometric": self.photometric.describe(),
                 "source": self.source or None}
-
-
-# ============================================================================================ calibration files
-# TUM RGB-D colour cameras: fx fy cx cy and OpenCV distortion d0..d4 = k1 k2 p1 p2 k3, from the table "Intrinsic
-# Camera Calibration of the Kinect" on https://vision.in.tum.de/data/datasets/rgbd-dataset/file_formats (reproduced
-# verbatim in many repositories' comments); freiburg3 lists no distortion.
-TUM_RGBD_FREIBURG = {
-    1: (517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
-    2: (520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
-    3: (535.4, 539.2, 320.1, 247.6, (0.0, 0.0, 0.0, 0.0, 0.0)),
-}
-# NICE-SLAM's Replica renders: configs/Replica/replica.yaml of github cvg/nice-slam (H 680, W 1200, fx = fy = 600,
-# cx 599.5, cy 339.5, png_depth_scale 6553.5); the same numbers as the release's cam_params.json.
-REPLICA_NICE_SLAM = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
-# Microsoft 7-Scenes colour camera: not calibrated by the dataset; the customary choice (fx = fy = 525, principal
-# point at the image centre, no distortion), see /work/shared/data/README.md. The folder's camera-intrinsics.txt
-# (585, 585, 320, 240) is the depth camera's.
-SEVEN_SCENES_COLOR = (525.0, 525.0, 320.0, 240.0)
-
-
-def tum_rgbd_default(which: int | str, width: int = 640, height: int = 480) -> CameraSpec:
-    """The TUM RGB-D freiburg 1/2/3 colour calibration (``which``: 1, 2, 3, ``"fr2"``, ``"freiburg2"`` or a folder
-    name such as ``rgbd_dataset_freiburg2_xyz``), distorted models rectified with ``crop``."""
-    n = which
-    if isinstance(which, str):
-        m = re.search(r"(?:freiburg|fr)([123])", which)
-        if not m:
-            raise CalibrationError(f"no TUM RGB-D camera named in {which!r} (expected freiburg1/2/3 or fr1/2/3)")
-        n = int(m.group(1))
-    if n not in TUM_RGBD_FREIBURG:
-        raise CalibrationError(f"TUM RGB-D camera must be 1, 2 or 3, got {which!r}")
-    fx, fy, cx, cy, d = TUM_RGBD_FREIBURG[n]
-    if (width, height) != (640, 480):
-        raise CalibrationError(f"the TUM RGB-D freiburg{n} calibration is for 640x480 images, these are "
-                               f"{width}x{height}")
-    model = RadTanCamera(fx, fy, cx, cy, width, height, d[0], d[1], d[2], d[3], d[4])
-    mode = "crop" if model.has_distortion else "none"
-    return CameraSpec(model, OutputSpec(mode=mode), f"TUM RGB-D freiburg{n} default calibration")
-
-
-def _numbers(line: str) -> list[float] | None:
-    try:
-        return [float(v) for v in line.replace(",", " ").split()]
-    except ValueError:
-        return None
-
-
-def _abs_intrinsics(p: list[float], w: int, h: int) -> list[float]:
-    """DSO's rule: intrinsics with ``cx < 1 and cy < 1`` are relative to the image size (pixel (0, 0) covering
-    [0, 1]^2); convert them to pixels with pixel centres at integers."""
-    if p[2] < 1 and p[3] < 1:
-        return [p[0] * w, p[1] * h, p[2] * w - 0.5, p[3] * h - 0.5] + list(p[4:])
-    return list(p)
-
-
-_DSO_MODELS = {"pinhole": 5, "radtan": 8, "fov": 5, "equidistant": 8, "kannalabrandt": 8}
-
-
-def _is_dso_camera_txt(lines: list[str]) -> bool:
-    if not lines:
-        return False
-    first = lines[0].split()
-    if first and first[0].lower() in _DSO_MODELS:
-        return True
-    nums = _numbers(lines[0])
-    if nums is None or len(nums) not in (5, 8) or len(lines) < 2:
-        return False
-    size = _numbers(lines[1])
-    return size is not None and len(size) == 2
-
-
-def read_dso_camera_txt(path: str | Path) -> CameraSpec:
-    """DSO's ``camera.txt``.
-
-    Line 1: ``Pinhole fx fy cx cy 0`` | ``RadTan fx fy cx cy k1 k2 p1 p2 [k3]`` (k3: our extension) |
-    ``EquiDistant fx fy cx cy k1 k2 k3 k4`` | ``KannalaBrandt fx fy cx cy k1 k2 k3 k4`` |
-    ``FOV fx fy cx cy omega``, or without a name the legacy forms
-    (5 numbers: ATAN/FOV, a pinhole when omega is 0; 8 numbers: RadTan). Intrinsics relative to the image size when
-    ``cx < 1 and cy < 1`` (converted with the 0.5-pixel shift), else pixels.
-    Line 2: input ``width height``. Line 3: ``crop`` | ``full`` | ``none`` | ``fx fy cx cy 0`` (relative when
-    ``cx, cy < 1``, as DSO expects, else pixels). Line 4: output ``width height``. Lines 3-4 may be absent (then
-    ``none`` at the input size); line 4 absent means the input size.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: camera calibration file not found")
-    lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()]
-    lines = [ln for ln in lines if ln and not ln.startswith("#")]
-    if len(lines) < 2:
-        raise CalibrationError(f"{path}: a DSO camera.txt needs at least 2 lines (model and parameters; input width "
-                               f"height), got {len(lines)}")
-    parts = lines[0].split()
-    name = parts[0].lower() if parts and parts[0].lower() in _DSO_MODELS else None
-    vals = _numbers(" ".join(parts[1:] if name else parts))
-    if vals is None:
-        raise CalibrationError(f"{path}:1: expected a model name and numbers, got {lines[0][:80]!r}")
-    if name is None:
-        if len(vals) == 8:
-            name = "radtan"
-        elif len(vals) == 5:
-            name = "pinhole" if vals[4] == 0 else "fov"
-        else:
-            raise CalibrationError(f"{path}:1: expected 5 (fx fy cx cy omega) or 8 (fx fy cx cy k1 k2 p1 p2) "
-                                   f"numbers, got {len(vals)}")
-    elif name == "pinhole" and len(vals) == 4:
-        vals = vals + [0.0]
-    if name == "radtan" and len(vals) == 9 and parts[0].lower() == "radtan":
-        pass  # our extension: RadTan fx fy cx cy k1 k2 p1 p2 k3 (OpenCV's 5-coefficient model)
-    elif len(vals) != _DSO_MODELS[name]:
-        raise CalibrationError(f"{path}:1: {parts[0]} takes {_DSO_MODELS[name]} numbers, got {len(vals)}")
-    size = _numbers(lines[1])
-    if size is None or len(size) != 2 or not all(s > 0 and float(s).is_integer() for s in size):
-        raise CalibrationError(f"{path}:2: expected the input image size 'width height', got {lines[1][:80]!r}")
-    w, h = int(size[0]), int(size[1])
-    p = _abs_intrinsics(vals, w, h)
-    try:
-        if name == "pinhole":
-            if p[4] != 0:
-                raise CalibrationError(f"{path}:1: Pinhole takes a 0 as fifth number, got {p[4]}")
-            model: CameraModel = PinholeCamera(p[0], p[1], p[2], p[3], w, h)
-        elif name == "fov":
-            model = FOVCamera(p[0], p[1], p[2], p[3], w, h, omega=p[4])
-        elif name == "radtan":
-            model = RadTanCamera(p[0], p[1], p[2], p[3], w, h, *p[4:])
-        else:
-            model = EquidistantCamera(p[0], p[1], p[2], p[3], w, h, p[4], p[5], p[6], p[7])
-    except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    out_size = None
-    if len(lines) >= 4:
-        osz = _numbers(lines[3])
-        if osz is None or len(osz) != 2 or not all(s > 0 and float(s).is_integer() for s in osz):
-            raise CalibrationError(f"{path}:4: expected the output image size 'width height', got {lines[3][:80]!r}")
-        out_size = (int(osz[0]), int(osz[1]))
-    if len(lines) >= 3:
-        l3 = lines[2].strip()
-        if l3.lower() in RECTIFY_MODES:
-            output = OutputSpec(mode=l3.lower(), size=out_size)
-        else:
-            o = _numbers(l3)
-            if o is None or len(o) not in (4, 5):
-                raise CalibrationError(f"{path}:3: expected crop, full, none or 'fx fy cx cy 0', got {l3[:80]!r}")
-            if len(o) == 5 and o[4] != 0:
-                raise CalibrationError(f"{path}:3: the output camera is a pinhole; its fifth number must be 0, got "
-                                       f"{o[4]}")
-            relative = o[2] < 1 and o[3] < 1
-            output = OutputSpec(mode="explicit", size=out_size, intrinsics=tuple(o[:4]), relative=relative)
-    else:
-        output = OutputSpec(mode="none", size=out_size)
-    return CameraSpec(model, output, str(path))
-
-
-def read_plain_intrinsics(path: str | Path, image_size: tuple[int, int] | None) -> CameraSpec:
-    """A text file of ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` (whitespace or commas, any line breaks, ``#`` comments).
-
-    The file holds no image size, so ``image_size`` ``(width, height)`` (from the images) is required. Distorted
-    models are rectified with ``crop``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: calibration file not found")
-    text = " ".join(ln.split("#")[0] for ln in path.read_text(encoding="utf-8", errors="replace").splitlines())
-    vals = _numbers(text)
-    if vals is None:
-        raise CalibrationError(f"{path}: expected numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {text.strip()[:80]!r}")
-    if len(vals) not in (4, 8, 9):
-        raise CalibrationError(f"{path}: expected 4 (fx fy cx cy), 8 (+ k1 k2 p1 p2) or 9 (+ k3) numbers, got "
-                               f"{len(vals)}")
-    if image_size is None:
-        raise CalibrationError(f"{path}: a plain intrinsics file holds no image size; it is needed from the images")
-    w, h = image_size
-    p = _abs_intrinsics(vals, w, h)
-    try:
-        if len(p) == 4:
-            model: CameraModel = PinholeCamera(p[0], p[1], p[2], p[3], w, h)
-        else:
-            model = RadTanCamera(p[0], p[1], p[2], p[3], w, h, *p[4:])
-    except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    return CameraSpec(model, OutputSpec(mode="crop" if model.has_distortion else "none"), str(path))
-
-
-def read_kitti_calib(path: str | Path, image_size: tuple[int, int] | None, camera: int = 0) -> tuple[CameraSpec,
-                                                                                                     np.ndarray]:
-    """KITTI odometry ``calib.txt``: the ``P<camera>:`` line, a row-major 3x4 projection of rectified images.
-
-    Returns the pinhole spec and the 3x4 projection matrix (its last column holds the stereo baseline term)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: KITTI calib.txt not found")
-    key = f"P{camera}"
-    for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
-        if line.strip().startswith(key + ":") or line.strip().startswith(key + " "):
-            vals = _numbers(line.split(":", 1)[1] if ":" in line else line.split(None, 1)[1])
-            if vals is None or len(vals) != 12:
-                raise CalibrationError(f"{path}:{n}: {key} needs 12 numbers (3x4 projection), got {line[:80]!r}")
-            P = np.array(vals, dtype=np.float64).reshape(3, 4)
-            break
-    else:
-        raise CalibrationError(f"{path}: no '{key}:' line (KITTI projection matrix of camera {camera})")
-    if image_size is None:
-        raise CalibrationError(f"{path}: KITTI calib.txt holds no image size; it is needed from the images")
-    if P[2, 2] == 0 or P[0, 1] != 0 or P[1, 0] != 0:
-        raise CalibrationError(f"{path}:{n}: {key} is not a rectified pinhole projection: {P.tolist()}")
-    try:
-        model = PinholeCamera(P[0, 0] / P[2, 2], P[1, 1] / P[2, 2], P[0, 2] / P[2, 2], P[1, 2] / P[2, 2],
-                              *image_size)
-    except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    return CameraSpec(model, OutputSpec(mode="none"), str(path)), P
-
-
-class _OpenCVYamlLoader(yaml.SafeLoader):
-    """PyYAML loader that reads OpenCV FileStorage YAML (``%YAML:1.0`` header, ``!!opencv-matrix`` tags)."""
-
-
-def _opencv_matrix(loader, node):
-    m = loader.construct_mapping(node, deep=True)
-    return np.asarray(m["data"], dtype=np.float64).reshape(int(m["rows"]), int(m["cols"]))
-
-
-_OpenCVYamlLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", _opencv_matrix)
-
-
-def _load_opencv_yaml(path: Path) -> dict:
-    text = path.read_text(encoding="utf-8", errors="replace")
-    text = re.sub(r"^%YAML[: ]\s*1\.\d+\s*$", "", text, count=1, flags=re.MULTILINE)
-    try:
-        data = yaml.load(text, Loader=_OpenCVYamlLoader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise CalibrationError(f"{path}: expected a YAML mapping at the top level")
-    return data
-
-
-def _matrix4(value, path: Path, key: str) -> np.ndarray:
-    if isinstance(value, dict) and "data" in value:
-        value = value["data"]
-    try:
-        T = np.asarray(value, dtype=np.float64).reshape(4, 4)
-    except (ValueError, TypeError):
-        raise CalibrationError(f"{path}: {key} must be a 4x4 matrix (16 numbers)") from None
-    if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise CalibrationError(f"{path}: {key} is not a rigid transform (last row must be 0 0 0 1)")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise CalibrationError(f"{path}: the rotation part of {key} is not a rotation")
-    return T
-
-
-def read_euroc_sensor_yaml(path: str | Path) -> tuple[CameraSpec, np.ndarray]:
-    """EuRoC / Kalibr ``sensor.yaml`` of a camera: ``intrinsics [fu fv cu cv]``, ``distortion_model``
-    (``radial-tangential`` / ``radtan``, ``equidistant``, ``fov``, ``none``), ``distortion_coefficients``,
-    ``resolution [w h]``, ``T_BS`` (camera-to-body, 4x4). Returns the spec (rectified with ``crop``) and ``T_BS``
-    (identity when absent). The ``%YAML:1.0`` header PyYAML rejects is removed before parsing."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: sensor.yaml not found")
-    d = _load_opencv_yaml(path)
-    for key in ("intrinsics", "resolution"):
-        if key not in d:
-            raise CalibrationError(f"{path}: missing key {key!r} (a EuRoC camera sensor.yaml has intrinsics, "
-                                   "distortion_model, distortion_coefficients, resolution, T_BS)")
-    cam_model = str(d.get("camera_model", "pinhole")).lower()
-    if cam_model != "pinhole":
-        raise CalibrationError(f"{path}: camera_model {cam_model!r} is not supported (only pinhole with a "
-                               "distortion model)")
-    try:
-        k = [float(v) for v in d["intrinsics"]]
-        res = [int(v) for v in d["resolution"]]
-        coeffs = [float(v) for v in d.get("distortion_coefficients", []) or []]
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{path}: intrinsics, resolution and distortion_coefficients must be lists of "
-                               "numbers") from None
-    if len(k) != 4 or len(res) != 2:
-        raise CalibrationError(f"{path}: intrinsics needs 4 numbers and resolution 2, got {len(k)} and {len(res)}")
-    dm = str(d.get("distortion_model", "none")).lower().replace("_", "-")
-    w, h = res
-    try:
-        if dm in ("radial-tangential", "radtan", "plumb-bob"):
-            if len(coeffs) not in (4, 5):
-                raise CalibrationError(f"{path}: radial-tangential needs 4 or 5 coefficients, got {len(coeffs)}")
-            model: CameraModel = RadTanCamera(*k, w, h, *coeffs)
-        elif dm in ("equidistant", "fisheye", "kannala-brandt"):
-            if len(coeffs) != 4:
-                raise CalibrationError(f"{path}: equidistant needs 4 coefficients, got {len(coeffs)}")
-            model = EquidistantCamera(*k, w, h, *coeffs)
-        elif dm == "fov":
-            if len(coeffs) != 1:
-                raise CalibrationError(f"{path}: fov needs 1 coefficient (omega), got {len(coeffs)}")
-            model = FOVCamera(*k, w, h, omega=coeffs[0])
-        elif dm in ("none", "pinhole", ""):
-            model = PinholeCamera(*k, w, h)
-        else:
-            raise CalibrationError(f"{path}: unknown distortion_model {dm!r} (expected radial-tangential, "
-                                   "equidistant, fov or none)")
-    except CalibrationError as exc:
-        msg = str(exc)
-        raise CalibrationError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
-    T_BS = _matrix4(d["T_BS"], path, "T_BS") if "T_BS" in d else np.eye(4)
-    return CameraSpec(model, OutputSpec(mode="crop" if model.has_distortion else "none"), str(path)), T_BS
-
-
-def read_replica_cam_params(path: str | Path) -> tuple[CameraSpec, float]:
-    """Replica ``cam_params.json``: ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}`` (``scale`` or
-    ``png_depth_scale``: depth PNG units per metre). Returns the pinhole spec and the depth scale."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: cam_params.json not found")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not valid JSON: {exc}") from None
-    cam = data.get("camera", data) if isinstance(data, dict) else None
-    if not isinstance(cam, dict):
-        raise CalibrationError(f"{path}: expected {{'camera': {{w, h, fx, fy, cx, cy}}}}")
-    missing = [k for k in ("w", "h", "fx", "fy", "cx", "cy") if k not in cam]
-    if missing:
-        raise CalibrationError(f"{path}: missing {missing} in the camera entry")
-    try:
-        model = PinholeCamera(float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]),
-                              int(cam["w"]), int(cam["h"]))
-        scale = float(cam.get("scale", cam.get("png_depth_scale", REPLICA_NICE_SLAM["scale"])))
-    except (TypeError, ValueError, CalibrationError) as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    return CameraSpec(model, OutputSpec(mode="none"), str(path)), scale
-
-
-def read_camera_file(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraSpec:
-    """Read any supported calibration file, recognised by its content: DSO ``camera.txt``, EuRoC ``sensor.yaml``,
-    KITTI ``calib.txt`` (``P0:``), Replica ``cam_params.json``, or a plain ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` file.
-    ``image_size`` ``(width, height)`` is needed by formats that hold no size (KITTI, plain)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"{path}: calibration file not found")
-    if path.suffix.lower() == ".json":
-        return read_replica_cam_params(path)[0]
-    text = path.read_text(encoding="utf-8", errors="replace")
-    if path.suffix.lower() in (".yaml", ".yml") or text.lstrip().startswith("%YAML") or re.search(
-            r"^\s*intrinsics\s*:", text, flags=re.MULTILINE):
-        return read_euroc_sensor_yaml(path)[0]
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
-    if not lines:
-        raise CalibrationError(f"{path}: empty calibration file")
-    if re.match(r"^P\d\s*:", lines[0]):
-        return read_kitti_calib(path, image_size, 0)[0]
-    if _is_dso_camera_txt(lines):
-        return read_dso_camera_txt(path)
-    return read_plain_intrinsics(path, image_size)
-
-
-def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None, *, rectify: str | None = None,
-                     size: tuple[int, int] | None = None, pcalib: str | Path | None = None,
-                     vignette: str | Path | None = None) -> Calibration:
-    """Read a calibration file (see :func:`read_camera_file`) and optional photometric files into a
-    :class:`Calibration`. ``rectify`` / ``size`` override the file's output mode and size."""
-    spec = read_camera_file(path, image_size)
-    photo = PhotometricCalibration.from_files(pcalib, vignette, spec.model.size) if (pcalib or vignette) else None
-    return Calibration.from_spec(spec, rectify=rectify, size=size, photometric=photo)

@@ -13,11 +13,14 @@ import cv2
 import numpy as np
 import pytest
 
-from mgso.camera import (Calibration, CalibrationError, CameraSpec, EquidistantCamera, FOVCamera, OutputSpec,
-                         PhotometricCalibration, PinholeCamera, RadTanCamera, Undistorter, crop_output_camera,
-                         full_output_camera, load_calibration, make_output_camera, read_camera_file,
-                         read_dso_camera_txt, read_euroc_sensor_yaml, read_inverse_response, read_kitti_calib,
-                         read_plain_intrinsics, read_replica_cam_params, read_vignette, tum_rgbd_default)
+from mgso.camera import (KEEP_BORDER_PX, Calibration, CalibrationError, CameraSpec, EquidistantCamera, FOVCamera,
+                         OutputSpec, PhotometricCalibration, PinholeCamera, RadTanCamera, Undistorter,
+                         crop_output_camera, full_output_camera, keep_output_camera, make_output_camera,
+                         read_inverse_response, read_vignette)
+# calibration files are read in mgso.io (each dataset's format beside its reader)
+from mgso.io import (TUM_RGBD_FREIBURG, load_calibration, read_camera_file, read_dso_camera_txt,
+                     read_euroc_sensor_yaml, read_kitti_calib, read_plain_intrinsics, read_replica_cam_params,
+                     tum_rgbd_default)
 
 W, H = 120, 90
 MODELS = {
@@ -194,6 +197,108 @@ def test_full_refuses_a_view_beyond_90_degrees():
         full_output_camera(wide, W, H)
 
 
+def kept_fraction(cam, out):
+    """Share of the input pixels whose ray lands inside the output image (what a rectification keeps)."""
+    vv, uu = np.mgrid[0:cam.height, 0:cam.width]
+    rays, ok = cam.unproject(np.stack([uu.ravel(), vv.ravel()], 1).astype(np.float64))
+    uv, ok2 = out.project(rays)
+    inside = ok & ok2 & (uv[:, 0] >= -0.5) & (uv[:, 0] <= out.width - 0.5) & (uv[:, 1] >= -0.5) & (
+        uv[:, 1] <= out.height - 0.5)
+    return float(inside.mean())
+
+
+def border_distance(h, w):
+    yy, xx = np.mgrid[0:h, 0:w]
+    return np.minimum(np.minimum(xx, w - 1 - xx), np.minimum(yy, h - 1 - yy))
+
+
+def test_fr1_default_keeps_the_field_of_view():
+    spec = tum_rgbd_default(1)
+    cam = spec.model
+    keep = Calibration.from_spec(spec)
+    assert keep.output_mode == "keep"
+    out = keep.output
+    # DSO's crop search zooms fr1 1.37x horizontally (711.2 for 517.3); the default stays within 5 % of the input
+    assert out.fx < 1.05 * cam.fx and out.fy < 1.05 * cam.fy
+    assert (round(out.fx, 1), round(out.fy, 1)) == (541.8, 536.6)
+    assert kept_fraction(cam, out) > 0.97
+    # the pixels without a source only lie in the outer KEEP_BORDER_PX rows and columns, and there are some
+    valid = keep.undistorter.valid_mask
+    d = border_distance(*valid.shape)
+    assert valid[d >= KEEP_BORDER_PX].all() and not valid.all()
+    assert keep.valid_mask is valid and keep.undistorter.valid_fraction > 0.998
+
+
+def test_rectify_crop_still_gives_dsos_crop_camera():
+    """Negative control: asked for, crop is today's (DSO's) camera: all pixels valid, most of the view gone."""
+    crop = Calibration.from_spec(tum_rgbd_default(1), rectify="crop")
+    out = crop.output
+    assert crop.output_mode == "crop"
+    np.testing.assert_allclose([out.fx, out.fy, out.cx, out.cy], [711.215, 533.334, 320.858, 252.900], atol=5e-3)
+    assert crop.valid_mask is None and crop.undistorter.valid_mask.all()
+    assert kept_fraction(crop.input, out) < 0.75
+
+
+@pytest.mark.parametrize("name", ["radtan", "fov", "fr1", "fr2"])
+def test_keep_sees_at_least_what_crop_sees(name):
+    cam = MODELS[name] if name in MODELS else tum_rgbd_default(int(name[2])).model
+    keep = keep_output_camera(cam, cam.width, cam.height)
+    crop = crop_output_camera(cam, cam.width, cam.height)
+    # crop may keep a little more of one axis by giving up much of the other (fr1: fy 533.3 vs 536.6, fx 711 vs 542)
+    assert keep.fx <= crop.fx * 1.01 and keep.fy <= crop.fy * 1.01
+    valid = Undistorter(cam, keep).valid_mask
+    assert valid[border_distance(*valid.shape) >= KEEP_BORDER_PX].all()
+    assert kept_fraction(cam, keep) >= kept_fraction(cam, crop)
+
+
+def test_keep_falls_back_to_crop_beyond_90_degrees():
+    wide = EquidistantCamera(25.0, 25.0, 59.5, 44.5, W, H)  # full is impossible for it (tested above)
+    cal = Calibration.create(wide, "keep")
+    assert cal.output_mode == "crop" and cal.output == crop_output_camera(wide, W, H)
+
+
+@pytest.mark.parametrize("name, mode", [("radtan", "full"), ("fov", "full"), ("equidistant", "wide"),
+                                        ("fr1", "keep"), ("fr1", "none")])
+def test_valid_mask_marks_exactly_the_pixels_without_a_source(name, mode):
+    cam = MODELS[name] if name in MODELS else tum_rgbd_default(1).model.resized(160, 120)
+    wide = PinholeCamera(30.0, 31.0, 59.5, 44.5, W, H)  # sees beyond the fisheye's corners
+    und = Undistorter(cam, wide if mode == "wide" else make_output_camera(cam, mode))
+    out, mask = und.output, und.valid_mask
+    assert not mask.all()
+    # slow: one pixel at a time through the camera model
+    slow = np.zeros_like(mask)
+    for v in range(out.height):
+        for u in range(out.width):
+            xn = np.array([[(u - out.cx) / out.fx, (v - out.cy) / out.fy]])
+            uv, ok = cam.pixel_from_normalized(xn)
+            x, y = uv[0]
+            slow[v, u] = bool(ok[0]) and 0 <= x <= cam.width - 1 and 0 <= y <= cam.height - 1
+    np.testing.assert_array_equal(mask, slow)
+    # OpenCV's own tables agree away from the input's edge (float32 tables: a few 1e-3 px)
+    inside = (und.map_x > 2e-3) & (und.map_x < cam.width - 1 - 2e-3) & (und.map_y > 2e-3) & (
+        und.map_y < cam.height - 1 - 2e-3)
+    outside = (und.map_x < -2e-3) | (und.map_x > cam.width - 1 + 2e-3) | (und.map_y < -2e-3) | (
+        und.map_y > cam.height - 1 + 2e-3)
+    assert mask[inside].all() and not mask[outside].any()
+
+
+def test_pixels_without_a_source_hold_the_nearest_input_pixel_not_black(rng):
+    cam = MODELS["radtan"]
+    und = Undistorter(cam, full_output_camera(cam, W, H))
+    img = rng.uniform(50, 200, (H, W)).astype(np.float32)
+    out = und.apply(img)
+    bad = ~und.valid_mask
+    assert bad.any() and out[bad].min() >= 50.0  # edge replicate, never 0
+    # the source clamped onto the input's edge, sampled bilinearly
+    clamped = cv2.remap(img, np.clip(und.map_x, 0, W - 1), np.clip(und.map_y, 0, H - 1), cv2.INTER_LINEAR)
+    far = (und.map_x[bad] < -1) | (und.map_x[bad] > W) | (und.map_y[bad] < -1) | (und.map_y[bad] > H)
+    assert far.sum() > 100
+    np.testing.assert_allclose(out[bad][far], clamped[bad][far], atol=1e-3)
+    black = und.apply(img, fill_edge=False)
+    assert black[bad][far].max() == 0.0
+    assert und.apply_nearest(img)[bad].max() == 0.0  # depth and labels: 0 = no value
+
+
 def test_pinhole_passthrough_is_bit_exact(rng):
     cam = PinholeCamera(80.0, 82.0, 59.3, 44.6, W, H)
     cal = Calibration.create(cam, "crop")
@@ -326,7 +431,7 @@ def test_euroc_sensor_yaml_with_yaml_1_0_header(tmp_path):
     m = spec.model
     assert isinstance(m, RadTanCamera) and m.size == (752, 480)
     assert (m.fx, m.fy, m.cx, m.cy, m.k1, m.p2) == (458.654, 457.296, 367.215, 248.375, -0.28340811, 1.76187114e-05)
-    assert T_BS[0, 3] == pytest.approx(-0.0216401454975) and spec.output.mode == "crop"
+    assert T_BS[0, 3] == pytest.approx(-0.0216401454975) and spec.output.mode == "keep"
     assert read_camera_file(tmp_path / "sensor.yaml").model == m
     # OpenCV FileStorage style matrices are read too
     cv = EUROC_YAML.replace("T_BS:\n  cols", "T_BS: !!opencv-matrix\n  cols")
@@ -368,7 +473,7 @@ def test_plain_intrinsics(tmp_path):
         PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480)
     rt = read_plain_intrinsics(write(tmp_path, "b.txt", "# fx fy cx cy k1 k2 p1 p2 k3\n517.3, 516.5, 318.6, 255.3,"
                                                         " 0.2624, -0.9531, -0.0054, 0.0026, 1.1633\n"), (640, 480))
-    assert isinstance(rt.model, RadTanCamera) and rt.model.k3 == 1.1633 and rt.output.mode == "crop"
+    assert isinstance(rt.model, RadTanCamera) and rt.model.k3 == 1.1633 and rt.output.mode == "keep"
     assert isinstance(read_camera_file(tmp_path / "b.txt", (640, 480)).model, RadTanCamera)
     with pytest.raises(CalibrationError, match="c.txt: expected 4"):
         read_plain_intrinsics(write(tmp_path, "c.txt", "1 2 3 4 5\n"), (640, 480))
@@ -379,11 +484,11 @@ def test_plain_intrinsics(tmp_path):
 
 
 def test_tum_rgbd_defaults_by_name():
-    # values from the TUM RGB-D file-formats page (see mgso/camera.py)
+    # values from the TUM RGB-D file-formats page (see mgso/io/tum.py)
     fr2 = tum_rgbd_default("rgbd_dataset_freiburg2_desk").model
     assert (fr2.fx, fr2.fy, fr2.cx, fr2.cy) == (520.9, 521.0, 325.1, 249.7)
     assert tum_rgbd_default("fr3").model.has_distortion is False
-    assert tum_rgbd_default(1).output.mode == "crop"
+    assert tum_rgbd_default(1).output.mode == "keep"
     with pytest.raises(CalibrationError, match="no TUM RGB-D camera"):
         tum_rgbd_default("rgbd_dataset_freiburg4")
     with pytest.raises(CalibrationError, match="640x480"):

@@ -8,13 +8,15 @@ from typing import Union
 
 import numpy as np
 
-from ..camera import (Calibration, CameraSpec, PhotometricCalibration, RECTIFY_MODES, read_camera_file)
+from ..camera import Calibration, CameraSpec, PhotometricCalibration, RECTIFY_MODES
+from .calibration import read_camera_file
 from ..config import InputConfig
 from .errors import DatasetError, as_dataset_errors
 from .sequence import poses_at_times
 from .trajectory import Trajectory, read_trajectory
 
-__all__ = ["CalibArg", "make_calibration", "find_photometric", "resolve_camera_spec", "load_groundtruth",
+__all__ = ["CalibArg", "make_calibration", "check_image_size", "find_photometric", "resolve_camera_spec",
+           "load_groundtruth",
            "HOW_TO_CALIBRATE"]
 
 log = logging.getLogger(__name__)
@@ -50,10 +52,27 @@ def resolve_camera_spec(calib: CalibArg, image_size: tuple[int, int]) -> CameraS
         return read_camera_file(Path(calib).expanduser(), image_size)
 
 
+def check_image_size(spec: CameraSpec | Calibration, image_size: tuple[int, int] | None, images: str) -> None:
+    """The calibration must be of the images' size: a calibration of another size (``calib=`` a file of another
+    camera or resolution) is refused when the sequence is opened, with both sizes, not at the first frame (and not
+    shown as the image size by ``mgso info``)."""
+    if image_size is None:
+        return
+    model = spec.input if isinstance(spec, Calibration) else spec.model
+    source = spec.source or "the calibration"
+    if tuple(model.size) != tuple(image_size):
+        raise DatasetError(f"{source}: the calibration is for {model.width}x{model.height} images but {images} is "
+                           f"{image_size[0]}x{image_size[1]}; give the calibration of this camera at this "
+                           "resolution")
+
+
 def make_calibration(spec: CameraSpec | Calibration, config: InputConfig,
-                     photometric: PhotometricCalibration | None = None) -> Calibration:
+                     photometric: PhotometricCalibration | None = None, *, image_size: tuple[int, int] | None = None,
+                     images: str = "the first image") -> Calibration:
     """The calibration a sequence uses: the spec with ``input.rectify`` / ``input.width`` / ``input.height`` applied
-    and the photometric calibration attached. A ready :class:`Calibration` is used as it is."""
+    and the photometric calibration attached. A ready :class:`Calibration` is used as it is. ``image_size``: the
+    size of the recorded images (``images`` names them in the error), which the calibration must have."""
+    check_image_size(spec, image_size, images)
     if isinstance(spec, Calibration):
         return spec
     if config.rectify and config.rectify not in RECTIFY_MODES:

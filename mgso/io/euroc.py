@@ -9,11 +9,14 @@ as ``groundtruth=`` is taken as camera poses.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from ..camera import read_euroc_sensor_yaml
+from ..camera import (CalibrationError, CameraModel, CameraSpec, EquidistantCamera, FOVCamera, OutputSpec,
+                      PinholeCamera, RadTanCamera)
 from ..config import InputConfig
 from ..geometry import make_pose, quat_wxyz_to_matrix
 from .common import CalibArg, find_photometric, load_groundtruth, make_calibration, resolve_camera_spec
@@ -22,9 +25,101 @@ from .images import check_increasing, read_image, read_table
 from .sequence import Sequence, poses_at_times
 from .trajectory import Trajectory
 
-__all__ = ["EurocSequence", "euroc_root", "read_euroc_groundtruth_csv"]
+__all__ = ["EurocSequence", "euroc_root", "read_euroc_groundtruth_csv", "read_euroc_sensor_yaml"]
 
 BODY_GROUNDTRUTH_NAMES = ("groundtruth_body_tum.txt", "groundtruth_body.txt")
+
+
+class _OpenCVYamlLoader(yaml.SafeLoader):
+    """PyYAML loader that reads OpenCV FileStorage YAML (``%YAML:1.0`` header, ``!!opencv-matrix`` tags)."""
+
+
+def _opencv_matrix(loader, node):
+    m = loader.construct_mapping(node, deep=True)
+    return np.asarray(m["data"], dtype=np.float64).reshape(int(m["rows"]), int(m["cols"]))
+
+
+_OpenCVYamlLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", _opencv_matrix)
+
+
+def _load_opencv_yaml(path: Path) -> dict:
+    text = path.read_text(encoding="utf-8", errors="replace")
+    text = re.sub(r"^%YAML[: ]\s*1\.\d+\s*$", "", text, count=1, flags=re.MULTILINE)
+    try:
+        data = yaml.load(text, Loader=_OpenCVYamlLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: expected a YAML mapping at the top level")
+    return data
+
+
+def _matrix4(value, path: Path, key: str) -> np.ndarray:
+    if isinstance(value, dict) and "data" in value:
+        value = value["data"]
+    try:
+        T = np.asarray(value, dtype=np.float64).reshape(4, 4)
+    except (ValueError, TypeError):
+        raise CalibrationError(f"{path}: {key} must be a 4x4 matrix (16 numbers)") from None
+    if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise CalibrationError(f"{path}: {key} is not a rigid transform (last row must be 0 0 0 1)")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise CalibrationError(f"{path}: the rotation part of {key} is not a rotation")
+    return T
+
+
+def read_euroc_sensor_yaml(path: str | Path) -> tuple[CameraSpec, np.ndarray]:
+    """EuRoC / Kalibr ``sensor.yaml`` of a camera: ``intrinsics [fu fv cu cv]``, ``distortion_model``
+    (``radial-tangential`` / ``radtan``, ``equidistant``, ``fov``, ``none``), ``distortion_coefficients``,
+    ``resolution [w h]``, ``T_BS`` (camera-to-body, 4x4). Returns the spec (rectified with ``keep``) and ``T_BS``
+    (identity when absent). The ``%YAML:1.0`` header PyYAML rejects is removed before parsing."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: sensor.yaml not found")
+    d = _load_opencv_yaml(path)
+    for key in ("intrinsics", "resolution"):
+        if key not in d:
+            raise CalibrationError(f"{path}: missing key {key!r} (a EuRoC camera sensor.yaml has intrinsics, "
+                                   "distortion_model, distortion_coefficients, resolution, T_BS)")
+    cam_model = str(d.get("camera_model", "pinhole")).lower()
+    if cam_model != "pinhole":
+        raise CalibrationError(f"{path}: camera_model {cam_model!r} is not supported (only pinhole with a "
+                               "distortion model)")
+    try:
+        k = [float(v) for v in d["intrinsics"]]
+        res = [int(v) for v in d["resolution"]]
+        coeffs = [float(v) for v in d.get("distortion_coefficients", []) or []]
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: intrinsics, resolution and distortion_coefficients must be lists of "
+                               "numbers") from None
+    if len(k) != 4 or len(res) != 2:
+        raise CalibrationError(f"{path}: intrinsics needs 4 numbers and resolution 2, got {len(k)} and {len(res)}")
+    dm = str(d.get("distortion_model", "none")).lower().replace("_", "-")
+    w, h = res
+    try:
+        if dm in ("radial-tangential", "radtan", "plumb-bob"):
+            if len(coeffs) not in (4, 5):
+                raise CalibrationError(f"{path}: radial-tangential needs 4 or 5 coefficients, got {len(coeffs)}")
+            model: CameraModel = RadTanCamera(*k, w, h, *coeffs)
+        elif dm in ("equidistant", "fisheye", "kannala-brandt"):
+            if len(coeffs) != 4:
+                raise CalibrationError(f"{path}: equidistant needs 4 coefficients, got {len(coeffs)}")
+            model = EquidistantCamera(*k, w, h, *coeffs)
+        elif dm == "fov":
+            if len(coeffs) != 1:
+                raise CalibrationError(f"{path}: fov needs 1 coefficient (omega), got {len(coeffs)}")
+            model = FOVCamera(*k, w, h, omega=coeffs[0])
+        elif dm in ("none", "pinhole", ""):
+            model = PinholeCamera(*k, w, h)
+        else:
+            raise CalibrationError(f"{path}: unknown distortion_model {dm!r} (expected radial-tangential, "
+                                   "equidistant, fov or none)")
+    except CalibrationError as exc:
+        msg = str(exc)
+        raise CalibrationError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    T_BS = _matrix4(d["T_BS"], path, "T_BS") if "T_BS" in d else np.eye(4)
+    return CameraSpec(model, OutputSpec(mode="keep" if model.has_distortion else "none"), str(path)), T_BS
 
 
 def euroc_root(path: Path) -> Path | None:
@@ -101,7 +196,8 @@ class EurocSequence(Sequence):
         elif calib is None:
             raise DatasetError(f"{yaml_path}: not found; a EuRoC camera needs its sensor.yaml (or calib=PATH)")
         spec = resolve_camera_spec(calib, size) if calib is not None else yaml_spec
-        calibration = make_calibration(spec, config, find_photometric(root, size))
+        calibration = make_calibration(spec, config, find_photometric(root, size), image_size=size,
+                                       images=str(self._files[0]))
 
         gt, gt_src = None, ""
         gt_csv = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"

@@ -86,7 +86,8 @@ class ImageFolderSequence(Sequence):
         first = read_image(self._files[0])
         size = (first.shape[1], first.shape[0])
         spec = _calibration_spec(calib, folder, size, str(folder))
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=str(self._files[0]))
         gt, gt_src = _groundtruth(groundtruth, folder, ts, config.gt_max_dt)
         super().__init__(folder, calibration=calibration, timestamps=ts, config=config, exposures_ms=exposures,
                          groundtruth=gt, groundtruth_source=gt_src, color=first.ndim == 3,
@@ -135,7 +136,8 @@ class VideoSequence(Sequence):
         first = self._read(0)
         size = (first.shape[1], first.shape[0])
         spec = _calibration_spec(calib, path.parent, size, str(path))
-        calibration = make_calibration(spec, config, find_photometric(path.parent, size))
+        calibration = make_calibration(spec, config, find_photometric(path.parent, size), image_size=size,
+                                       images=f"the video {path}")
         gt, gt_src = _groundtruth(groundtruth, path.parent, ts, config.gt_max_dt) if groundtruth is not None \
             else (None, "")
         super().__init__(path, calibration=calibration, timestamps=ts, config=config, groundtruth=gt,

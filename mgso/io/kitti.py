@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import read_kitti_calib
+from ..camera import CalibrationError, CameraSpec, OutputSpec, PinholeCamera
 from ..config import InputConfig
+from .calibration import numbers
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
@@ -23,11 +24,41 @@ from .images import check_increasing, list_images, parse_float, read_image, read
 from .sequence import Sequence
 from .trajectory import read_kitti
 
-__all__ = ["KittiSequence", "kitti_camera_dir"]
+__all__ = ["KittiSequence", "kitti_camera_dir", "read_kitti_calib"]
 
 log = logging.getLogger(__name__)
 
 KITTI_FPS = 10.0  # KITTI odometry frame rate
+
+
+def read_kitti_calib(path: str | Path, image_size: tuple[int, int] | None, camera: int = 0) -> tuple[CameraSpec,
+                                                                                                     np.ndarray]:
+    """KITTI odometry ``calib.txt``: the ``P<camera>:`` line, a row-major 3x4 projection of rectified images.
+
+    Returns the pinhole spec and the 3x4 projection matrix (its last column holds the stereo baseline term)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: KITTI calib.txt not found")
+    key = f"P{camera}"
+    for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
+        if line.strip().startswith(key + ":") or line.strip().startswith(key + " "):
+            vals = numbers(line.split(":", 1)[1] if ":" in line else line.split(None, 1)[1])
+            if vals is None or len(vals) != 12:
+                raise CalibrationError(f"{path}:{n}: {key} needs 12 numbers (3x4 projection), got {line[:80]!r}")
+            P = np.array(vals, dtype=np.float64).reshape(3, 4)
+            break
+    else:
+        raise CalibrationError(f"{path}: no '{key}:' line (KITTI projection matrix of camera {camera})")
+    if image_size is None:
+        raise CalibrationError(f"{path}: KITTI calib.txt holds no image size; it is needed from the images")
+    if P[2, 2] == 0 or P[0, 1] != 0 or P[1, 0] != 0:
+        raise CalibrationError(f"{path}:{n}: {key} is not a rectified pinhole projection: {P.tolist()}")
+    try:
+        model = PinholeCamera(P[0, 0] / P[2, 2], P[1, 1] / P[2, 2], P[0, 2] / P[2, 2], P[1, 2] / P[2, 2],
+                              *image_size)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
+    return CameraSpec(model, OutputSpec(mode="none"), str(path)), P
 
 
 def kitti_camera_dir(folder: Path, camera: str) -> tuple[Path, int]:
@@ -81,7 +112,8 @@ class KittiSequence(Sequence):
                 spec, P = read_kitti_calib(folder / "calib.txt", size, cam_n)
         else:
             raise DatasetError(f"{folder}: no calib.txt for this KITTI sequence; {HOW_TO_CALIBRATE}")
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=str(self._files[0]))
 
         # Ground truth is of camera 0; camera N sits at -P_N[:, 3] / fx along x in the rectified frame.
         cam0_from_camN = np.eye(4)

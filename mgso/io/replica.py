@@ -9,11 +9,12 @@ cy = 339.5; configs/Replica/replica.yaml of github cvg/nice-slam). No timestamps
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
-from ..camera import REPLICA_NICE_SLAM, CameraSpec, OutputSpec, PinholeCamera, read_replica_cam_params
+from ..camera import CalibrationError, CameraSpec, OutputSpec, PinholeCamera
 from ..config import InputConfig
 from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
                      resolve_camera_spec)
@@ -21,7 +22,36 @@ from .errors import DatasetError, as_dataset_errors
 from .images import list_images, read_image
 from .sequence import Sequence
 
-__all__ = ["ReplicaSequence", "read_replica_traj"]
+__all__ = ["ReplicaSequence", "read_replica_traj", "read_replica_cam_params", "REPLICA_NICE_SLAM"]
+
+# NICE-SLAM's Replica renders: configs/Replica/replica.yaml of github cvg/nice-slam (H 680, W 1200, fx = fy = 600,
+# cx 599.5, cy 339.5, png_depth_scale 6553.5); the same numbers as the release's cam_params.json.
+REPLICA_NICE_SLAM = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
+
+
+def read_replica_cam_params(path: str | Path) -> tuple[CameraSpec, float]:
+    """Replica ``cam_params.json``: ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}`` (``scale`` or
+    ``png_depth_scale``: depth PNG units per metre). Returns the pinhole spec and the depth scale."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: cam_params.json not found")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON: {exc}") from None
+    cam = data.get("camera", data) if isinstance(data, dict) else None
+    if not isinstance(cam, dict):
+        raise CalibrationError(f"{path}: expected {{'camera': {{w, h, fx, fy, cx, cy}}}}")
+    missing = [k for k in ("w", "h", "fx", "fy", "cx", "cy") if k not in cam]
+    if missing:
+        raise CalibrationError(f"{path}: missing {missing} in the camera entry")
+    try:
+        model = PinholeCamera(float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]),
+                              int(cam["w"]), int(cam["h"]))
+        scale = float(cam.get("scale", cam.get("png_depth_scale", REPLICA_NICE_SLAM["scale"])))
+    except (TypeError, ValueError, CalibrationError) as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
+    return CameraSpec(model, OutputSpec(mode="none"), str(path)), scale
 
 
 def read_replica_traj(path: str | Path) -> np.ndarray:
@@ -85,7 +115,8 @@ class ReplicaSequence(Sequence):
                                    f"and there is no cam_params.json; {HOW_TO_CALIBRATE}")
             spec = CameraSpec(PinholeCamera(d["fx"], d["fy"], d["cx"], d["cy"], d["w"], d["h"]),
                               OutputSpec(mode="none"), "NICE-SLAM Replica default intrinsics")
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=str(self._files[0]))
 
         ts = np.arange(n, dtype=np.float64) / config.fps
         gt, gt_src = None, ""

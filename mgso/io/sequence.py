@@ -41,13 +41,17 @@ class Frame:
       image replicated). Computed on first access and kept (the mapper needs it for keyframes only).
     - ``exposure_ms``: exposure time in milliseconds when the dataset records it, else ``None``.
     - ``source``: the file (or video position) the frame came from, for messages.
+    - ``valid``: bool ``[H, W]`` (read-only, the same array for every frame of a sequence), False at the pixels that
+      have no source in the recorded image (the border undistortion leaves; they hold the nearest recorded pixel, not
+      black), or ``None`` when every pixel has one. Consumers that compare or train on pixels should leave the False
+      ones out (:attr:`valid_weights`).
     """
 
-    __slots__ = ("index", "timestamp", "gray", "exposure_ms", "source", "_rgb", "_rgb_fn")
+    __slots__ = ("index", "timestamp", "gray", "exposure_ms", "source", "valid", "_rgb", "_rgb_fn")
 
     def __init__(self, index: int, timestamp: float, gray: np.ndarray, exposure_ms: float | None = None,
                  source: str = "", rgb: np.ndarray | None = None,
-                 rgb_fn: Callable[[], np.ndarray] | None = None):
+                 rgb_fn: Callable[[], np.ndarray] | None = None, valid: np.ndarray | None = None):
         self.index = int(index)
         self.timestamp = float(timestamp)
         self.gray = gray
@@ -57,6 +61,17 @@ class Frame:
         self._rgb_fn = rgb_fn
         if rgb is None and rgb_fn is None:
             raise ValueError("Frame needs rgb or a function computing it")
+        if valid is not None:
+            valid = np.asarray(valid)
+            if valid.dtype != np.bool_ or valid.shape != gray.shape[:2]:
+                raise ValueError(f"Frame.valid must be a bool array of the image's shape {gray.shape[:2]}, got "
+                                 f"{valid.dtype} {valid.shape}")
+        self.valid = valid
+
+    @property
+    def valid_weights(self) -> np.ndarray | None:
+        """``valid`` as float32 loss weights (1 = a pixel with a source, 0 = none), or ``None`` when all are valid."""
+        return None if self.valid is None else self.valid.astype(np.float32)
 
     @property
     def rgb(self) -> np.ndarray:
@@ -234,7 +249,7 @@ class Sequence(abc.ABC):
         calib = self.calibration
         exp = None if self._exp_all is None else float(self._exp_all[k])
         return Frame(i if i >= 0 else i + len(self), float(self._ts_all[k]), gray, exp, self._source(k),
-                     rgb_fn=lambda: calib.rgb_from_raw(raw))
+                     rgb_fn=lambda: calib.rgb_from_raw(raw), valid=calib.valid_mask)
 
     __getitem__ = load
 
@@ -349,6 +364,7 @@ class Sequence(abc.ABC):
             "intrinsics": {"fx": out.fx, "fy": out.fy, "cx": out.cx, "cy": out.cy},
             "rectify": cal.output_mode,
             "undistortion": cal.undistorter.kind,
+            "valid_fraction": cal.undistorter.valid_fraction,
             "calibration_source": cal.source or None,
             "photometric": {**cal.photometric.describe(), "exposure": self._exp_all is not None,
                             "applied": bool(c.photometric and not cal.photometric.is_identity)},

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import SEVEN_SCENES_COLOR, CameraSpec, OutputSpec, PinholeCamera
+from ..camera import CameraSpec, OutputSpec, PinholeCamera
 from ..config import InputConfig
 from ..geometry import orthonormalize
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
@@ -25,11 +25,15 @@ from .errors import DatasetError
 from .images import list_images, read_image
 from .sequence import Sequence
 
-__all__ = ["SevenScenesSequence", "read_7scenes_pose", "SEVEN_SCENES_FPS"]
+__all__ = ["SevenScenesSequence", "read_7scenes_pose", "SEVEN_SCENES_FPS", "SEVEN_SCENES_COLOR"]
 
 log = logging.getLogger(__name__)
 
 SEVEN_SCENES_FPS = 30.0  # Kinect v1 frame rate
+# Microsoft 7-Scenes colour camera: not calibrated by the dataset; the customary choice (fx = fy = 525, principal
+# point at the image centre, no distortion), see ../shared/data/README.md. The folder's camera-intrinsics.txt
+# (585, 585, 320, 240) is the depth camera's.
+SEVEN_SCENES_COLOR = (525.0, 525.0, 320.0, 240.0)
 _COLOR = re.compile(r"frame-(\d+)\.color\.(png|jpg|jpeg)", re.IGNORECASE)
 
 
@@ -89,7 +93,8 @@ class SevenScenesSequence(Sequence):
                                    f"{size[0]}x{size[1]}; the default intrinsics do not apply: {HOW_TO_CALIBRATE}")
             spec = CameraSpec(PinholeCamera(*SEVEN_SCENES_COLOR, 640, 480), OutputSpec(mode="none"),
                               "7-Scenes customary colour intrinsics (525, 525, 320, 240)")
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=str(self._files[0]))
 
         gt, gt_src = None, ""
         if groundtruth is not None:

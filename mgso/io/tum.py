@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import tum_rgbd_default
+from ..camera import CalibrationError, CameraSpec, OutputSpec, RadTanCamera
 from ..geometry import make_pose, quat_xyzw_to_matrix
 from ..config import InputConfig
 from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
@@ -31,11 +31,41 @@ from .images import IMAGE_EXTENSIONS, check_increasing, decode_image, natural_ke
 from .sequence import Sequence, poses_at_times
 from .trajectory import Trajectory, matching_time_indices
 
-__all__ = ["TumRgbdSequence", "TumMonoSequence", "TUM_DEPTH_FACTOR", "read_groundtruth_sync"]
+__all__ = ["TumRgbdSequence", "TumMonoSequence", "TUM_DEPTH_FACTOR", "read_groundtruth_sync", "TUM_RGBD_FREIBURG",
+           "tum_rgbd_default"]
 
 log = logging.getLogger(__name__)
 
 TUM_DEPTH_FACTOR = 5000.0  # depth PNG units per metre (TUM RGB-D file formats page)
+
+# TUM RGB-D colour cameras: fx fy cx cy and OpenCV distortion d0..d4 = k1 k2 p1 p2 k3, from the table "Intrinsic
+# Camera Calibration of the Kinect" on https://vision.in.tum.de/data/datasets/rgbd-dataset/file_formats (reproduced
+# verbatim in many repositories' comments); freiburg3 lists no distortion.
+TUM_RGBD_FREIBURG = {
+    1: (517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    2: (520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    3: (535.4, 539.2, 320.1, 247.6, (0.0, 0.0, 0.0, 0.0, 0.0)),
+}
+
+
+def tum_rgbd_default(which: int | str, width: int = 640, height: int = 480) -> CameraSpec:
+    """The TUM RGB-D freiburg 1/2/3 colour calibration (``which``: 1, 2, 3, ``"fr2"``, ``"freiburg2"`` or a folder
+    name such as ``rgbd_dataset_freiburg2_xyz``), distorted models rectified with ``keep`` (docs/datasets.md: DSO's ``crop`` zooms freiburg1 1.37x)."""
+    n = which
+    if isinstance(which, str):
+        m = re.search(r"(?:freiburg|fr)([123])", which)
+        if not m:
+            raise CalibrationError(f"no TUM RGB-D camera named in {which!r} (expected freiburg1/2/3 or fr1/2/3)")
+        n = int(m.group(1))
+    if n not in TUM_RGBD_FREIBURG:
+        raise CalibrationError(f"TUM RGB-D camera must be 1, 2 or 3, got {which!r}")
+    fx, fy, cx, cy, d = TUM_RGBD_FREIBURG[n]
+    if (width, height) != (640, 480):
+        raise CalibrationError(f"the TUM RGB-D freiburg{n} calibration is for 640x480 images, these are "
+                               f"{width}x{height}")
+    model = RadTanCamera(fx, fy, cx, cy, width, height, d[0], d[1], d[2], d[3], d[4])
+    mode = "keep" if model.has_distortion else "none"
+    return CameraSpec(model, OutputSpec(mode=mode), f"TUM RGB-D freiburg{n} default calibration")
 
 
 def _read_listing(path: Path, what: str, folder: Path) -> tuple[np.ndarray, list[Path], list[int]]:
@@ -78,7 +108,8 @@ class TumRgbdSequence(Sequence):
                                    f"folder name {name!r} names no freiburg1/2/3 camera; {HOW_TO_CALIBRATE}")
             with as_dataset_errors():
                 spec = tum_rgbd_default(name, *size)
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=str(files[0]))
 
         gt, gt_src = None, ""
         gt_path = Path(groundtruth) if groundtruth is not None else folder / "groundtruth.txt"
@@ -202,7 +233,8 @@ class TumMonoSequence(Sequence):
         if calib is None and not cam.is_file():
             raise DatasetError(f"{folder}: a TUM monoVO folder needs camera.txt (DSO format); {HOW_TO_CALIBRATE}")
         spec = resolve_camera_spec(calib if calib is not None else cam, size)
-        calibration = make_calibration(spec, config, find_photometric(folder, size))
+        calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
+                                       images=self._source(0))
 
         gt, gt_src = None, ""
         if groundtruth is not None:

@@ -241,15 +241,16 @@ def test_detection_failures_list_what_was_looked_for(tmp_path):
         open_sequence(tmp_path, layout="bogus")
 
 
-@pytest.mark.parametrize("config, message", [
-    (InputConfig(start=9), r"input\.start=9 selects no frames \(the sequence has 5 frames\)"),
-    (InputConfig(stride=0), r"input\.stride >= 1"),
-    (InputConfig(rectify="cropped"), r"input\.rectify must be one of"),
-    (InputConfig(width=-3), r"input\.width and input\.height must be >= 0"),
+@pytest.mark.parametrize("settings, message", [
+    (dict(start=9), r"input\.start=9 selects no frames \(the sequence has 5 frames\)"),
+    (dict(stride=0), r"input\.stride (must be )?>= 1"),
+    (dict(rectify="cropped"), r"input\.rectify must be one of"),
+    (dict(width=-3), r"input\.width (and input\.height )?must be >= 0"),
 ])
-def test_bad_input_config(fakes, config, message):
-    with pytest.raises(DatasetError, match=message):
-        open_sequence(fakes.kitti(n=5), config=config)
+def test_bad_input_config(fakes, settings, message):
+    # the configuration may refuse a setting when it is built (ConfigError) or the reader when it opens
+    with pytest.raises((DatasetError, ValueError), match=message):
+        open_sequence(fakes.kitti(n=5), config=InputConfig(**settings))
 
 
 def test_prefetch_raises_reader_errors_in_order(fakes):
@@ -265,3 +266,27 @@ def test_prefetch_raises_reader_errors_in_order(fakes):
 
 def test_textured_helper_is_not_constant():
     assert textured(0).std() > 10
+
+
+def test_calibration_of_another_size_is_refused_when_opening(fakes, tmp_path):
+    """``mgso info VIDEO --calib FILE`` printed the calibration's size as the video's: the video (written with
+    OpenCV's VideoWriter, 40x30) and a camera.txt for 80x60 now fail at opening, naming both sizes."""
+    p = fakes.video(n=3)
+    other = tmp_path / "cam80.txt"
+    other.write_text("Pinhole 60 60 39.5 29.5 0\n80 60\nnone\n80 60\n")
+    with pytest.raises(DatasetError, match=r"cam80\.txt: the calibration is for 80x60 images but the video "
+                                           r".*clip\.avi is 40x30"):
+        open_sequence(p, calib=other)
+    # the same lens at the video's size opens, and describes the video's size (negative control)
+    same = tmp_path / "cam40.txt"
+    same.write_text(f"Pinhole 30 30 19.5 14.5 0\n{W} {H}\nnone\n{W} {H}\n")
+    info = open_sequence(p, calib=same).describe()
+    assert info["image_size_in"] == [W, H] and info["image_size_out"] == [W, H]
+    # a file without a size takes the video's
+    plain = tmp_path / "plain.txt"
+    plain.write_text("30 30 19.5 14.5\n")
+    assert open_sequence(p, calib=plain).describe()["image_size_in"] == [W, H]
+    # an image folder with a calibration of another size: the same one-line error, naming the first image
+    d = fakes.image_folder(n=2, calib=None)
+    with pytest.raises(DatasetError, match=r"cam80\.txt: the calibration is for 80x60 images but .*\.png is 40x30"):
+        open_sequence(d, calib=other)

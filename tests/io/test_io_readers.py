@@ -14,7 +14,7 @@ from mgso.io import (EurocSequence, ImageFolderSequence, KittiSequence, ReplicaS
 
 DESCRIBE_KEYS = {"layout", "name", "path", "frames", "frames_total", "image_size_in", "image_size_out", "intrinsics",
                  "camera_model", "distortion", "photometric", "groundtruth", "time_span", "fps", "rectify",
-                 "undistortion", "color", "depth", "calibration_source"}
+                 "undistortion", "color", "depth", "calibration_source", "valid_fraction"}
 
 
 def check_frame(seq, i, color_expected):
@@ -69,11 +69,39 @@ def test_tum_rgbd_camera_txt_takes_precedence(fakes):
     assert seq.calibration.undistorter.passthrough
 
 
-def test_tum_rgbd_freiburg1_is_undistorted(fakes):
+def test_tum_rgbd_freiburg1_is_undistorted_keeping_the_field_of_view(fakes):
     d = fakes.tum_rgbd(name="rgbd_dataset_freiburg1_fake", n=2, gt=False, depth=False, size=(640, 480))
     seq = open_sequence(d)
-    assert seq.calibration.input.k1 == pytest.approx(0.2624)
-    assert seq.calibration.undistorter.kind == "remap" and seq.calibration.output_mode == "crop"
+    cal = seq.calibration
+    assert cal.input.k1 == pytest.approx(0.2624)
+    assert cal.undistorter.kind == "remap" and cal.output_mode == "keep"
+    assert cal.output.fx < 1.05 * cal.input.fx  # not DSO's crop (711.2)
+    info = seq.describe()
+    assert info["rectify"] == "keep" and 0.998 < info["valid_fraction"] < 1.0
+    f = seq.load(1)
+    # the frame carries the io layer's mask: the pixels without a source, only in the outer 3 rows / columns
+    assert f.valid is cal.undistorter.valid_mask and f.valid.shape == f.gray.shape and not f.valid.all()
+    assert not f.valid.flags.writeable
+    yy, xx = np.nonzero(~f.valid)
+    assert np.minimum(np.minimum(xx, 639 - xx), np.minimum(yy, 479 - yy)).max() < 3
+    assert f.valid_weights.dtype == np.float32 and f.valid_weights.sum() == f.valid.sum()
+    # no black border: the pixels without a source hold the nearest recorded pixel
+    assert f.gray[~f.valid].min() > 0 and f.rgb[~f.valid].max() > 0
+
+
+def test_tum_rgbd_freiburg1_crop_on_request(fakes):
+    """Negative control: input.rectify=crop still gives DSO's crop camera, every pixel with a source."""
+    d = fakes.tum_rgbd(name="rgbd_dataset_freiburg1_fake", n=2, gt=False, depth=False, size=(640, 480))
+    seq = open_sequence(d, config=InputConfig(rectify="crop"))
+    out = seq.calibration.output
+    assert seq.calibration.output_mode == "crop"
+    assert (round(out.fx, 1), round(out.fy, 1)) == (711.2, 533.3)
+    assert seq.load(0).valid is None
+
+
+def test_frames_without_distortion_carry_no_mask(fakes):
+    seq = open_sequence(fakes.kitti(n=2))
+    assert seq.calibration.undistorter.kind == "passthrough" and seq.load(0).valid is None
 
 
 def test_tum_mono_folder_with_photometric_and_gt_sync(fakes):
@@ -215,7 +243,7 @@ def test_image_folder_times_txt_and_calib_argument(fakes, tmp_path):
     calib.write_text("28 29 19.5 14.5 -0.05 0.01 0 0\n")  # plain fx fy cx cy k1 k2 p1 p2
     seq = open_sequence(d, calib=calib)
     assert seq.timestamp(3) == pytest.approx(100.12)
-    assert isinstance(seq.calibration.input, RadTanCamera) and seq.calibration.output_mode == "crop"
+    assert isinstance(seq.calibration.input, RadTanCamera) and seq.calibration.output_mode == "keep"
 
 
 def test_video(fakes):

@@ -46,7 +46,12 @@ def test_euroc_excerpt_camera_poses_are_body_poses_times_T_BS(data_dir):
     cal = seq.calibration
     assert isinstance(cal.input, RadTanCamera) and cal.input_size == (752, 480)
     assert cal.input.k1 == pytest.approx(-0.28340811) and cal.undistorter.kind == "remap"
-    assert cal.undistorter.valid_mask.all()  # crop: no black border
+    assert cal.output_mode == "keep"  # the default for a distorted lens
+    valid = cal.undistorter.valid_mask
+    yy, xx = np.nonzero(~valid)
+    assert np.minimum(np.minimum(xx, 751 - xx), np.minimum(yy, 479 - yy)).max() < 3  # only the outer 3 px
+    crop = open_sequence(root, config=InputConfig(rectify="crop", end=1)).calibration
+    assert crop.undistorter.valid_mask.all()  # crop: every pixel has a source
     assert seq.fps == pytest.approx(20.0, rel=1e-4)
     body = read_tum(root / "groundtruth_body_tum.txt")
     T_BS = _t_bs(root / "mav0" / "cam0" / "sensor.yaml")
@@ -59,7 +64,7 @@ def test_euroc_excerpt_camera_poses_are_body_poses_times_T_BS(data_dir):
     f = seq.load(0)
     assert f.gray.shape == (480, 752) and f.gray.dtype == np.float32 and f.gray.min() >= 0
     full = open_sequence(root, config=InputConfig(rectify="full", end=1))
-    assert not full.calibration.undistorter.valid_mask.all()  # full shows black corners
+    assert not full.calibration.undistorter.valid_mask.all()  # full: corners without a source
 
 
 def test_seven_scenes_excerpt(data_dir):
