@@ -6,7 +6,7 @@ Image folder: the image files in the folder in natural order (``frame2`` before 
 when the sequence is opened (a fast ``grab`` pass without decoding to images), falling back to index / fps when the
 container's times are not increasing.
 
-Calibration: ``calib=PATH`` (any format :func:`mgso.camera.read_camera_file` reads), else ``camera.txt`` or
+Calibration: ``calib=PATH`` (any format :func:`mgso.io.read_camera_file` reads), else ``camera.txt`` or
 ``calib.txt`` in the folder (for a video: beside it). Without one: a clear error saying how to give one.
 Ground truth: ``groundtruth=PATH`` (TUM / KITTI), else ``groundtruth.txt`` / ``groundtruth_tum.txt`` in the folder.
 """
