@@ -4,8 +4,9 @@ It initialises Warp once, points the kernel cache at a stable directory, turns a
 ``auto``) into a Warp device, and splits pixel-parallel CPU launches over the cores.
 
 Why the split: a Warp CPU launch runs its threads as one serial loop on one core, but it releases the GIL, so two
-Python threads launching disjoint halves of the same kernel run on two cores (design.md section 4: 1.95x on two
-cores, identical output). Only kernels whose outputs do not overlap between chunks may be split: on the CPU
+Python threads launching disjoint halves of the same kernel run on two cores (docs/tracking_kernels.md, "Split
+launches on the CPU": 1.9x on two cores for the coarse tracker's and the epipolar search's kernels, identical
+output). Only kernels whose outputs do not overlap between chunks may be split: on the CPU
 ``wp.atomic_add`` is not atomic across launches that run at the same time. Reductions therefore write per-block
 partial buffers, and :func:`launch_split` keeps chunk borders on block borders (``align``).
 
@@ -33,6 +34,7 @@ __all__ = [
     "init",
     "is_initialised",
     "resolve_device",
+    "cuda_device_count",
     "default_device",
     "cpu_threads",
     "set_cpu_threads",
@@ -45,7 +47,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _lock = threading.RLock()
-_initialised = False
+_initialised = False  # Warp started (kernel cache set)
+_configured = False  # init() called (the BLAS default applied)
 _default_device: str | None = None
 _threads = 0  # 0 = all available cores
 _pool: ThreadPoolExecutor | None = None
@@ -74,23 +77,17 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
     """Initialise Warp (once per process) and return the resolved default device name.
 
     ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (the first CUDA device when there is one, else the CPU).
-    ``cache_dir``: where compiled kernels are kept; default :func:`default_cache_dir`. Only honoured by the first
-    call in a process (Warp reads it when it initialises).
+    ``cache_dir``: where compiled kernels are kept; default :func:`default_cache_dir`. Only honoured when this
+    call starts Warp (Warp reads it when it initialises; :func:`cuda_device_count` may have started it before).
     ``threads``: CPU threads for split launches, 0 for all cores; ``None`` keeps the current setting.
     ``blas_threads``: threads NumPy's BLAS may use (:func:`set_blas_threads`); ``None``: 1 on the first call, then
     unchanged.
     """
-    global _initialised, _default_device
+    global _configured, _default_device
     with _lock:
-        if not _initialised:
-            cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-            cache.mkdir(parents=True, exist_ok=True)
-            wp.config.kernel_cache_dir = str(cache)
-            wp.config.quiet = quiet
-            if quiet and hasattr(wp, "LOG_WARNING"):  # warp >= 1.19 reads log_level (quiet alone has no effect)
-                wp.config.log_level = wp.LOG_WARNING
-            wp.init()
-            _initialised = True
+        _start(cache_dir, quiet)
+        if not _configured:
+            _configured = True
             if blas_threads is None:
                 blas_threads = 1
         if threads is not None:
@@ -99,6 +96,29 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
             set_blas_threads(blas_threads)
         _default_device = resolve_device(device)
         return _default_device
+
+
+def _start(cache_dir: str | os.PathLike | None = None, quiet: bool = True) -> None:
+    """Start Warp once, with the kernel cache at ``cache_dir`` (default :func:`default_cache_dir`)."""
+    global _initialised
+    with _lock:
+        if _initialised:
+            return
+        cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+        cache.mkdir(parents=True, exist_ok=True)
+        wp.config.kernel_cache_dir = str(cache)
+        wp.config.quiet = quiet
+        if quiet and hasattr(wp, "LOG_WARNING"):  # warp >= 1.19 reads log_level (quiet alone has no effect)
+            wp.config.log_level = wp.LOG_WARNING
+        wp.init()
+        _initialised = True
+
+
+def cuda_device_count() -> int:
+    """CUDA devices Warp can use on this machine (0 without a driver or GPU). Starts Warp if nobody did, without
+    choosing a default device (``mgso.config.check_runtime`` asks before the command line calls :func:`init`)."""
+    _start()
+    return int(wp.get_cuda_device_count()) if wp.is_cuda_available() else 0
 
 
 def resolve_device(device: str | None = "auto") -> str:
