@@ -7,13 +7,18 @@
 - Dotted overrides from the command line: ``--set tracking.max_frames=7`` (value parsed as YAML, then checked
   against the field's type).
 
-Unknown keys and wrong types are errors that name the file (or override) and the key; nothing is silently ignored.
+Unknown keys, wrong types and values outside a setting's range are errors that name the file (or override), the key,
+the value and what is allowed; nothing is silently ignored. Each section checks every one of its numbers and choices
+when it is built (``__post_init__``: all problems of a file in one line), so ``mgso info`` and ``--stage check`` catch
+them before any work starts; whether a named CUDA device exists needs Warp and is :func:`check_runtime`'s job.
 Subsystems read their own section and get it as an argument; nothing reads global configuration.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +30,8 @@ __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
     "DensifyConfig", "TrainConfig", "SeedingConfig", "MapperConfig", "OutputConfig", "SystemConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
-    "describe_config", "PROFILE_DIR", "available_profiles",
+    "describe_config", "PROFILE_DIR", "available_profiles", "check_runtime", "DEVICE_FORMS", "RECTIFY_FORMS",
+    "TRAJECTORY_FORMATS",
 ]
 
 PROFILE_DIR = Path(__file__).resolve().parent / "configs"
@@ -42,6 +48,69 @@ def opt(default: Any, reason: str) -> Any:
     return field(default=default, metadata={"reason": reason})
 
 
+DEVICE_FORMS = "cpu, cuda, cuda:N or auto (any case)"
+_DEVICE_RE = re.compile(r"cpu|auto|cuda(:[0-9]+)?")
+RECTIFY_FORMS = ("", "keep", "crop", "full", "none")  # mgso.camera.RECTIFY_MODES or empty (a test compares)
+TRAJECTORY_FORMATS = ("tum", "kitti")
+_SEED_MAX = 2 ** 31 - 1  # the seed also reaches Warp kernels as an int32 (mgso_kernels.trace.TraceParams.seed)
+
+
+class _RangeError(ConfigError):
+    """A value outside its range, found by a section's ``__post_init__`` (the loader adds the file or override)."""
+
+
+class _Checks:
+    """The range checks of one section. Every number must be finite (NaN fails every range; no setting means
+    anything by infinity); each failed rule adds ``section.key must be <allowed>, got <value>``, and :meth:`done`
+    raises them all as one line, so that a file with several mistakes is fixed in one go."""
+
+    def __init__(self, section: str, obj: Any):
+        self.section, self.obj = section, obj
+        self.problems: list[str] = []
+        self._bad: set[str] = set()
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if any(isinstance(x, float) and not math.isfinite(x) for x in (v if isinstance(v, tuple) else (v,))):
+                self.rule(False, f.name, "a finite number")
+
+    def rule(self, ok: bool, name: str, allowed: str) -> None:
+        if not ok and name not in self._bad:
+            self._bad.add(name)
+            self.problems.append(f"{self.section}.{name} must be {allowed}, got {getattr(self.obj, name)!r}")
+
+    def ge(self, lo: float, *names: str) -> None:
+        for n in names:
+            self.rule(getattr(self.obj, n) >= lo, n, f">= {lo}")
+
+    def gt(self, lo: float, *names: str) -> None:
+        for n in names:
+            self.rule(getattr(self.obj, n) > lo, n, f"> {lo}")
+
+    def within(self, lo: float, hi: float, *names: str, open_lo: bool = False, open_hi: bool = False) -> None:
+        for n in names:
+            v = getattr(self.obj, n)
+            ok = (v > lo if open_lo else v >= lo) and (v < hi if open_hi else v <= hi)
+            self.rule(ok, n, f"in {'(' if open_lo else '['}{lo}, {hi}{')' if open_hi else ']'}")
+
+    def one_of(self, options: Sequence[str], *names: str) -> None:
+        for n in names:
+            self.rule(getattr(self.obj, n) in options, n, "one of " + ", ".join(repr(o) for o in options))
+
+    def each(self, name: str, lo: float, strict: bool = False) -> None:
+        """A non-empty tuple whose every value is ``>= lo`` (``> lo`` when strict)."""
+        v = getattr(self.obj, name)
+        ok = len(v) > 0 and all((x > lo) if strict else (x >= lo) for x in v)
+        self.rule(ok, name, f"a non-empty list of numbers {'>' if strict else '>='} {lo}")
+
+    def done(self) -> None:
+        if self.problems:
+            raise _RangeError("; ".join(self.problems))
+
+
+def _device_form_ok(name: str) -> bool:
+    return bool(_DEVICE_RE.fullmatch(name.strip().lower()))
+
+
 # --------------------------------------------------------------------------------------------------- sections
 @dataclass(frozen=True)
 class RuntimeConfig:
@@ -53,6 +122,15 @@ class RuntimeConfig:
                                    "cpu odometry beside a cuda map: the two threads then share no CUDA stream); "
                                    "empty = `device`")
     seed: int = opt(0, "seed of every random choice (pixel selection directions, random init), for repeatable runs")
+
+    def __post_init__(self):
+        c = _Checks("runtime", self)
+        c.rule(_device_form_ok(self.device), "device", DEVICE_FORMS)
+        c.rule(self.odometry_device == "" or _device_form_ok(self.odometry_device), "odometry_device",
+               f"empty (= device) or {DEVICE_FORMS}")
+        c.ge(0, "threads", "blas_threads")
+        c.within(0, _SEED_MAX, "seed")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -75,6 +153,20 @@ class InputConfig:
                            "share of a frame's time); 0 = decode in the caller")
     gt_max_dt: float = opt(0.02, "largest time difference (s) when matching ground-truth poses to frames (TUM "
                                  "RGB-D, EuRoC, TUM monoVO: nearest pose within this)")
+    on_bad_frame: Literal["skip", "stop"] = opt("skip", "a frame that cannot be read (truncated or corrupt file, "
+                                                        "wrong size): skip it with a warning, counted in metrics.json "
+                                                        "and frames.csv, or stop the run (the outputs of the frames "
+                                                        "before it are written either way)")
+
+    def __post_init__(self):
+        c = _Checks("input", self)
+        c.ge(0, "start", "end", "width", "height", "prefetch", "gt_max_dt")
+        c.rule(self.end == 0 or self.end > self.start, "end", f"0 (to the end) or > start ({self.start})")
+        c.ge(1, "stride")
+        c.gt(0, "fps")
+        c.one_of(RECTIFY_FORMS, "rectify")
+        c.one_of(("skip", "stop"), "on_bad_frame")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -198,6 +290,13 @@ class TrackingConfig:
     refine_iterations: int = opt(3, "Gauss-Newton steps on the active points' inverse depths after each "
                                     "keyframe, poses fixed (until the window optimisation replaces it)")
     refine_pose: bool = opt(False, "also refine the newest keyframe's pose against the points after the depths")
+    refine_pose_iterations: int = opt(5, "Gauss-Newton steps of that pose refinement (a step is kept only when the "
+                                         "energy drops)")
+    refine_affine: bool = opt(True, "the fixed back end also estimates every keyframe's affine brightness but the "
+                                    "oldest's over the window's residuals in both directions, so that the tracker's "
+                                    "brightness bias (bilinear sampling lowers contrast) cancels instead of adding up "
+                                    "from keyframe to keyframe")
+    refine_affine_iterations: int = opt(2, "Gauss-Newton steps of that affine estimate")
     # monocular initialisation (DSO CoarseInitializer)
     init_densities: tuple[float, ...] = opt((0.03, 0.05, 0.15, 0.5, 1.0), "points of the first frame per level "
                                             "as a fraction of w*h at level 0 (CoarseInitializer::setFirst)")
@@ -241,21 +340,60 @@ class TrackingConfig:
                                            "translation free to run away)")
 
     def __post_init__(self):
-        if self.pyramid_size_mode not in ("crop", "pad"):
-            raise ConfigError(f"tracking.pyramid_size_mode must be 'crop' or 'pad', got {self.pyramid_size_mode!r}")
-        if self.pyramid_levels < 0 or self.pyramid_max_levels < 1:
-            raise ConfigError("tracking.pyramid_levels must be >= 0 and tracking.pyramid_max_levels >= 1")
-        if not self.coarse_max_iterations or min(self.coarse_max_iterations) < 0:
-            raise ConfigError("tracking.coarse_max_iterations needs at least one value, all >= 0")
-        if not self.init_max_iterations or min(self.init_max_iterations) < 0:
-            raise ConfigError("tracking.init_max_iterations needs at least one value, all >= 0")
-        if not self.init_densities or min(self.init_densities) <= 0:
-            raise ConfigError("tracking.init_densities needs at least one value, all > 0")
-        if self.point_density <= 0 or self.immature_density <= 0:
-            raise ConfigError("tracking.point_density and tracking.immature_density must be > 0")
-        if self.kf_max_interval < 0 or self.init_max_frames < 2 or self.init_frames_after_snap < 0:
-            raise ConfigError("tracking.kf_max_interval must be >= 0, init_max_frames >= 2, "
-                              "init_frames_after_snap >= 0")
+        c = _Checks("tracking", self)
+        # pyramid (mgso_kernels.image.plan_pyramid)
+        c.ge(0, "pyramid_levels", "pyramid_min_area")
+        c.ge(1, "pyramid_max_levels")
+        c.one_of(("crop", "pad"), "pyramid_size_mode")
+        # residual: the Huber weight divides by huber_th, the gradient weight by c^2 (+ |grad|^2); the energy
+        # thresholds are products of the weight (squared) and outlier_th
+        c.gt(0, "huber_th", "outlier_th", "outlier_th_sum_component", "overall_energy_th_weight", "coarse_cutoff_th")
+        c.ge(1, "coarse_flow_stride")  # i % stride
+        # pixel selection (mgso.tracking.pixel_selector)
+        c.gt(0, "immature_density", "point_density")
+        c.within(0, 1, "min_grad_hist_cut")  # a quantile
+        c.ge(0, "min_grad_hist_add")
+        c.within(0, 1, "grad_downweight_per_level", open_lo=True)  # a factor per coarser level, down
+        c.ge(1, "selector_initial_potential")  # a cell size in pixels
+        c.ge(0, "selector_recursions")
+        # epipolar search (mgso_kernels.trace)
+        c.within(0, 1, "max_pix_search", open_lo=True)  # a fraction of width + height
+        c.gt(0, "trace_stepsize", "trace_extra_slack_on_th")  # the number of steps divides by it; scales a threshold
+        c.ge(0, "min_trace_quality", "min_trace_test_radius", "trace_gn_iterations", "trace_gn_threshold",
+             "trace_slack_interval", "trace_min_improvement_factor")
+        # coarse tracker (mgso.tracking.coarse_tracker)
+        c.each("coarse_max_iterations", 0)
+        c.gt(0, "coarse_lambda", "retrack_threshold")  # the step extrapolation divides by lambda
+        c.ge(0, "coarse_lambda_extrapolation_limit", "coarse_min_step")
+        c.within(0, 1, "coarse_saturated_ratio")  # a share of the residuals
+        c.ge(1, "coarse_max_cutoff_repeat")  # the cutoff multiplier starts at 1
+        c.ge(1, "coarse_abort_factor")  # below 1 a hypothesis better than the best so far would be abandoned
+        c.within(0, 1, "coarse_rotation_delta", open_lo=True)  # a quaternion component
+        for name in ("affine_opt_a", "affine_opt_b"):
+            c.rule(getattr(self, name) == -1 or getattr(self, name) >= 0, name, "-1 (fixed) or >= 0 (estimated)")
+        # keyframes (mgso.tracking.keyframe_policy): weights of the flow and brightness scores
+        c.ge(0, "kf_global_weight", "kf_max_shift_t", "kf_max_shift_r", "kf_max_shift_rt", "kf_max_affine_weight",
+             "kf_max_interval")
+        # a factor on the first RMSE against the reference: below 1 that first frame itself would exceed it
+        c.ge(1, "kf_rmse_factor", "lost_rmse_factor")
+        # point activation and the fixed back end
+        c.gt(0, "activation_max_pixel_interval")
+        c.ge(0, "min_idepth_h_act", "activation_gn_iterations", "refine_iterations", "refine_pose_iterations",
+             "refine_affine_iterations")
+        # initialiser (mgso.tracking.initializer)
+        c.each("init_densities", 0, strict=True)
+        c.each("init_max_iterations", 0)
+        c.gt(0, "init_alpha_k", "init_done_translation", "init_max_rmse")
+        c.ge(0, "init_alpha_w", "init_coupling_weight", "init_frames_after_snap")
+        c.within(0, 1, "init_reg_weight")  # (1 - w) own + w neighbours' median
+        c.ge(2, "init_max_frames")
+        c.ge(1, "init_min_points")
+        # tracking loss (mgso.odometry): a share, counts, and factors on a typical motion / depth
+        c.ge(0, "lost_min_rmse", "lost_min_inliers")
+        c.within(0, 1, "lost_min_inlier_ratio")
+        c.ge(1, "lost_max_speed_factor")  # below 1 a frame moving at the median speed would be lost
+        c.gt(0, "lost_max_translation")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -292,22 +430,66 @@ class WindowConfig:
                                    "false: a step is kept only when the total energy goes down, else undone and "
                                    "retried with more damping")
 
+    # DSO's solver constants (FullSystemOptimize.cpp, EnergyFunctional::solveSystemF, settings.cpp)
+    orthogonalize: bool = opt(True, "project the gauge directions out of the steps at all (from orthogonalize_from "
+                                    "on); false: never (DSO's SOLVER_ORTHOGONALIZE_* off)")
+    min_iterations: int = opt(1, "iterations before the early stop may end the optimisation "
+                                 "(DSO setting_minOptIterations)")
+    th_opt_iterations: float = opt(1.2, "scales the step sizes below which the optimisation stops early: larger = "
+                                        "stops earlier, 0 = never (DSO setting_thOptIterations)")
+    lambda_init: float = opt(1e-5, "Levenberg-Marquardt damping of the first step: DSO's default solver mode "
+                                   "(SOLVER_FIX_LAMBDA) replaces FullSystem::optimize's 0.1 by 1e-5 in solveSystemF, "
+                                   "Gauss-Newton with a tiny damping")
+    lambda_min: float = opt(1e-5, "an accepted step lowers the damping, not below this")
+    lambda_accept: float = opt(0.25, "damping factor after an accepted step (DSO FullSystem::optimize)")
+    lambda_reject: float = opt(100.0, "damping factor after a step that was not finite or (force_accept false) raised "
+                                      "the energy (DSO FullSystem::optimize)")
+    initial_trans_prior: float = opt(1e10, "prior on a segment's first keyframe's translation, folded into the "
+                                           "marginalisation prior when it leaves (DSO setting_initialTransPrior; held "
+                                           "exactly while it is in the window)")
+    initial_rot_prior: float = opt(1e11, "the same on its rotation (DSO setting_initialRotPrior)")
+    initial_aff_a_prior: float = opt(1e14, "the same on its affine a (DSO setting_initialAffAPrior)")
+    initial_aff_b_prior: float = opt(1e14, "the same on its affine b (DSO setting_initialAffBPrior)")
+    frame_energy_th_n: float = opt(0.7, "a new keyframe's energy threshold starts from this quantile of its residuals' "
+                                        "energies (DSO setNewFrameEnergyTH, setting_frameEnergyTHN); both back ends")
+    frame_energy_th_fac_median: float = opt(1.5, "that quantile's square root times this "
+                                                 "(DSO setting_frameEnergyTHFacMedian)")
+    frame_energy_th_const_weight: float = opt(0.5, "... blended with the constant 26 at this weight "
+                                                   "(DSO setting_frameEnergyTHConstWeight)")
+    pairs_per_block: int = opt(32, "residual pairs per block of the window's linearisation kernel (each block writes "
+                                   "its own partial sums)")
+    # which keyframes and points leave (DSO flagFramesForMarginalization, flagPointsForRemoval); both back ends
+    min_points_remaining: float = opt(0.05, "a keyframe keeping less than this share of its points leaves "
+                                            "(DSO setting_minPointsRemaining)")
+    max_log_aff_fac_in_window: float = opt(0.7, "a keyframe whose brightness factor to the newest exceeds exp(this) "
+                                                "leaves (DSO setting_maxLogAffFacInWindow)")
+    min_frame_age: int = opt(1, "the newest this many keyframes are never chosen by the distance score "
+                                "(DSO setting_minFrameAge)")
+    min_good_active_res_for_marg: int = opt(3, "a leaving point goes to the prior and the point cloud (else it is "
+                                               "dropped) with at least this many residuals in the window "
+                                               "(DSO setting_minGoodActiveResForMarg)")
+    min_good_res_for_marg: int = opt(4, "... at least this many good residuals over its life "
+                                        "(DSO setting_minGoodResForMarg)")
+    min_idepth_h_marg: float = opt(50.0, "... and more inverse-depth Hessian than this (DSO setting_minIdepthH_marg)")
+
     def __post_init__(self):
-        if not 2 <= self.max_frames <= 16:
-            raise ConfigError(f"window.max_frames must be in [2, 16], got {self.max_frames}")
-        if self.point_capacity < 100 or self.immature_capacity < 100:
-            raise ConfigError("window.point_capacity and window.immature_capacity must be >= 100")
-        if self.backend not in ("bundle", "fixed"):
-            raise ConfigError(f"window.backend must be 'bundle' or 'fixed', got {self.backend!r}")
-        if not 1 <= self.iterations <= 100:
-            raise ConfigError(f"window.iterations must be in [1, 100], got {self.iterations}")
-        if not 2 <= self.min_frames <= self.max_frames:
-            raise ConfigError(f"window.min_frames must be in [2, max_frames], got {self.min_frames}")
-        if self.orthogonalize_from < 0:
-            raise ConfigError(f"window.orthogonalize_from must be >= 0, got {self.orthogonalize_from}")
-        if not (self.idepth_fix_prior >= 0 and self.idepth_fix_prior_marg_fac >= 0):
-            raise ConfigError("window.idepth_fix_prior and window.idepth_fix_prior_marg_fac must be >= 0, got "
-                              f"{self.idepth_fix_prior} and {self.idepth_fix_prior_marg_fac}")
+        c = _Checks("window", self)
+        c.within(2, 16, "max_frames")
+        c.ge(100, "point_capacity", "immature_capacity")
+        c.one_of(("bundle", "fixed"), "backend")
+        c.within(1, 100, "iterations")
+        c.within(2, self.max_frames, "min_frames")
+        # prior weights (0 = none); marg_weight_fac scales down what the prior keeps
+        c.ge(0, "affine_prior_a", "affine_prior_b", "idepth_fix_prior", "idepth_fix_prior_marg_fac",
+             "initial_trans_prior", "initial_rot_prior", "initial_aff_a_prior", "initial_aff_b_prior")
+        c.within(0, 1, "marg_weight_fac")
+        c.ge(0, "orthogonalize_from", "min_iterations", "th_opt_iterations", "lambda_min", "min_idepth_h_marg")
+        c.gt(0, "lambda_init", "frame_energy_th_fac_median", "max_log_aff_fac_in_window")
+        c.within(0, 1, "lambda_accept", open_lo=True)  # an accepted step lowers the damping ...
+        c.ge(1, "lambda_reject")  # ... a rejected one raises it
+        c.within(0, 1, "frame_energy_th_n", "frame_energy_th_const_weight", "min_points_remaining")
+        c.ge(1, "pairs_per_block", "min_frame_age", "min_good_active_res_for_marg", "min_good_res_for_marg")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -334,6 +516,16 @@ class OptimConfig:
                               "false = dense torch.optim.Adam as 3DGS by default")
     lr_exposure_init: float = opt(0.01, "per-keyframe exposure (a, b) learning rate at step 0 (3DGS exposure_lr_init)")
     lr_exposure_final: float = opt(0.001, "exposure learning rate at lr_means_max_steps (3DGS exposure_lr_final)")
+
+    def __post_init__(self):
+        c = _Checks("mapping.optim", self)
+        c.ge(0, "lr_means_init", "lr_means_final", "lr_means_max_steps", "lr_means_delay_steps", "lr_log_scales",
+             "lr_quats", "lr_opacity", "lr_sh_dc", "lr_sh_rest", "lr_exposure_init", "lr_exposure_final")
+        c.within(0, 1, "lr_means_delay_mult")  # the warm-up's factor rises from it to 1
+        c.within(0, 1, "beta1", "beta2", open_hi=True)  # Adam's moment decays
+        c.gt(0, "eps")  # Adam divides by sqrt(v) + eps, and v is 0 for a parameter without gradient
+        c.one_of(("per_gaussian", "global", "none"), "bias_correction")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -368,6 +560,20 @@ class DensifyConfig:
     max_aspect: float = opt(0.0, "at each refine, shorten axes longer than this x the Gaussian's shortest axis "
                                  "(needles that disagreeing views stretch become discs); 0 = off (3DGS)")
     prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")
+
+    def __post_init__(self):
+        c = _Checks("mapping.densify", self)
+        c.ge(0, "refine_start_step", "refine_stop_step", "reset_every", "pause_refine_after_reset", "grow_min_views",
+             "prune_min_age", "percent_dense", "prune_screen_px")
+        c.ge(1, "refine_every")  # step % refine_every
+        c.within(0, 1, "reset_opacity_value", open_lo=True, open_hi=True)  # an opacity (its logit is stored)
+        c.within(0, 1, "prune_opacity", open_hi=True)
+        c.one_of(("grad", "absgrad", "absgs"), "grad_mode")
+        c.gt(0, "grow_grad2d", "grow_grad2d_abs", "absgs_split_grad2d", "prune_scale3d")
+        c.ge(2, "split_children")  # a split into one is no split
+        c.gt(0, "split_scale_factor")  # the children's scales divide by it
+        c.rule(self.max_aspect == 0 or self.max_aspect >= 1, "max_aspect", "0 (off) or >= 1")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -410,27 +616,17 @@ class TrainConfig:
     max_train_views: int = opt(0, "`mgso fit` trains on at most this many views, evenly spread; 0 = all")
 
     def __post_init__(self):
-        problems = []
-        if self.iterations < 0:
-            problems.append(f"iterations must be >= 0, got {self.iterations}")
-        if self.pyramid_levels < 1 or self.pyramid_uses < 0:
-            problems.append("pyramid_levels must be >= 1 and pyramid_uses >= 0")
-        if not self.min_scene_extent > 0:
-            problems.append(f"min_scene_extent must be > 0, got {self.min_scene_extent}")
-        if not self.depth_weight >= 0:
-            problems.append(f"depth_weight must be >= 0, got {self.depth_weight}")
-        if not 0 < self.init_depth_range[0] < self.init_depth_range[1]:
-            problems.append(f"init_depth_range must be (near, far) with 0 < near < far, got {self.init_depth_range}")
-        if not 0 < self.init_opacity < 1:
-            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
-        if self.init_max_screen_px < 0:
-            problems.append(f"init_max_screen_px must be >= 0, got {self.init_max_screen_px}")
-        if self.init_knn < 1 or self.init_points < 1:
-            problems.append("init_knn and init_points must be >= 1")
-        if self.holdout_every < 0 or self.max_train_views < 0 or self.metrics_every < 0 or self.sh_degree_interval < 0:
-            problems.append("holdout_every, max_train_views, metrics_every and sh_degree_interval must be >= 0")
-        if problems:
-            raise ConfigError("mapping.train: " + "; ".join(problems))
+        c = _Checks("mapping.train", self)
+        c.ge(0, "iterations", "pyramid_uses", "sh_degree_interval", "depth_weight", "lr_pose_translation",
+             "lr_pose_rotation", "metrics_every", "init_max_screen_px", "holdout_every", "max_train_views")
+        c.ge(1, "pyramid_levels", "init_points", "init_knn")
+        c.rule(len(self.background) == 3 and all(0 <= v <= 1 for v in self.background), "background",
+               "three values (RGB) in [0, 1]")
+        c.gt(0, "min_scene_extent")  # rates and size thresholds are multiples of the extent
+        c.rule(0 < self.init_depth_range[0] < self.init_depth_range[1], "init_depth_range",
+               "(near, far) with 0 < near < far")
+        c.within(0, 1, "init_opacity", open_lo=True, open_hi=True)  # stored as its logit
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -472,31 +668,16 @@ class SeedingConfig:
                                     "fog over the view")
 
     def __post_init__(self):
-        problems = []
-        if self.fill_min_triangle_area_px < 0 or self.fill_area_per_point_px <= 0:
-            problems.append("fill_min_triangle_area_px must be >= 0 and fill_area_per_point_px > 0")
-        if self.fill_depth not in ("mean", "barycentric"):
-            problems.append(f"fill_depth must be 'mean' or 'barycentric', got {self.fill_depth!r}")
-        if not self.fill_max_depth_ratio >= 1.0:
-            problems.append(f"fill_max_depth_ratio must be >= 1, got {self.fill_max_depth_ratio}")
-        if self.fill_max_subdivisions < 1:
-            problems.append(f"fill_max_subdivisions must be >= 1, got {self.fill_max_subdivisions}")
-        if not 0.0 < self.visibility_threshold <= 1.0:
-            problems.append(f"visibility_threshold must be in (0, 1], got {self.visibility_threshold}")
-        if not self.depth_tolerance >= 0:
-            problems.append(f"depth_tolerance must be >= 0, got {self.depth_tolerance}")
-        if self.alpha_downscale < 1:
-            problems.append(f"alpha_downscale must be >= 1, got {self.alpha_downscale}")
-        if self.min_new_gaussians < 0:
-            problems.append(f"min_new_gaussians must be >= 0, got {self.min_new_gaussians}")
-        if not 0.0 < self.init_opacity < 1.0:
-            problems.append(f"init_opacity must be in (0, 1), got {self.init_opacity}")
-        if self.knn < 1:
-            problems.append(f"knn must be >= 1, got {self.knn}")
-        if not 0.0 < self.scale_min_px <= self.scale_max_px:
-            problems.append(f"need 0 < scale_min_px <= scale_max_px, got {self.scale_min_px}, {self.scale_max_px}")
-        if problems:
-            raise ConfigError("mapping.seeding: " + "; ".join(problems))
+        c = _Checks("mapping.seeding", self)
+        c.ge(0, "min_point_weight", "fill_min_triangle_area_px", "depth_tolerance", "min_new_gaussians")
+        c.gt(0, "fill_area_per_point_px")  # k = ceil(sqrt(area / this))
+        c.one_of(("mean", "barycentric"), "fill_depth")
+        c.ge(1, "fill_max_depth_ratio", "fill_max_subdivisions", "alpha_downscale", "knn")
+        c.within(0, 1, "visibility_threshold", open_lo=True)  # an alpha
+        c.within(0, 1, "init_opacity", open_lo=True, open_hi=True)  # stored as its logit
+        c.gt(0, "scale_min_px")
+        c.rule(self.scale_max_px >= self.scale_min_px, "scale_max_px", f">= scale_min_px ({self.scale_min_px})")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -531,23 +712,13 @@ class MapperConfig:
                                  "refine_every (3DGS's 100, what `mgso fit` uses): keyframes that disagree make "
                                  "densification every 100 steps grow floaters (docs/mapping.md); 0 = mapping.densify's")
     def __post_init__(self):
-        problems = []
-        if self.iterations_per_keyframe < 0 or self.final_iterations < 0:
-            problems.append("iterations_per_keyframe and final_iterations must be >= 0")
-        if self.queue_size < 1:
-            problems.append(f"queue_size must be >= 1, got {self.queue_size}")
-        if not 0.0 <= self.newest_probability <= 1.0:
-            problems.append(f"newest_probability must be in [0, 1], got {self.newest_probability}")
-        if self.refine_every < 0:
-            problems.append(f"refine_every must be >= 0, got {self.refine_every}")
-        if self.exposure not in ("odometry", "exposure_time", "none"):
-            problems.append(f"exposure must be 'odometry', 'exposure_time' or 'none', got {self.exposure!r}")
-        if self.init not in ("dso", "random"):
-            problems.append(f"init must be 'dso' or 'random', got {self.init!r}")
-        if self.min_train_views < 1:
-            problems.append(f"min_train_views must be >= 1, got {self.min_train_views}")
-        if problems:
-            raise ConfigError("mapping.mapper: " + "; ".join(problems))
+        c = _Checks("mapping.mapper", self)
+        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every")
+        c.ge(1, "queue_size", "min_train_views")
+        c.within(0, 1, "newest_probability")
+        c.one_of(("odometry", "exposure_time", "none"), "exposure")
+        c.one_of(("dso", "random"), "init")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -569,12 +740,25 @@ class MappingConfig:
     mapper: MapperConfig = field(default_factory=MapperConfig,
                                  metadata={"reason": "MGSO's mapping thread: messages, training budget, queue"})
 
+    def __post_init__(self):
+        c = _Checks("mapping", self)
+        c.ge(1, "capacity")
+        c.within(0, 3, "sh_degree")  # the SH kernels evaluate degrees 0..3 (mgso_kernels.splat.sh)
+        c.within(0, 1, "lambda_dssim")  # L = (1 - l) L1 + l D-SSIM
+        c.gt(0, "scene_extent_margin")
+        c.done()
+
 
 @dataclass(frozen=True)
 class OutputConfig:
     trajectory_format: str = opt("tum", "trajectory file format: tum (timestamp tx ty tz qx qy qz qw) or kitti")
     save_renders: bool = opt(True, "write renders of evaluation frames next to the input")
     plot: bool = opt(True, "write a trajectory plot when ground truth is present (needs matplotlib)")
+
+    def __post_init__(self):
+        c = _Checks("output", self)
+        c.one_of(TRAJECTORY_FORMATS, "trajectory_format")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -599,10 +783,10 @@ class SystemConfig:
                                            "(renders/ and gt/) as 3DGS writes them")
 
     def __post_init__(self):
-        if self.mode not in ("deterministic", "realtime"):
-            raise ConfigError(f"system.mode must be 'deterministic' or 'realtime', got {self.mode!r}")
-        if not self.playback_speed >= 0:
-            raise ConfigError(f"system.playback_speed must be >= 0, got {self.playback_speed}")
+        c = _Checks("system", self)
+        c.one_of(("deterministic", "realtime"), "mode")
+        c.ge(0, "playback_speed")
+        c.done()
 
 
 @dataclass(frozen=True)
@@ -684,13 +868,45 @@ def _build(cls, data: Mapping[str, Any], where: str):
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown} in section {cls.__name__}; known: {sorted(names)}")
-    kwargs = {k: _coerce(v, hints[k], f"{where}: {k}") for k, v in data.items()}
+    kwargs, problems = {}, []
+    for k, v in data.items():
+        try:
+            kwargs[k] = _coerce(v, hints[k], f"{where}: {k}")
+        except _RangeError as exc:  # the other sections are still checked: every range problem in one message
+            problems.append(str(exc))
+    if problems:
+        raise _RangeError("; ".join(problems))
     return cls(**kwargs)
 
 
 def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
-    """Build a :class:`Config` from a nested mapping, checking every key and type."""
-    return _build(Config, data, where)
+    """Build a :class:`Config` from a nested mapping, checking every key, type and range."""
+    try:
+        return _build(Config, data, where)
+    except _RangeError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def check_runtime(cfg: Config) -> None:
+    """What only Warp can tell about a configuration: that the CUDA device ``runtime.device`` and
+    ``runtime.odometry_device`` name is present. Raises :class:`ConfigError` naming the setting. Call it right after
+    building the configuration (the form of both settings is checked when it is built). Costs nothing for ``cpu``,
+    ``auto`` and an empty ``odometry_device``: Warp is imported (and started) only for a ``cuda`` name."""
+    for key in ("device", "odometry_device"):
+        value = getattr(cfg.runtime, key)
+        name = value.strip().lower()
+        if not name.startswith("cuda"):
+            continue
+        from mgso_kernels import runtime  # lazily: starting Warp takes a second
+
+        count = runtime.cuda_device_count()
+        index = int(name.split(":", 1)[1]) if ":" in name else 0
+        if count == 0:
+            raise ConfigError(f"runtime.{key} is {value!r}, but Warp sees no CUDA device on this machine; "
+                              "use cpu (or auto: CUDA when present, else the CPU)")
+        if index >= count:
+            raise ConfigError(f"runtime.{key} is {value!r}, but this machine has {count} CUDA device(s): "
+                              f"cuda:0 to cuda:{count - 1}")
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
