@@ -63,7 +63,7 @@ from .tracking.immature_points import (ActivationResult, PointActivator, TraceCo
 from .tracking.initializer import CoarseInitializer, InitResult, InitStatus
 from .tracking.keyframe_policy import KeyframeDecision, KeyframePolicy, KeyframeReason
 from .tracking.pixel_selector import PixelSelector
-from .window.depth_refine import FixedWindowBackEnd, FixedWindowSettings
+from .window.depth_refine import FixedWindowBackEnd
 from .window.window import MarginalizedPoints, Window
 
 __all__ = [
@@ -219,26 +219,13 @@ class WindowBackEnd(Protocol):
 
 def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
     """The back end ``cfg.window.backend`` names: ``bundle`` (:class:`~mgso.window.backend.WindowOptimizer`) or
-    ``fixed`` (:class:`~mgso.window.depth_refine.FixedWindowBackEnd`)."""
-    t, wc = cfg.tracking, cfg.window
-    if wc.backend == "fixed":
-        return FixedWindowBackEnd(FixedWindowSettings(
-            iterations=t.refine_iterations, refine_pose=t.refine_pose, max_frames=wc.max_frames,
-            min_frames=wc.min_frames, huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component,
-            overall_energy_th_weight=t.overall_energy_th_weight))
+    ``fixed`` (:class:`~mgso.window.depth_refine.FixedWindowBackEnd`); both read ``cfg.window`` and ``cfg.tracking``
+    themselves."""
+    if cfg.window.backend == "fixed":
+        return FixedWindowBackEnd(cfg.window, cfg.tracking)
     from .window.backend import WindowOptimizer
-    from .window.energy import BundleSettings
-    from .window.marginalize import MarginalizationSettings
 
-    bundle = BundleSettings(iterations=wc.iterations, affine_prior_a=wc.affine_prior_a,
-                            affine_prior_b=wc.affine_prior_b, idepth_fix_prior=wc.idepth_fix_prior,
-                            idepth_fix_prior_anchored=wc.idepth_fix_prior_anchored,
-                            idepth_fix_prior_marg_fac=wc.idepth_fix_prior_marg_fac,
-                            marg_weight_fac=wc.marg_weight_fac, force_accept=wc.force_accept,
-                            orthogonalize_from=wc.orthogonalize_from, huber_th=t.huber_th,
-                            grad_c2=t.outlier_th_sum_component, overall_energy_th_weight=t.overall_energy_th_weight)
-    marg = MarginalizationSettings(min_frames=wc.min_frames, max_frames=wc.max_frames)
-    return WindowOptimizer(bundle, marg, device=device)
+    return WindowOptimizer(cfg.window, cfg.tracking, device=device)
 
 
 def geometry_for(width: int, height: int, fx: float, fy: float, cx: float, cy: float,

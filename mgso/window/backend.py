@@ -27,9 +27,9 @@ import numpy as np
 
 from mgso_kernels import window as kw
 
-from .energy import BundleSettings, WindowProblem, new_frame_energy_threshold, optimize_window
-from .marginalize import (MarginalizationPrior, MarginalizationSettings, flag_frames_for_marginalization,
-                          flag_points_for_removal)
+from ..config import TrackingConfig, WindowConfig
+from .energy import WindowProblem, new_frame_energy_threshold, optimize_window
+from .marginalize import MarginalizationPrior, flag_frames_for_marginalization, flag_points_for_removal
 from .window import MarginalizedPoints, PointFlag, ResidualState, Window
 
 __all__ = ["WindowOptimizer", "OptimizeResult"]
@@ -57,15 +57,16 @@ class OptimizeResult:
 class WindowOptimizer:
     """The joint window optimisation with a marginalisation prior (see the module text).
 
-    ``bundle``: :class:`~mgso.window.energy.BundleSettings`; ``marg``: :class:`~mgso.window.marginalize.
-    MarginalizationSettings`. Holds the prior (``H_M``, ``b_M``) and the first keyframe of each segment between
+    ``config``: the window's settings (solver, priors, what leaves the window; default :class:`~mgso.config.
+    WindowConfig`'s); ``tracking``: the photometric residual's (``huber_th``, ``outlier_th_sum_component``,
+    ``overall_energy_th_weight``). Holds the prior (``H_M``, ``b_M``) and the first keyframe of each segment between
     keyframes; everything else lives in the window.
     """
 
-    def __init__(self, bundle: BundleSettings | None = None, marg: MarginalizationSettings | None = None,
+    def __init__(self, config: WindowConfig | None = None, tracking: TrackingConfig | None = None,
                  device: str | None = None):
-        self.bundle = bundle or BundleSettings()
-        self.marg = marg or MarginalizationSettings()
+        self.config = config or WindowConfig()
+        self.tracking = tracking or TrackingConfig()
         self.device = device
         self.prior: MarginalizationPrior | None = None
         self._segment_first: dict[int, int] = {}
@@ -89,10 +90,10 @@ class WindowOptimizer:
 
     # --------------------------------------------------------------------------------------- interface
     def flag_frames_for_marginalization(self, window: Window) -> list[int]:
-        return flag_frames_for_marginalization(window, self.marg, self._segment_first)
+        return flag_frames_for_marginalization(window, self.config, self._segment_first)
 
     def optimize(self, window: Window) -> OptimizeResult:
-        s = self.bundle
+        s = self.config
         a = window.active
         times: dict = {}
         if a.n == 0 or window.num_keyframes < 2:
@@ -100,7 +101,7 @@ class WindowOptimizer:
                                   float(window.energy_th_[window.newest_slot]) if window.order else 0.0)
         prior = self._prior_for(window)
         first = self._first_slots(window)
-        problem = WindowProblem(window, s, prior, first_slots=first, device=self.device)
+        problem = WindowProblem(window, s, prior, tracking=self.tracking, first_slots=first, device=self.device)
         newest = window.newest_slot
         # DSO setNewFrameEnergyTH: from the new keyframe's residuals before any is judged
         t0 = time.perf_counter()
@@ -112,7 +113,8 @@ class WindowOptimizer:
                                    a.uv[pts], a.idepth[pts], a.color[pts], a.weight[pts], problem.images,
                                    device=problem.device)
         times["threshold"] = (time.perf_counter() - t0) * 1000
-        window.energy_th_[newest] = new_frame_energy_threshold(lin0.energy[lin0.state == ResidualState.IN], s)
+        window.energy_th_[newest] = new_frame_energy_threshold(lin0.energy[lin0.state == ResidualState.IN], s,
+                                                               self.tracking)
         L, stats = optimize_window(problem, s, times)
         # write the residual states back
         lin = L.pairs
@@ -135,7 +137,7 @@ class WindowOptimizer:
                               float(window.energy_th_[newest]), times)
 
     def marginalize_points(self, window: Window) -> MarginalizedPoints:
-        flag = flag_points_for_removal(window, self.marg)
+        flag = flag_points_for_removal(window, self.config)
         marg = np.flatnonzero(flag == PointFlag.MARGINALIZE)
         if len(marg) and window.num_keyframes >= 2:
             t0 = time.perf_counter()
@@ -146,9 +148,10 @@ class WindowOptimizer:
     def fold_points(self, window: Window, points: np.ndarray) -> None:
         """Fold the active points ``points`` (their IN residuals) into the prior by a Schur complement of their
         inverse depths, at the current state, with the gradient taken back to the linearisation point."""
-        s = self.bundle
+        s = self.config
         prior = self._prior_for(window)
-        problem = WindowProblem(window, s, None, points=points, first_slots=(), device=self.device)
+        problem = WindowProblem(window, s, None, tracking=self.tracking, points=points, first_slots=(),
+                                device=self.device)
         if not len(problem.pair_point):
             return
         keys = problem.keys()
@@ -174,7 +177,7 @@ class WindowOptimizer:
         ids = []
         prior = self._prior_for(window)
         first = self._first_slots(window)
-        s = self.bundle
+        s = self.config
         for slot in [o for o in window.order if window.flagged_[o]]:
             window.drop_points(window.active.host == slot)
             fp = None

@@ -28,36 +28,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import TrackingConfig, WindowConfig
 from ..geometry import se3_exp
 from ..tracking.point_residuals import evaluate_pairs, make_pairs
-from .marginalize import MarginalizationSettings, flag_frames_for_marginalization, flag_points_for_removal
+from .energy import new_frame_energy_threshold
+from .marginalize import flag_frames_for_marginalization, flag_points_for_removal
 from .window import MarginalizedPoints, ResidualState, Window
 
-__all__ = ["FixedWindowSettings", "FixedWindowBackEnd", "RefineResult"]
+__all__ = ["FixedWindowBackEnd", "DepthRefineResult"]
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class FixedWindowSettings(MarginalizationSettings):
-    """DSO's constants for keeping the window (:class:`MarginalizationSettings`, shared with the bundle
-    adjustment), plus the refinement's own."""
-
-    iterations: int = 3  # Gauss-Newton steps on the inverse depths
-    refine_pose: bool = False  # then refine the newest keyframe's pose against the points
-    pose_iterations: int = 5
-    refine_affine: bool = True  # estimate the keyframes' affine brightness over the window (see refine_affine)
-    affine_iterations: int = 2
-    frame_energy_th_n: float = 0.7  # setting_frameEnergyTHN
-    frame_energy_th_fac_median: float = 1.5  # setting_frameEnergyTHFacMedian
-    frame_energy_th_const_weight: float = 0.5  # setting_frameEnergyTHConstWeight
-    overall_energy_th_weight: float = 1.0  # setting_overallEnergyTHWeight
-    huber_th: float = 9.0
-    grad_c2: float = 2500.0  # setting_outlierTHSumComponent
-
-
 @dataclass
-class RefineResult:
+class DepthRefineResult:
     """What one :meth:`FixedWindowBackEnd.optimize` did."""
 
     points: int  # active points refined
@@ -70,17 +54,23 @@ class RefineResult:
 
 
 class FixedWindowBackEnd:
-    """Fixed-pose depth refinement + DSO's window keeping (see the module text). Stateless between keyframes."""
+    """Fixed-pose depth refinement + DSO's window keeping (see the module text). Stateless between keyframes.
 
-    def __init__(self, settings: FixedWindowSettings | None = None):
-        self.settings = settings or FixedWindowSettings()
+    ``config``: the window's settings (what leaves the window, the new keyframe's energy threshold; default
+    :class:`~mgso.config.WindowConfig`'s); ``tracking``: the refinement's (``refine_iterations``, ``refine_pose``,
+    ``refine_pose_iterations``, ``refine_affine``, ``refine_affine_iterations``) and the photometric residual's
+    (``huber_th``, ``outlier_th_sum_component``, ``overall_energy_th_weight``)."""
+
+    def __init__(self, config: WindowConfig | None = None, tracking: TrackingConfig | None = None):
+        self.config = config or WindowConfig()
+        self.tracking = tracking or TrackingConfig()
         self._segment_first: dict[int, int] = {}  # first keyframe id of each segment (DSO: frameID 0 stays)
 
     # ------------------------------------------------------------------------------- frame marginalisation
     def flag_frames_for_marginalization(self, window: Window) -> list[int]:
         """DSO ``flagFramesForMarginalization`` (called before the new keyframe is added). Returns flagged slots
         (:func:`mgso.window.marginalize.flag_frames_for_marginalization`)."""
-        return flag_frames_for_marginalization(window, self.settings, self._segment_first)
+        return flag_frames_for_marginalization(window, self.config, self._segment_first)
 
     def marginalize_frames(self, window: Window) -> list[int]:
         """Remove the flagged keyframes (their remaining points are dropped); returns their keyframe ids."""
@@ -101,9 +91,9 @@ class FixedWindowBackEnd:
 
     def _evaluate(self, window: Window, pairs, idepth):
         a = window.active
-        s = self.settings
+        t = self.tracking
         ev = evaluate_pairs(window, pairs, a.uv, a.color, a.weight, idepth, weight_mode="window",
-                            huber_th=s.huber_th, grad_c2=s.grad_c2)
+                            huber_th=t.huber_th, grad_c2=t.outlier_th_sum_component)
         e = ev.energy
         wJI2 = np.sum(ev.huber * ev.grad_w * ev.grad_sq, axis=1)
         th = np.maximum(window.energy_th_[a.host[pairs.pt]], window.energy_th_[pairs.tg])
@@ -112,26 +102,19 @@ class FixedWindowBackEnd:
         return ev, e, state
 
     def _set_energy_th(self, window: Window, pairs, e_with_outlier, ok) -> float:
-        """DSO ``setNewFrameEnergyTH`` for the newest keyframe."""
-        s = self.settings
+        """DSO ``setNewFrameEnergyTH`` for the newest keyframe (:func:`~mgso.window.energy.
+        new_frame_energy_threshold`, the bundle adjustment's rule)."""
         newest = window.newest_slot
         vals = e_with_outlier[(pairs.tg == newest) & ok]
-        if not len(vals):
-            window.energy_th_[newest] = 12 * 12 * 8
-            return float(window.energy_th_[newest])
-        nth = float(np.sqrt(np.partition(vals, int(s.frame_energy_th_n * len(vals)))[int(s.frame_energy_th_n
-                                                                                          * len(vals))]))
-        th = nth * s.frame_energy_th_fac_median
-        th = 26.0 * s.frame_energy_th_const_weight + th * (1 - s.frame_energy_th_const_weight)
-        window.energy_th_[newest] = th * th * s.overall_energy_th_weight ** 2
+        window.energy_th_[newest] = new_frame_energy_threshold(vals, self.config, self.tracking)
         return float(window.energy_th_[newest])
 
-    def optimize(self, window: Window) -> RefineResult:
+    def optimize(self, window: Window) -> DepthRefineResult:
         """Refine inverse depths (poses fixed), update residual states, drop points without inliers."""
-        s = self.settings
+        s = self.tracking
         a = window.active
         if a.n == 0 or window.num_keyframes < 2:
-            return RefineResult(a.n, 0, 0, 0, float("nan"), 0.0, float(window.energy_th_[window.newest_slot]))
+            return DepthRefineResult(a.n, 0, 0, 0, float("nan"), 0.0, float(window.energy_th_[window.newest_slot]))
         pairs = self._pairs(window)
         m = a.n
         idepth = a.idepth.astype(np.float64).copy()
@@ -139,7 +122,7 @@ class FixedWindowBackEnd:
         eth = self._set_energy_th(window, pairs, e, ev.ok)
         ev, e, state = self._evaluate(window, pairs, idepth)
         lam = np.full(m, 1e-2)
-        for _ in range(s.iterations):
+        for _ in range(s.refine_iterations):
             inl = (state == ResidualState.IN)[:, None]
             wgt = ev.huber * ev.grad_w * inl
             H = np.bincount(pairs.pt, weights=np.sum(wgt * ev.d_idepth ** 2, axis=1), minlength=m)
@@ -180,14 +163,14 @@ class FixedWindowBackEnd:
         moved = 0.0
         if s.refine_pose:
             moved = self.refine_newest_pose(window)
-        return RefineResult(m, len(pairs), int(inl.sum()), dropped, rmse, moved, eth)
+        return DepthRefineResult(m, len(pairs), int(inl.sum()), dropped, rmse, moved, eth)
 
     def refine_affine(self, window: Window, pairs, idepth: np.ndarray, inlier: np.ndarray) -> bool:
         """Gauss-Newton on the affine brightness ``(a, b)`` of every keyframe but the oldest (the gauge), points and
         poses fixed, over the ``inlier`` pairs. Residual pairs run in both directions between keyframes, so a bias
         of the tracker's brightness estimate (bilinear sampling lowers the target's contrast a little) cancels
         instead of adding up from keyframe to keyframe. Returns whether the affine parameters changed."""
-        s = self.settings
+        s = self.tracking
         a = window.active
         order = list(window.order)
         nk = len(order)
@@ -211,7 +194,7 @@ class FixedWindowBackEnd:
 
         def energy_and_system():
             ev = evaluate_pairs(window, sub, a.uv, a.color, a.weight, idepth, weight_mode="window",
-                                huber_th=s.huber_th, grad_c2=s.grad_c2)
+                                huber_th=s.huber_th, grad_c2=s.outlier_th_sum_component)
             a_rel = sub.aff[:, 0:1]
             ih = a.color[pt] - window.affine_[hosts, 1][:, None]
             W = ev.huber * ev.grad_w * ev.ok[:, None]
@@ -242,7 +225,7 @@ class FixedWindowBackEnd:
         start = window.affine_[order].copy()
         lam = 1e-3
         changed = False
-        for _ in range(s.affine_iterations):
+        for _ in range(s.refine_affine_iterations):
             Hr, gr = H[2:, 2:], g[2:]  # the oldest keyframe fixes the gauge
             Hl = Hr + lam * np.diag(np.diag(Hr)) + 1e-6 * np.eye(len(gr))
             try:
@@ -270,7 +253,7 @@ class FixedWindowBackEnd:
     def refine_newest_pose(self, window: Window) -> float:
         """Gauss-Newton on the newest keyframe's pose (left perturbation of its ``world_to_cam``) against the IN
         residuals of points hosted elsewhere, depths fixed; a step is kept only if the energy goes down."""
-        s = self.settings
+        s = self.tracking
         a = window.active
         newest = window.newest_slot
         sel = np.flatnonzero((a.res_state[:, newest] == ResidualState.IN) & (a.host != newest))
@@ -283,13 +266,13 @@ class FixedWindowBackEnd:
         def energy_and_system():
             pairs = make_pairs(window, a.host, sel, np.full(len(sel), newest))
             ev = evaluate_pairs(window, pairs, a.uv, a.color, a.weight, a.idepth, weight_mode="window",
-                                huber_th=s.huber_th, grad_c2=s.grad_c2)
+                                huber_th=s.huber_th, grad_c2=s.outlier_th_sum_component)
             return pairs, ev
 
         pairs, ev = energy_and_system()
         E = float(np.sum(ev.energy))
         lam = 1e-3
-        for _ in range(s.pose_iterations):
+        for _ in range(s.refine_pose_iterations):
             # per pattern pixel pose Jacobian through the centre projection (DSO's window approximation)
             ku, kv, nid = ev.centre[:, 0], ev.centre[:, 1], ev.centre[:, 2]
             un = (ku - cam.cx) / cam.fx
@@ -332,7 +315,7 @@ class FixedWindowBackEnd:
     def marginalize_points(self, window: Window) -> MarginalizedPoints:
         """DSO ``flagPointsForRemoval`` + ``dropPointsF``/``marginalizePointsF`` (without the prior): flag and remove
         points; inliers go to the point cloud (:func:`mgso.window.marginalize.flag_points_for_removal`)."""
-        flag_points_for_removal(window, self.settings)
+        flag_points_for_removal(window, self.config)
         return window.remove_flagged_points()
 
 

@@ -49,11 +49,12 @@ import scipy.linalg
 from mgso_kernels import runtime
 from mgso_kernels import window as kw
 
+from ..config import TrackingConfig, WindowConfig
 from ..geometry import hat, orthonormalize, se3_adjoint, se3_exp, se3_inverse, se3_log
 from .marginalize import MarginalizationPrior
 from .window import ResidualState, Window
 
-__all__ = ["BundleSettings", "SCALE_XI_ROT", "SCALE_XI_TRANS", "SCALE_A", "SCALE_B", "SCALE_IDEPTH", "frame_scale",
+__all__ = ["SCALE_XI_ROT", "SCALE_XI_TRANS", "SCALE_A", "SCALE_B", "SCALE_IDEPTH", "frame_scale",
            "WindowProblem", "Linearization", "OptimizeStats", "optimize_window", "new_frame_energy_threshold"]
 
 log = logging.getLogger(__name__)
@@ -71,51 +72,16 @@ def frame_scale() -> np.ndarray:
     return np.array([SCALE_XI_TRANS] * 3 + [SCALE_XI_ROT] * 3 + [SCALE_A, SCALE_B])
 
 
-@dataclass(frozen=True)
-class BundleSettings:
-    """DSO's optimisation constants (``settings.cpp`` / ``FullSystemOptimize.cpp``)."""
-
-    iterations: int = 6  # setting_maxOptIterations
-    min_iterations: int = 1  # setting_minOptIterations
-    th_opt_iterations: float = 1.2  # setting_thOptIterations (larger = break earlier)
-    # DSO's default solver mode (SOLVER_FIX_LAMBDA) overrides FullSystem::optimize's lambda = 0.1 with 1e-5 in
-    # solveSystemF: Gauss-Newton with a tiny damping. mgso starts there and only damps a step that raised the energy
-    # (x100, DSO's factor); an accepted step brings lambda back down (x0.25, not below lambda_min)
-    lambda_init: float = 1e-5  # EnergyFunctional::solveSystemF with SOLVER_FIX_LAMBDA
-    lambda_min: float = 1e-5
-    lambda_accept: float = 0.25
-    lambda_reject: float = 100.0
-    force_accept: bool = True  # setting_forceAceptStep (DSO: true); false = keep a step only if the energy drops
-    orthogonalize: bool = True  # remove the gauge directions from the steps (DSO SOLVER_ORTHOGONALIZE_X[_LATER])
-    orthogonalize_from: int = 2  # ... from this iteration on, 0-based (DSO's default SOLVER_ORTHOGONALIZE_X_LATER: 2)
-    initial_trans_prior: float = 1e10  # setting_initialTransPrior
-    initial_rot_prior: float = 1e11  # setting_initialRotPrior
-    initial_aff_a_prior: float = 1e14  # setting_initialAffAPrior
-    initial_aff_b_prior: float = 1e14  # setting_initialAffBPrior
-    affine_prior_a: float = 0.0  # setting_affineOptModeA (DSO mode 1, no photometric calibration: 0)
-    affine_prior_b: float = 0.0  # setting_affineOptModeB
-    idepth_fix_prior: float = 50.0 * 50.0  # setting_idepthFixPrior
-    idepth_fix_prior_anchored: bool = False  # false: DSO's (no gradient, curvature only); true: pulls to the start
-    idepth_fix_prior_marg_fac: float = 600.0 * 600.0  # setting_idepthFixPriorMargFac: that prior x this when folded
-    marg_weight_fac: float = 0.5 * 0.5  # setting_margWeightFac
-    huber_th: float = 9.0  # setting_huberTH
-    grad_c2: float = 2500.0  # setting_outlierTHSumComponent
-    frame_energy_th_n: float = 0.7  # setting_frameEnergyTHN
-    frame_energy_th_fac_median: float = 1.5  # setting_frameEnergyTHFacMedian
-    frame_energy_th_const_weight: float = 0.5  # setting_frameEnergyTHConstWeight
-    overall_energy_th_weight: float = 1.0  # setting_overallEnergyTHWeight
-    pairs_per_block: int = 32
-
-
-def new_frame_energy_threshold(energies: np.ndarray, s: BundleSettings) -> float:
-    """DSO ``setNewFrameEnergyTH`` from the 8-pixel energies of the residuals into the new keyframe."""
+def new_frame_energy_threshold(energies: np.ndarray, config: WindowConfig, tracking: TrackingConfig) -> float:
+    """DSO ``setNewFrameEnergyTH`` from the 8-pixel energies of the residuals into the new keyframe (both back ends):
+    ``window.frame_energy_th_*`` and ``tracking.overall_energy_th_weight``."""
     if not len(energies):
         return 12.0 * 12.0 * 8
-    k = int(s.frame_energy_th_n * len(energies))
-    nth = float(np.sqrt(np.partition(energies, min(k, len(energies) - 1))[min(k, len(energies) - 1)]))
-    th = nth * s.frame_energy_th_fac_median
-    th = 26.0 * s.frame_energy_th_const_weight + th * (1 - s.frame_energy_th_const_weight)
-    return th * th * s.overall_energy_th_weight ** 2
+    k = min(int(config.frame_energy_th_n * len(energies)), len(energies) - 1)
+    nth = float(np.sqrt(np.partition(energies, k)[k]))
+    th = nth * config.frame_energy_th_fac_median
+    th = 26.0 * config.frame_energy_th_const_weight + th * (1 - config.frame_energy_th_const_weight)
+    return th * th * tracking.overall_energy_th_weight ** 2
 
 
 @dataclass
@@ -148,16 +114,19 @@ class OptimizeStats:
 class WindowProblem:
     """The window's keyframes and a set of its active points with their candidate pairs, ready to linearise.
 
-    ``points``: indices of the active points taking part (default all); pairs are the point's residuals whose state is
-    in ``states`` (default ``IN``). ``first_slots``: slots carrying the gauge prior (the segment's first keyframe).
-    Changes the window only through :meth:`apply_step` / :meth:`restore` (keyframe states, point inverse depths).
+    ``config``: the window's settings (priors, solver constants); ``tracking``: the photometric residual's
+    (``huber_th``, ``outlier_th_sum_component``; default :class:`~mgso.config.TrackingConfig`'s). ``points``: indices
+    of the active points taking part (default all); pairs are the point's residuals whose state is in ``states``
+    (default ``IN``). ``first_slots``: slots carrying the gauge prior (the segment's first keyframe). Changes the
+    window only through :meth:`apply_step` / :meth:`restore` (keyframe states, point inverse depths).
     """
 
-    def __init__(self, window: Window, settings: BundleSettings, prior: MarginalizationPrior | None = None, *,
-                 points: np.ndarray | None = None, first_slots: tuple = (), states=(ResidualState.IN,),
-                 device: str | None = None):
+    def __init__(self, window: Window, config: WindowConfig, prior: MarginalizationPrior | None = None, *,
+                 tracking: TrackingConfig | None = None, points: np.ndarray | None = None, first_slots: tuple = (),
+                 states=(ResidualState.IN,), device: str | None = None):
+        tracking = tracking or TrackingConfig()
         self.window = window
-        self.s = settings
+        self.s = config
         self.prior = prior
         self.device = device or runtime.default_device()
         a = window.active
@@ -185,7 +154,7 @@ class WindowProblem:
         self.point_start = np.searchsorted(pl, np.arange(len(self.points) + 1)).astype(np.int32)
         g = window.camera
         self.params = kw.make_window_params(g.fx, g.fy, g.cx, g.cy, window.width, window.height,
-                                            huber_th=settings.huber_th, grad_c2=settings.grad_c2)
+                                            huber_th=tracking.huber_th, grad_c2=tracking.outlier_th_sum_component)
         self.images = window.dI0_  # [K, H, W] level-0 (I, dx, dy), indexed by slot
         self._cache: dict = {}  # linearize_window's plan and buffers (the pairs are fixed for the problem)
         self.S = np.tile(frame_scale(), self.K)
@@ -194,18 +163,18 @@ class WindowProblem:
         for slot in self.order:
             p = np.zeros(8)
             if slot in first_slots:
-                p[:3] = settings.initial_trans_prior
-                p[3:6] = settings.initial_rot_prior
-                p[6] = settings.initial_aff_a_prior
-                p[7] = settings.initial_aff_b_prior
+                p[:3] = config.initial_trans_prior
+                p[3:6] = config.initial_rot_prior
+                p[6] = config.initial_aff_a_prior
+                p[7] = config.initial_aff_b_prior
             else:
-                p[6] = settings.affine_prior_a
-                p[7] = settings.affine_prior_b
+                p[6] = config.affine_prior_a
+                p[7] = config.affine_prior_b
             self.frame_prior[8 * slot:8 * slot + 8] = p
-        self.depth_prior = np.where(a.has_depth_prior[self.points], settings.idepth_fix_prior, 0.0)
+        self.depth_prior = np.where(a.has_depth_prior[self.points], config.idepth_fix_prior, 0.0)
         # DSO moves a point's idepth_zero to its state every step, so its prior has no gradient and only stiffens
         # the point; anchored (mgso before 2026-11-22), it pulls towards the initialiser's inverse depth
-        self.idepth_prior_centre = (a.idepth_zero[self.points].astype(np.float64) if settings.idepth_fix_prior_anchored
+        self.idepth_prior_centre = (a.idepth_zero[self.points].astype(np.float64) if config.idepth_fix_prior_anchored
                                     else None)
         # the segment's first keyframe is held exactly (its prior is infinite while it is in the window; the finite
         # DSO prior above is what the marginalisation folds in when it leaves)
@@ -371,7 +340,7 @@ class WindowProblem:
 
     def solve(self, L: Linearization, lam: float, orthogonalize: bool | None = None):
         """``(dx_c [8K] scaled, dx_d [n] scaled)`` of the damped reduced system; ``orthogonalize``: project the gauge
-        directions out of the step (default: the settings' ``orthogonalize``)."""
+        directions out of the step (default: ``window.orthogonalize``)."""
         idx = self.live
         # DSO solveSystemF: the diagonal of the full system times (1 + lambda), frames and points alike, i.e. the
         # top block's diagonal scaled and the Schur term divided by (1 + lambda)
@@ -404,12 +373,14 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def optimize_window(problem: WindowProblem, settings: BundleSettings, timer: dict | None = None
+def optimize_window(problem: WindowProblem, config: WindowConfig, timer: dict | None = None
                     ) -> tuple[Linearization, OptimizeStats]:
-    """LM on ``problem`` (see the module text). Returns the linearisation at the final state and the stats."""
+    """LM on ``problem`` (see the module text) with ``config``'s solver settings (``iterations``, ``lambda_*``,
+    ``force_accept``, ``orthogonalize[_from]``, ``min_iterations``, ``th_opt_iterations``). Returns the linearisation
+    at the final state and the stats."""
     import time
 
-    s = settings
+    s = config
     times = timer if timer is not None else {}
 
     def tick(name, t0):

@@ -13,6 +13,10 @@ Choices (shared by every back end; :class:`~mgso.window.depth_refine.FixedWindow
   leave, or whose host leaves, is marginalised when it is an inlier (enough good residuals and inverse-depth
   Hessian) and dropped otherwise; points without an IN residual are dropped.
 
+Their constants are DSO's and fields of :class:`~mgso.config.WindowConfig` (``min_points_remaining``,
+``max_log_aff_fac_in_window``, ``min_frame_age``, ``min_good_active_res_for_marg``, ``min_good_res_for_marg``,
+``min_idepth_h_marg``, and ``min_frames`` / ``max_frames``).
+
 The prior (:class:`MarginalizationPrior`) is ``E_M(delta) = 2 delta^T b_M + delta^T H_M delta`` over the frame
 parameters of the window's slots (8 each, DSO's scaled units, ``delta`` = state minus linearisation point). Points are
 folded in by a Schur complement of their inverse depth with first-estimate Jacobians and the gradient taken back to
@@ -25,36 +29,22 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import WindowConfig
 from .window import PointFlag, ResidualState, Window
 
-__all__ = ["MarginalizationSettings", "flag_frames_for_marginalization", "flag_points_for_removal",
-           "MarginalizationPrior"]
+__all__ = ["flag_frames_for_marginalization", "flag_points_for_removal", "MarginalizationPrior"]
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class MarginalizationSettings:
-    """DSO's constants (``settings.cpp``) for keeping the window."""
-
-    min_frames: int = 5  # setting_minFrames
-    max_frames: int = 7  # setting_maxFrames
-    min_points_remaining: float = 0.05  # setting_minPointsRemaining
-    max_log_aff_fac_in_window: float = 0.7  # setting_maxLogAffFacInWindow
-    min_frame_age: int = 1  # setting_minFrameAge
-    min_good_active_res_for_marg: int = 3  # setting_minGoodActiveResForMarg
-    min_good_res_for_marg: int = 4  # setting_minGoodResForMarg
-    min_idepth_h_marg: float = 50.0  # setting_minIdepthH_marg
-
-
-def flag_frames_for_marginalization(window: Window, s, segment_first: dict[int, int]) -> list[int]:
-    """DSO ``flagFramesForMarginalization``: sets ``window.flagged_`` and returns the flagged slots. ``s``: any
-    settings object with :class:`MarginalizationSettings`' fields. ``segment_first``: first keyframe id of each
-    segment (filled here; that keyframe is never chosen by the distance score, as DSO's frame 0)."""
+def flag_frames_for_marginalization(window: Window, s: WindowConfig, segment_first: dict[int, int]) -> list[int]:
+    """DSO ``flagFramesForMarginalization``: sets ``window.flagged_`` and returns the flagged slots. ``s``: the
+    window's settings (``min_frames``, ``max_frames``, ``min_points_remaining``, ``max_log_aff_fac_in_window``,
+    ``min_frame_age``). ``segment_first``: first keyframe id of each segment (filled here; that keyframe is never
+    chosen by the distance score, as DSO's frame 0)."""
     order = list(window.order)
     if not order:
         return []
@@ -93,9 +83,10 @@ def flag_frames_for_marginalization(window: Window, s, segment_first: dict[int, 
     return out
 
 
-def flag_points_for_removal(window: Window, s) -> np.ndarray:
+def flag_points_for_removal(window: Window, s: WindowConfig) -> np.ndarray:
     """DSO ``flagPointsForRemoval``: writes ``window.active.flag`` (KEEP / MARGINALIZE / DROP) and returns it.
-    ``s``: any settings object with :class:`MarginalizationSettings`' fields."""
+    ``s``: the window's settings (``min_good_active_res_for_marg``, ``min_good_res_for_marg``,
+    ``min_idepth_h_marg``)."""
     a = window.active
     flag = np.full(a.n, PointFlag.KEEP, np.int8)
     if a.n == 0:

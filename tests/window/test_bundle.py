@@ -5,9 +5,10 @@ energy descent and convergence to the truth, and the prior's bookkeeping."""
 import numpy as np
 import pytest
 
+from mgso.config import WindowConfig
 from mgso.geometry import se3_inverse, se3_log
 from mgso.window.backend import WindowOptimizer
-from mgso.window.energy import BundleSettings, WindowProblem, optimize_window
+from mgso.window.energy import WindowProblem, optimize_window
 from mgso.window.marginalize import MarginalizationPrior
 from mgso.window.window import ResidualState
 from window_helpers import make_sequence, true_idepth, window_from_sequence
@@ -43,7 +44,7 @@ def full_system(problem, L):
 
 def test_schur_solve_equals_dense_solve(wp_device, seq):
     w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
-    s = BundleSettings(orthogonalize=False)
+    s = WindowConfig(orthogonalize=False)
     p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
     L = p.linearize()
     assert len(p.live) == 8 * (len(FRAMES) - 1)  # the first keyframe is held
@@ -59,7 +60,7 @@ def test_marginalizing_a_keyframe_and_its_points_matches_the_full_solve(wp_devic
     """Fold every point that involves keyframe X into the prior, marginalise X, solve the rest: the same solution for
     the remaining keyframes and points as the full system (marg_weight_fac = 1; exact by the Schur identity)."""
     w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
-    s = BundleSettings(orthogonalize=False, marg_weight_fac=1.0, idepth_fix_prior_marg_fac=1.0)  # exact identity
+    s = WindowConfig(orthogonalize=False, marg_weight_fac=1.0, idepth_fix_prior_marg_fac=1.0)  # exact identity
     first = (w.order[0],)
     X = w.order[2]
     a = w.active
@@ -93,7 +94,7 @@ def _solve_from(seq, noise, rounds=2, **settings):
     final energy)."""
     w, truth = window_from_sequence(seq, FRAMES, points_per_kf=120, pose_noise=noise, depth_noise=12 * noise, seed=2)
     err0 = np.array([np.linalg.norm(se3_log(w.world_to_cam_[s] @ se3_inverse(truth[s]))) for s in w.order[1:]])
-    s = BundleSettings(**{"iterations": 10, **settings})
+    s = WindowConfig(**{"iterations": 10, **settings})
     hist = []
     for _ in range(rounds):
         for slot in w.order:
@@ -152,7 +153,7 @@ def test_dso_default_solver_converges_up_to_scale(wp_device, seq):
     which itself is within 1 cm of the truth. (Measured with DSO's depth prior: energy 0.05 % below, poses 5-23 % of
     the start error, the scale 3.6 % off after 20 steps; the truth-started solution 0.003-0.0097 (se3 norm) from the
     truth; with the anchored prior 0.6 % above, 4-27 %, 3.7 %, 0.003-0.008.)"""
-    defaults = BundleSettings()
+    defaults = WindowConfig()
     assert defaults.force_accept and defaults.orthogonalize_from == 2
     w0, truth, _, _, e_truth = _solve_from(seq, 0.0)
     w1, _, err0, hist, e1 = _solve_from(seq, 0.008)
@@ -176,7 +177,7 @@ def test_depth_prior_is_dso_s_curvature_only_unless_anchored(wp_device, seq):
     a.idepth[prior_pts] *= 1.1  # off the centre an anchored prior would pull to
     out = {}
     for anchored in (False, True):
-        s = BundleSettings(idepth_fix_prior_anchored=anchored)
+        s = WindowConfig(idepth_fix_prior_anchored=anchored)
         p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
         out[anchored] = (p, p.linearize())
     (p0, L0), (_, L1) = out[False], out[True]
@@ -200,10 +201,10 @@ def test_marginalised_initialiser_points_hold_the_scale(wp_device, seq):
     priors = {}
     for fac in (1.0, 600.0 ** 2):
         for pts in (np.flatnonzero(a.has_depth_prior), np.flatnonzero(~a.has_depth_prior)):
-            be = WindowOptimizer(BundleSettings(idepth_fix_prior_marg_fac=fac))
+            be = WindowOptimizer(WindowConfig(idepth_fix_prior_marg_fac=fac))
             be.fold_points(w, pts)
             priors[fac, bool(a.has_depth_prior[pts[0]])] = be.prior.H.copy()
-    N = WindowProblem(w, BundleSettings(), None, first_slots=(w.order[0],)).nullspaces()[:, -1]  # the scale
+    N = WindowProblem(w, WindowConfig(), None, first_slots=(w.order[0],)).nullspaces()[:, -1]  # the scale
     curv = {k: float(N @ H @ N) for k, H in priors.items()}
     assert curv[600.0 ** 2, True] > 10 * curv[1.0, True], curv
     same = priors[1.0, False]
@@ -244,7 +245,7 @@ def test_backend_optimize_writes_states_and_drops_outliers(wp_device, seq):
     a = w.active
     n0 = a.n
     a.idepth[:5] = -0.5  # broken points: no valid residual, dropped
-    be = WindowOptimizer(BundleSettings(iterations=4, force_accept=False))  # kept by energy: it cannot rise
+    be = WindowOptimizer(WindowConfig(iterations=4, force_accept=False))  # kept by energy: it cannot rise
     r = be.optimize(w)
     assert r.dropped >= 5 and a.n == n0 - r.dropped
     assert r.energy_end <= r.energy_start and r.iterations >= 1
@@ -259,7 +260,7 @@ def test_orthogonalize_from_projects_the_later_steps_only(wp_device, seq):
     """``orthogonalize_from = 2`` is DSO's SOLVER_ORTHOGONALIZE_X_LATER: the first two steps keep their component along
     the gauge directions (here the scale: the first keyframe is held), the later ones have none."""
     w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
-    s = BundleSettings(orthogonalize_from=2, iterations=4, force_accept=True, th_opt_iterations=0.0)
+    s = WindowConfig(orthogonalize_from=2, iterations=4, force_accept=True, th_opt_iterations=0.0)
     p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
     steps = []
     solve = p.solve
