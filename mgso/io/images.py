@@ -17,11 +17,25 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 
 
+def _truncated_jpeg(buf: np.ndarray) -> bool:
+    """A JPEG (starts with the SOI marker FF D8) whose data ends before the EOI marker FF D9 (trailing zero padding
+    allowed): libjpeg decodes such a file into an image whose missing part is flat gray, with only a warning on
+    stderr, which the odometry would track as a real frame."""
+    if buf.size < 4 or buf[0] != 0xFF or buf[1] != 0xD8:
+        return False
+    end = buf.size
+    while end > 2 and buf[end - 1] == 0:
+        end -= 1
+    return not (buf[end - 2] == 0xFF and buf[end - 1] == 0xD9)
+
+
 def decode_image(data: bytes | np.ndarray, source: str) -> np.ndarray:
     """Decode encoded image bytes as stored (8/16 bit, gray or BGR; an alpha channel is dropped)."""
     buf = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data
     if buf.size == 0:
         raise DatasetError(f"{source}: empty image file")
+    if _truncated_jpeg(buf):
+        raise DatasetError(f"{source}: truncated JPEG (the file ends before its end-of-image marker)")
     img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError(f"{source}: not a readable image (corrupt or unsupported format)")

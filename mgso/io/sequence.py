@@ -285,13 +285,28 @@ class Sequence(abc.ABC):
         T = self._gt_all[self._k(i)]
         return T.copy() if np.all(np.isfinite(T)) else None
 
-    def frames(self, prefetch: int | None = None) -> Iterator[Frame]:
+    def frames(self, prefetch: int | None = None, on_unreadable=None) -> Iterator[Frame]:
         """Iterate over the frames; with ``prefetch > 0`` (default ``InputConfig.prefetch``) a background thread
-        decodes up to that many frames ahead. Errors of the reader are raised here, in order."""
+        decodes up to that many frames ahead. Errors of the reader are raised here, in order.
+
+        ``on_unreadable(index, error)``: called when frame ``index`` cannot be read (a :class:`DatasetError`: a
+        truncated or corrupt image, a wrong size); returning true skips the frame and goes on, false raises the
+        error (``None``: raise). The caller decides (``input.on_bad_frame``) and counts."""
         n_ahead = self.config.prefetch if prefetch is None else int(prefetch)
+
+        def load(i: int) -> Frame | None:
+            try:
+                return self.load(i)
+            except DatasetError as exc:
+                if on_unreadable is not None and on_unreadable(i, exc):
+                    return None
+                raise
+
         if n_ahead <= 0:
             for i in range(len(self)):
-                yield self.load(i)
+                f = load(i)
+                if f is not None:
+                    yield f
             return
         q: queue.Queue = queue.Queue(maxsize=n_ahead)
         stop = threading.Event()
@@ -308,7 +323,10 @@ class Sequence(abc.ABC):
         def work():
             try:
                 for i in range(len(self)):
-                    if stop.is_set() or not put(self.load(i)):
+                    if stop.is_set():
+                        return
+                    f = load(i)
+                    if f is not None and not put(f):
                         return
             except BaseException as exc:  # handed to the consumer, raised there
                 put(exc)
