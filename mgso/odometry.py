@@ -181,10 +181,19 @@ class FrameResult:
     trace: TraceCounts | None = None
     time_track_s: float = 0.0
     time_map_s: float = 0.0
+    affine: tuple[float, float] = (0.0, 0.0)  # DSO's (a, b) of the frame, 0-255 scale
+    keyframe_id: int = -1  # its keyframe id when it became a keyframe
+    exposure_ms: float | None = None  # the frame's exposure time (None: unknown)
+    messages: tuple = ()  # what it emits for the Gaussian mapper, in order (with ``emit_messages``)
 
     @property
     def ok(self) -> bool:
         return self.cam_to_world is not None
+
+    @property
+    def seconds(self) -> float:
+        """The odometry's time on the frame (tracking and mapping halves)."""
+        return self.time_track_s + self.time_map_s
 
 
 @dataclass
@@ -258,9 +267,14 @@ class _PyramidPool:
 class Odometry:
     """DSO-style odometry over a sequence (see the module text). ``geometry`` from :func:`geometry_for`."""
 
+    name = "DSO (mgso.odometry)"  # what the outputs call it
+
     def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str | None = None,
-                 observer: Observer | None = None, back_end: WindowBackEnd | None = None):
+                 observer: Observer | None = None, back_end: WindowBackEnd | None = None,
+                 emit_messages: bool = False):
         self.config = config or Config()
+        self.emit_messages = bool(emit_messages)
+        self._outbox: list = []  # mapper messages of the frame being processed (emit_messages)
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
@@ -300,6 +314,13 @@ class Odometry:
         self._prev_image: np.ndarray | None = None  # the previous frame's adjusted image (duplicate detection)
         self.num_duplicates = 0
 
+    @classmethod
+    def for_camera(cls, camera, config: Config, **kwargs) -> "Odometry":
+        """The odometry for an undistorted pinhole ``camera`` (``fx fy cx cy width height``, e.g. a sequence's
+        ``calibration.output``); ``kwargs`` as for the constructor (``device``, ``observer``, ``emit_messages``)."""
+        c = camera
+        return cls(geometry_for(c.width, c.height, c.fx, c.fy, c.cx, c.cy, config), config, **kwargs)
+
     # ------------------------------------------------------------------------------------------ public
     def process(self, frame) -> FrameResult:
         """Track and map one frame (deterministic order). ``frame``: :class:`mgso.io.Frame`-like (``index``,
@@ -307,8 +328,14 @@ class Odometry:
         tracked = self.track(frame)
         t0 = time.perf_counter()
         self.map(tracked)
-        tracked.result.time_map_s = time.perf_counter() - t0
-        return tracked.result
+        r = tracked.result
+        r.time_map_s = time.perf_counter() - t0
+        r.affine = tuple(float(v) for v in tracked.record.affine)
+        r.keyframe_id = int(tracked.record.keyframe_id)
+        r.exposure_ms = getattr(frame, "exposure_ms", None)
+        if self.emit_messages:
+            r.messages = tuple(self._drain())
+        return r
 
     def track(self, frame) -> TrackedFrame:
         """The tracking half: returns the message for :meth:`map`."""
@@ -359,15 +386,126 @@ class Odometry:
         finally:
             self._pool.release(tracked.pyramid)
 
-    def finish(self) -> None:
+    def finish(self) -> list:
         """End of the sequence: keyframes still in the window get their final pose, and every frame is re-chained to
-        its reference keyframe's final pose (DSO prints the trajectory this way)."""
+        its reference keyframe's final pose (DSO prints the trajectory this way). With ``emit_messages``, returns the
+        last messages for the mapper: what is still in the outbox, the final pose of every keyframe and the points
+        still active (as :class:`~mgso.mapping.messages.PointsMessage`); otherwise ``[]``."""
         w = self.window
         for s in w.order:
             kid = int(w.keyframe_id_[s])
             if kid in self.keyframes:
                 self.keyframes[kid].cam_to_world = w.cam_to_world(s)
         self._rechain_frames()
+        if not self.emit_messages:
+            return []
+        from .mapping.messages import PointsMessage, PoseUpdate
+
+        out = self._drain()
+        kt = self.keyframe_trajectory()
+        ids = sorted(self.keyframes)
+        if ids:
+            out.append(PoseUpdate({k: T for k, T in zip(ids, kt.cam_to_world)}))
+        if w.active.n:
+            seg = int(w.segment_[w.order[-1]]) if w.order else self.segment
+            pos = self._world_points(w.points_world(), seg)
+            hosts = w.keyframe_id_[w.active.host]
+            for h in np.unique(hosts):
+                out.append(PointsMessage(pos[hosts == h], w.active.rgb[hosts == h], host_keyframe_id=int(h)))
+        return out
+
+    # ------------------------------------------------------------------------------- mapper messages
+    # With ``emit_messages`` the odometry speaks the mapper's language (:mod:`mgso.mapping.messages`) itself: it
+    # owns the window whose images, affine parameters and points the messages carry.
+    def _world_points(self, positions: np.ndarray, segment: int) -> np.ndarray:
+        S = self.segment_similarity(segment)
+        return np.asarray(positions, np.float64) @ S[:3, :3].T + S[:3, 3]
+
+    def _message_camera(self):
+        from .camera import PinholeCamera
+
+        g = self.geometry
+        c = g.camera
+        return PinholeCamera(c.fx, c.fy, c.cx, c.cy, g.width, g.height)
+
+    # Events are queued as they happen and turned into messages when the frame is done (:meth:`_drain`), so that a
+    # keyframe's message carries the window's state after the whole frame (the first keyframe's points after the
+    # window's first optimisation).
+    def _emit_keyframe(self, keyframe_id: int, rec: FrameRecord, cam_to_world_world: np.ndarray) -> None:
+        if self.emit_messages:
+            self._outbox.append(("keyframe", (keyframe_id, rec, np.array(cam_to_world_world, np.float64))))
+
+    def _keyframe_message(self, keyframe_id: int, rec: FrameRecord, c2w: np.ndarray):
+        """A :class:`~mgso.mapping.messages.KeyframeMessage`: the keyframe's RGB and camera in the odometry's image
+        geometry (the pyramid crop), its pose in the common world, DSO's affine (a, b) and exposure time, and every
+        active point of the window (depth refined by the window) projected into it (the depth map the coarse
+        tracker tracks against; a new keyframe hosts no point with a depth yet)."""
+        from .mapping.messages import KeyframeMessage
+
+        w = self.window
+        try:
+            slot = w.slot_of_keyframe(keyframe_id)
+        except KeyError:  # marginalised within its own frame (cannot happen with DSO's rule; be safe)
+            log.warning("keyframe %d left the window before it reached the map", keyframe_id)
+            return None
+        if w.rgb_ is None:
+            raise RuntimeError("the odometry's window keeps no RGB images: the map needs them")
+        pts = self._world_points(w.points_world(), rec.segment) if w.active.n else np.zeros((0, 3))
+        T = se3_inverse(c2w)
+        pc = pts @ T[:3, :3].T + T[:3, 3]
+        cam = self._message_camera()
+        ok = pc[:, 2] > 1e-6
+        z = np.where(ok, pc[:, 2], 1.0)
+        uv = np.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+        exposure = float(w.exposure_[slot])
+        return KeyframeMessage(keyframe_id, rec.index, rec.timestamp, w.rgb_[slot], cam, c2w, uv[ok], 1.0 / z[ok],
+                               affine=tuple(w.affine_[slot]), exposure_ms=exposure if exposure > 0 else None,
+                               segment=rec.segment)
+
+    def _emit_window(self, keyframe_ids: list[int], cam_to_world: np.ndarray) -> None:
+        if self.emit_messages:
+            self._outbox.append(("window", (list(keyframe_ids), np.array(cam_to_world, np.float64))))
+
+    def _pose_update(self, keyframe_ids: list[int], cam_to_world: np.ndarray):
+        from .mapping.messages import PoseUpdate
+
+        w = self.window
+        aff = {}
+        for kid in keyframe_ids:
+            try:
+                aff[int(kid)] = tuple(w.affine_[w.slot_of_keyframe(int(kid))])
+            except KeyError:  # left the window since: its affine is the one the map has
+                pass
+        return PoseUpdate({int(k): T for k, T in zip(keyframe_ids, cam_to_world)}, affine=aff)
+
+    def _emit_points(self, marg: MarginalizedPoints) -> None:
+        if self.emit_messages and len(marg):
+            self._outbox.append(("points", marg))
+
+    def _points_messages(self, marg: MarginalizedPoints) -> list:
+        from .mapping.messages import PointsMessage
+
+        pos = self._world_points(marg.positions, marg.segment)
+        hosts = np.asarray(marg.host_keyframe_ids)
+        cols = np.asarray(marg.colors)
+        return [PointsMessage(pos[hosts == h], cols[hosts == h], host_keyframe_id=int(h)) for h in np.unique(hosts)]
+
+    def _drain(self) -> list:
+        """The queued events as mapper messages, keyframes first (DSO decides a keyframe's window update and the
+        points it marginalises before it announces the keyframe; the map needs the view before its poses)."""
+        events, self._outbox = self._outbox, []
+        kfs, rest = [], []
+        for kind, ev in events:
+            if kind == "keyframe":
+                msg = self._keyframe_message(*ev)
+                if msg is not None:
+                    kfs.append(msg)
+            elif kind == "window":
+                rest.append(self._pose_update(*ev))
+            else:
+                rest += self._points_messages(ev)
+        return kfs + rest
 
     def segment_similarity(self, segment: int) -> np.ndarray:
         """4x4 similarity ``[[s R, t], [0, 1]]`` from a segment's frame to the common world (identity for 0)."""
@@ -494,6 +632,7 @@ class Odometry:
         self.observer.on_keyframe(KeyframeEvent(kid0, first_rec.index, first_rec.timestamp, self.segment,
                                                 self.to_world(self.segment, c2w_first), KeyframeReason.FIRST.value,
                                                 None, 0, w.describe()))
+        self._emit_keyframe(kid0, first_rec, self.to_world(self.segment, c2w_first))
         rec = tracked.record
         rec.cam_to_tracking_ref = se3_inverse(first_to_new)
         rec.tracking_ref = kid0
@@ -655,6 +794,7 @@ class Odometry:
         if w.active.n:
             pts = w.marginalize_points(np.ones(w.active.n, bool))
             self.observer.on_points_marginalized(pts)
+            self._emit_points(pts)
         w.clear()
         self.tracker.set_reference(None)
         with self._ref_lock:
@@ -707,6 +847,7 @@ class Odometry:
         marg = self.back_end.marginalize_points(w)
         if len(marg):
             self.observer.on_points_marginalized(marg)
+            self._emit_points(marg)
         n_new = make_immature_points(w, slot, self.selector, cfg.immature_density,
                                      grad_c2=cfg.outlier_th_sum_component, recursions=cfg.selector_recursions)
         removed = self.back_end.marginalize_frames(w)
@@ -716,11 +857,13 @@ class Odometry:
         self.observer.on_keyframe(KeyframeEvent(kid, rec.index, rec.timestamp, self.segment,
                                                 self.to_world(self.segment, rec.cam_to_world), tracked.reason, act,
                                                 n_new, w.describe()))
+        self._emit_keyframe(kid, rec, self.to_world(self.segment, rec.cam_to_world))
         S = self.segment_similarity(self.segment)
+        ids = [int(w.keyframe_id_[s]) for s in w.order]
+        poses = np.stack([self.to_world(self.segment, w.cam_to_world(s)) for s in w.order])
         self.observer.on_window_optimized(WindowUpdate(
-            [int(w.keyframe_id_[s]) for s in w.order],
-            np.stack([self.to_world(self.segment, w.cam_to_world(s)) for s in w.order]),
-            (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
+            ids, poses, (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
+        self._emit_window(ids, poses)
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
 

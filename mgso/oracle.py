@@ -1,6 +1,6 @@
 """An oracle odometry: ground-truth poses and depths in place of DSO, with optional noise (tests and profiles).
 
-:class:`OracleOdometry` satisfies :class:`mgso.system.Odometry` from what a dataset knows: every frame's
+:class:`OracleOdometry` satisfies :class:`mgso.system.OdometrySource` from what a dataset knows: every frame's
 ground-truth ``cam_to_world`` and a depth map. It emits the messages DSO would emit, so the mapper and the system
 can be tested and measured apart from tracking:
 
@@ -10,7 +10,7 @@ can be tested and measured apart from tracking:
 - the keyframe's pose with a random error (``pose_noise_m``, ``pose_noise_rad``, per axis) when it is made, then the
   exact pose in a :class:`~mgso.mapping.messages.PoseUpdate` at the next keyframe (the window refined it), for the
   keyframes of a ``window`` of the newest ones;
-- a keyframe leaving the window marginalises its points (:class:`~mgso.mapping.messages.MarginalizedPoints`, world
+- a keyframe leaving the window marginalises its points (:class:`~mgso.mapping.messages.PointsMessage`, world
   positions at the exact pose, colours over DSO's pattern); :meth:`finish` marginalises the rest.
 
 Non-keyframes keep their noisy pose in :meth:`trajectory`; keyframes get the exact one. The affine brightness is
@@ -35,7 +35,7 @@ import numpy as np
 from mgso.camera import PinholeCamera
 from mgso.geometry import orthonormalize, se3_exp
 from mgso.io.trajectory import Trajectory
-from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PointKind, PoseUpdate
+from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate
 from mgso.mapping.seeding import backproject, sample_pattern_colors
 from mgso.system import OdometryFrame
 
@@ -152,10 +152,10 @@ class OracleOdometry:
             idepth = np.maximum(idepth * (1.0 + self.idepth_noise * rng.standard_normal(len(z))), 1e-6)
         return xy.astype(np.float64), idepth
 
-    def _marginalize(self, entry) -> MarginalizedPoints:
+    def _marginalize(self, entry) -> PointsMessage:
         kid, _, T, uv, idepth, colors = entry
         pts = backproject(uv, 1.0 / idepth, self.camera, T) if len(uv) else np.zeros((0, 3))
-        return MarginalizedPoints(pts, colors, host_keyframe_id=kid)
+        return PointsMessage(pts, colors, host_keyframe_id=kid)
 
     def process(self, frame) -> OdometryFrame:
         t0 = time.perf_counter()

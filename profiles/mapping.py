@@ -60,7 +60,7 @@ class Recording:
 
 
 class ReplayOdometry:
-    """An :class:`mgso.system.Odometry` that plays a :class:`Recording` back (``process`` ignores the frame)."""
+    """An :class:`mgso.system.OdometrySource` that plays a :class:`Recording` back (``process`` ignores the frame)."""
 
     def __init__(self, rec: Recording):
         self.rec = rec
@@ -82,25 +82,38 @@ class ReplayOdometry:
         return self.rec.keyframe_trajectory
 
 
+RECORDING_FORMAT = 2   # 2: OdometryFrame values and PointsMessage (was: DsoOdometry's frames, MarginalizedPoints)
+
+
 def _odometry_key(cfg, seq_path: str) -> str:
     from mgso.config import config_to_dict
 
     d = config_to_dict(cfg)
     keep = {k: d[k] for k in ("input", "tracking", "window", "runtime") if k in d}
     keep["runtime"] = {k: v for k, v in keep["runtime"].items() if k not in ("threads", "blas_threads")}
-    h = hashlib.sha1(json.dumps([str(Path(seq_path).resolve()), keep], sort_keys=True, default=str).encode())
+    # RECORDING_FORMAT: the recorded classes' layout (a recording of another layout is made again)
+    h = hashlib.sha1(json.dumps([str(Path(seq_path).resolve()), keep, RECORDING_FORMAT], sort_keys=True,
+                                default=str).encode())
     return h.hexdigest()[:16]
 
 
 def record(seq, cfg, device, cache: Path, seq_path: str) -> Recording:
-    from mgso.system import DsoOdometry
+    from mgso.mapping.messages import KeyframeMessage
+    from mgso.odometry import Odometry
+    from mgso.system import OdometryFrame
 
     path = cache / f"{seq.name}-{_odometry_key(cfg, seq_path)}.pkl"
     if path.is_file():
         with open(path, "rb") as fh:
             return pickle.load(fh)
-    odo = DsoOdometry(seq.calibration.output, cfg, device=device)
-    frames = [odo.process(f) for f in seq.frames()]
+    odo = Odometry.for_camera(seq.calibration.output, cfg, device=device, emit_messages=True)
+    frames = []
+    for f in seq.frames():   # the frame's values only (a FrameResult holds the tracker's results too)
+        r = odo.process(f)
+        frames.append(OdometryFrame(r.index, r.timestamp, r.cam_to_world,
+                                    is_keyframe=any(isinstance(m, KeyframeMessage) for m in r.messages),
+                                    affine=r.affine, exposure_ms=r.exposure_ms, status=r.status.value,
+                                    messages=r.messages, seconds=r.seconds))
     final = list(odo.finish())
     rec = Recording(frames, final, odo.trajectory(), odo.keyframe_trajectory(), odo.name)
     cache.mkdir(parents=True, exist_ok=True)
@@ -116,7 +129,7 @@ def with_true_poses(rec: Recording, gt) -> Recording:
     keyframe and scaled by the Sim(3) alignment's scale (DSO's arbitrary scale -> metres)."""
     from mgso.eval import compute_ate
     from mgso.io.trajectory import Trajectory
-    from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PoseUpdate
+    from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
 
     al = compute_ate(rec.trajectory, gt, align="sim3", max_diff=0.01)
     s = float(al.alignment.scale)
@@ -147,7 +160,7 @@ def with_true_poses(rec: Recording, gt) -> Recording:
                         kf_pose[k] = T
                 poses = {k: kf_true[k] for k in m.cam_to_world if k in kf_true}
                 out.append(PoseUpdate(poses, affine=dict(m.affine)))
-            elif isinstance(m, MarginalizedPoints):
+            elif isinstance(m, PointsMessage):
                 h = m.host_keyframe_id
                 if h not in kf_pose:
                     continue
@@ -181,7 +194,8 @@ def _one(args) -> dict:
     from mgso.config import load_config, save_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
-    from mgso.system import System, write_outputs
+    from mgso.app.full import write_outputs
+    from mgso.system import System
     from mgso_kernels import runtime
 
     over = [f"runtime.device={args.device}", "system.mode=deterministic", "system.eval_photo_slam=false",

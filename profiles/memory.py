@@ -7,7 +7,7 @@ camera moving through the room) and quantised to 8 bits as a PNG reader would gi
 and the source's own memory is constant. Each part runs in its own subprocess, so that its memory is its own:
 
 - ``odometry``: :class:`mgso.odometry.Odometry` driven as the ``odometry`` stage of ``mgso run`` drives it (the
-  ``bundle`` back end; every frame's :class:`~mgso.odometry.FrameResult` kept for the stage's figures), then
+  ``bundle`` back end; what the stage keeps of every frame for its figures: its status and two times), then
   ``finish()`` and the two outputs' arrays (the trajectory, the point cloud in the world);
 - ``system``: :class:`mgso.system.System` in deterministic mode with the DSO odometry speaking the mapper's messages
   (as the ``full`` stage runs it), with a small mapping budget (``--iterations-per-keyframe``,
@@ -230,14 +230,15 @@ def path_check(spec) -> dict:
 
 # ------------------------------------------------------------------------------------------- containers
 def _cloud_figures(cloud) -> dict:
-    """The window's marginalised point cloud (mgso.window.window.PointCloud): points and the bytes of its chunks
-    and of its concatenated copy (kept once read)."""
+    """The window's marginalised point cloud (mgso.window.window.PointCloud): points and the bytes of the chunks
+    not yet folded in and of the folded arrays."""
     chunks = getattr(cloud, "_chunks", [])
     chunk_bytes = sum(sum(a.nbytes for a in (c.positions, c.colors, c.point_ids, c.host_keyframe_ids))
                       for c in chunks)
-    cache = getattr(cloud, "_cache", None)
-    cache_bytes = sum(a.nbytes for a in cache) if cache else 0
-    return {"points": len(cloud), "chunks": len(chunks), "bytes": chunk_bytes, "cache_bytes": cache_bytes}
+    base = getattr(cloud, "_base", None)
+    base_bytes = sum(a.nbytes for a in base) if base else 0
+    return {"points": len(cloud), "chunks": len(chunks), "bytes": chunk_bytes + base_bytes,
+            "folded_bytes": base_bytes}
 
 
 def odometry_containers(odo, results=None) -> dict:
@@ -335,13 +336,14 @@ def run_odometry(args) -> dict:
     k = spec.intrinsics
     geo = geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg)
     odo = Odometry(geo, cfg, device=device)
-    results = []  # the tracking stage keeps every frame's result for its figures (frames.csv is written as it goes)
+    results = []  # what the tracking stage keeps of a frame for its figures (frames.csv is written as it goes)
     sampler = Sampler("odometry", lambda: odometry_containers(odo, results))
     sampler.sample(0, "start")
     t0 = time.perf_counter()
     n = 0
     for frame in _sampled(frames, args.every, sampler):
-        results.append(odo.process(frame))
+        r = odo.process(frame)
+        results.append((r.status, r.time_track_s, r.time_map_s))
         n += 1
     loop_s = time.perf_counter() - t0
     odo.finish()
@@ -359,21 +361,12 @@ def run_odometry(args) -> dict:
 
 
 def _dso_for_system(k, cfg, device):
-    """``(the system's odometry, the DSO odometry inside it)``: :class:`mgso.odometry.Odometry` speaking the mapper's
-    messages itself (``emit_messages``, issue 14), or, in a tree from before that, the adapter
-    ``mgso.system.DsoOdometry`` around it."""
-    try:
-        from mgso.system import DsoOdometry
-    except ImportError:
-        from mgso.odometry import Odometry, geometry_for
+    """``(the system's odometry, the DSO odometry inside it)``: one object, :class:`mgso.odometry.Odometry` speaking
+    the mapper's messages itself (``emit_messages``), as the full stage makes it."""
+    from mgso.odometry import Odometry
 
-        geo = geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg)
-        odo = Odometry(geo, cfg, device=device, emit_messages=True)
-        return odo, odo
-    from mgso.camera import PinholeCamera
-
-    adapter = DsoOdometry(PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height), cfg, device=device)
-    return adapter, adapter.dso
+    odo = Odometry.for_camera(k, cfg, device=device, emit_messages=True)
+    return odo, odo
 
 
 def run_system_part(args) -> dict:

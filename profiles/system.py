@@ -43,7 +43,8 @@ def _one(args) -> dict:
     from mgso.config import load_config, save_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
-    from mgso.system import System, write_outputs
+    from mgso.app.full import write_outputs
+    from mgso.system import System
     from mgso_kernels import runtime
 
     over = [f"runtime.device={args.device}", f"mapping.mapper.init={args.init}",
@@ -64,10 +65,10 @@ def _one(args) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
     if args.odometry == "dso":
-        from mgso.system import DsoOdometry
+        from mgso.odometry import Odometry
 
         odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
-        odo = DsoOdometry(seq.calibration.output, cfg, device=odo_device)
+        odo = Odometry.for_camera(seq.calibration.output, cfg, device=odo_device, emit_messages=True)
     else:
         try:
             odo = OracleOdometry.from_sequence(seq, keyframe_every=args.keyframe_every, points=args.points,
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
     ap.add_argument("paths", nargs="*", help="sequences (default: the shared 7-Scenes and KITTI excerpts)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--odometry", default="oracle", choices=["oracle", "dso"],
-                    help="dso: mgso.odometry through mgso.system.DsoOdometry; oracle: ground truth")
+                    help="dso: mgso.odometry.Odometry (emit_messages); oracle: ground truth")
     ap.add_argument("--init", default="dso", choices=["dso", "random"])
     ap.add_argument("--downscale", type=int, default=2, help="divide the image size (2: 320x240 for 7-Scenes)")
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (0 = all)")

@@ -9,7 +9,7 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
   then add the keyframe as a training view with its exposure (below);
 - :class:`~mgso.mapping.messages.PoseUpdate`: move the views of refined keyframes (the map follows the odometry;
   the odometry never waits for the map);
-- :class:`~mgso.mapping.messages.MarginalizedPoints`: seed from points with their final depth, seen from their host
+- :class:`~mgso.mapping.messages.PointsMessage`: seed from points with their final depth, seen from their host
   keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived);
 - :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
   keyframes) unless the run was interrupted, and stop.
@@ -51,7 +51,7 @@ import numpy as np
 from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
-from mgso.mapping.messages import KeyframeMessage, MapperMessage, MarginalizedPoints, PoseUpdate, Stop, map_exposure
+from mgso.mapping.messages import KeyframeMessage, MapperMessage, PointsMessage, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
                                   plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.strategy import DefaultStrategy
@@ -76,7 +76,7 @@ class MapperStats:
     pose_updates: int = 0                   # PoseUpdate messages applied
     poses_applied: int = 0                  # keyframe poses moved by them
     poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
-    point_messages: int = 0                 # MarginalizedPoints messages
+    point_messages: int = 0                 # PointsMessage messages
     points_received: int = 0
     gaussians_seeded: int = 0               # added by seeding (keyframes and marginalised points)
     seeds_skipped_too_few: int = 0          # seedings that added nothing (fewer than min_new_gaussians survived)
@@ -179,7 +179,7 @@ class Mapper:
         """Put ``msg`` on the queue. When it is full: in real time the caller waits for room (counted in
         ``stats.queue_waits`` / ``queue_wait_seconds``); in deterministic mode the pending messages are applied
         first. Raises :class:`MapperError` if the mapping thread has failed."""
-        if not isinstance(msg, (KeyframeMessage, PoseUpdate, MarginalizedPoints, Stop)):
+        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, Stop)):
             raise TypeError(f"Mapper.submit: expected a mapper message, got {type(msg).__name__}")
         self._raise_if_failed()
         depth = self.queue.qsize()
@@ -304,7 +304,7 @@ class Mapper:
             self._on_keyframe(msg)
         elif isinstance(msg, PoseUpdate):
             self._on_pose_update(msg)
-        elif isinstance(msg, MarginalizedPoints):
+        elif isinstance(msg, PointsMessage):
             self._on_points(msg)
         elif isinstance(msg, Stop):
             raise ValueError("Mapper.handle: Stop ends the stream (use stop())")
@@ -360,7 +360,7 @@ class Mapper:
             self.views.set_exposure(kid, view.exposure[0] + new[0] - old[0], view.exposure[1] + new[1] - old[1])
             self._dso_exposure[kid] = new
 
-    def _on_points(self, msg: MarginalizedPoints) -> None:
+    def _on_points(self, msg: PointsMessage) -> None:
         self.stats.point_messages += 1
         self.stats.points_received += len(msg)
         if not self.cfg.seed_marginalized or len(msg) == 0 or msg.host_keyframe_id not in self.views:

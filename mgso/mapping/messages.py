@@ -8,7 +8,7 @@ on the mapper's bounded queue, and the mapper (:mod:`mgso.mapping.mapper`) appli
   Gaussians from the points where the map is still empty and adds the keyframe as a training view.
 - :class:`PoseUpdate`: the window refined keyframes that already reached the map: new ``cam_to_world`` (and
   affine) per keyframe id. The mapper moves the training views (the map follows the odometry).
-- :class:`MarginalizedPoints`: points left the window for good (final depth): world positions, colours, the host
+- :class:`PointsMessage`: points left the window for good (final depth): world positions, colours, the host
   keyframe. They join the DSO point cloud (``points.ply``), and the mapper seeds from them as from a keyframe's
   points (where the map is still empty, seen from the host keyframe).
 - :class:`Stop`: the end of the stream (``refine``: run the final refinement first; an interrupted run does not).
@@ -35,7 +35,7 @@ from mgso.camera import PinholeCamera
 from mgso.geometry import orthonormalize
 from mgso.mapping.seeding import KeyframeSeedInput, PointKind, _frozen_array as _frozen, check_points
 
-__all__ = ["KeyframeMessage", "PoseUpdate", "MarginalizedPoints", "Stop", "MapperMessage", "PointKind",
+__all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "Stop", "MapperMessage", "PointKind",
            "map_exposure"]
 
 
@@ -202,7 +202,7 @@ class PoseUpdate:
 
 
 @dataclass(frozen=True, eq=False)
-class MarginalizedPoints:
+class PointsMessage:
     """Points that left the window for good: ``points`` (N, 3) world positions, ``colors`` (N, 3) RGB in [0, 1]
     (DSO: the mean over the pattern), ``host_keyframe_id`` (the keyframe they were hosted by; -1 when they are not
     from one keyframe), optional ``idepths`` (N,) in the host and ``weights`` (N,)."""
@@ -213,7 +213,7 @@ class MarginalizedPoints:
     weights: np.ndarray | None = None
 
     def __post_init__(self):
-        where = f"MarginalizedPoints(host {self.host_keyframe_id})"
+        where = f"PointsMessage(host {self.host_keyframe_id})"
         p = np.array(self.points, dtype=np.float64)
         if p.size == 0:
             p = p.reshape(0, 3)
@@ -246,4 +246,4 @@ class Stop:
     refine: bool = True
 
 
-MapperMessage = Union[KeyframeMessage, PoseUpdate, MarginalizedPoints, Stop]
+MapperMessage = Union[KeyframeMessage, PoseUpdate, PointsMessage, Stop]

@@ -306,31 +306,31 @@ class MarginalizedPoints:
 
 
 class PointCloud:
-    """The marginalised points of the whole run (append only; grows in chunks, concatenated when read)."""
+    """The marginalised points of the whole run (append only; grows in chunks, folded into one set of arrays when
+    read, so that the points are held once: profiles/memory.py measured a second copy when the chunks were kept
+    beside their concatenation)."""
 
     def __init__(self):
         self._chunks: list[MarginalizedPoints] = []
-        self._cache: tuple | None = None
+        self._base: tuple = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
+                             np.zeros(0, np.int64))
 
     def append(self, pts: MarginalizedPoints) -> None:
         if len(pts):
             self._chunks.append(pts)
-            self._cache = None
 
     def __len__(self) -> int:
-        return sum(len(c) for c in self._chunks)
+        return int(self._base[0].shape[0]) + sum(len(c) for c in self._chunks)
 
     def _cat(self):
-        if self._cache is None:
-            if not self._chunks:
-                self._cache = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                               np.zeros(0, np.int64), np.zeros(0, np.int64))
-            else:
-                self._cache = (np.concatenate([c.positions for c in self._chunks]),
-                               np.concatenate([c.colors for c in self._chunks]),
-                               np.concatenate([c.point_ids for c in self._chunks]),
-                               np.concatenate([np.full(len(c), c.segment, np.int64) for c in self._chunks]))
-        return self._cache
+        if self._chunks:
+            ch, self._chunks = self._chunks, []
+            b = self._base
+            self._base = (np.concatenate([b[0]] + [c.positions for c in ch]),
+                          np.concatenate([b[1]] + [c.colors for c in ch]),
+                          np.concatenate([b[2]] + [c.point_ids for c in ch]),
+                          np.concatenate([b[3]] + [np.full(len(c), c.segment, np.int64) for c in ch]))
+        return self._base
 
     @property
     def positions(self) -> np.ndarray:

@@ -13,7 +13,7 @@ from mgso.camera import PinholeCamera
 from mgso.config import ConfigError, load_config
 from mgso.geometry import se3_exp, se3_inverse
 from mgso.mapping.mapper import Mapper, MapperError
-from mgso.mapping.messages import KeyframeMessage, MarginalizedPoints, PointKind, PoseUpdate, Stop, map_exposure
+from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import backproject
 
 
@@ -68,7 +68,7 @@ def test_messages_check_their_fields(seq, cam):
     with pytest.raises(ValueError, match=r"PoseUpdate.cam_to_world\[3\]"):
         PoseUpdate({3: np.ones((4, 4))})
     with pytest.raises(ValueError, match="colors"):
-        MarginalizedPoints(np.zeros((4, 3)), np.zeros((3, 3)), 0)
+        PointsMessage(np.zeros((4, 3)), np.zeros((3, 3)), 0)
     drift = np.eye(4)
     drift[:3, :3] += 1e-3 * np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, 1.0]])   # round-off of a chain
     m = KeyframeMessage(0, 0, 0.0, seq.images[0], cam, drift, m.points_uv, m.idepths)
@@ -166,8 +166,8 @@ def test_marginalized_points_seed_only_where_the_map_is_empty(wp_device, seq, ca
     n0 = mp.gmap.n
     pts = backproject(kf.points_uv, 1.0 / kf.idepths, cam, kf.cam_to_world)
     cols = np.full((len(pts), 3), 0.5, np.float32)
-    mp.submit(MarginalizedPoints(pts, cols, host_keyframe_id=0))
-    mp.submit(MarginalizedPoints(pts, cols, host_keyframe_id=99))      # unknown host: cloud only
+    mp.submit(PointsMessage(pts, cols, host_keyframe_id=0))
+    mp.submit(PointsMessage(pts, cols, host_keyframe_id=99))      # unknown host: cloud only
     mp.process_pending()
     res = mp.stats.seed_results[-1]
     added = mp.gmap.n - n0
