@@ -5,7 +5,7 @@ import json
 import pytest
 
 from mgso import synthetic
-from mgso.cli import main
+from mgso.app.cli import main
 from mgso.io.trajectory import read_tum
 
 

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from mgso import synthetic
-from mgso.cli import main
+from mgso.app.cli import main
 from mgso.config import load_config
 from mgso.geometry import se3_inverse
 from mgso.io import open_sequence

@@ -22,7 +22,8 @@ from mgso.io import open_sequence
 from mgso.io.ply import read_gaussians_ply, read_point_cloud_ply
 from mgso.io.trajectory import read_tum
 from mgso.oracle import OracleOdometry
-from mgso.system import METRICS_KEYS, System, write_outputs
+from mgso.app.full import METRICS_KEYS, write_outputs
+from mgso.system import System, SystemRunError
 
 # Small CPU-sized runs: 96x72 images, a keyframe every 4 frames, 15 mapping steps a keyframe, 60 final steps.
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=true"]
@@ -250,7 +251,8 @@ SIGINT_SCRIPT = textwrap.dedent("""
     from mgso.config import load_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
-    from mgso.system import System, write_outputs
+    from mgso.app.full import write_outputs
+    from mgso.system import System
     from mgso_kernels import runtime
 
     class Slow:
@@ -296,7 +298,8 @@ def test_sigint_in_a_subprocess_writes_outputs(room, tmp_path):
 
 def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
     """The runner's path of `mgso run` (progress observer, outputs, summary lines), with the oracle odometry."""
-    from mgso.runner import run_system
+    from mgso.app.stages import run_system
+    from mgso.app.writer import RunWriter
 
     cfg = load_config(None, [*BASE, "mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=5",
                              "system.eval_photo_slam=false"])
@@ -314,7 +317,7 @@ def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
         def close(self):
             pass
 
-    s = run_system(seq, cfg, tmp_path, OracleOdometry.from_sequence(seq, **ORACLE), odometry_name="oracle",
+    s = run_system(seq, cfg, RunWriter(tmp_path), OracleOdometry.from_sequence(seq, **ORACLE), odometry_name="oracle",
                    progress=Bar)
     assert s.ok and s.frames == 24 and bars[0].n == 24 and bars[0].total == 24
     assert any(b.desc == "eval monogs" and b.n == b.total == 3 for b in bars)
@@ -369,24 +372,28 @@ class _Broken:
         return getattr(self.odo, name)
 
 
-def test_an_odometry_failure_stops_the_mapping_thread_and_propagates(room):
+def test_an_odometry_failure_stops_the_mapping_thread_and_propagates_with_what_was_done(room):
     cfg = load_config(None, [*BASE, "system.mode=realtime", "system.playback_speed=0"])
     seq = open_sequence(str(room), config=cfg.input)
     system = System(_Broken(OracleOdometry.from_sequence(seq, **ORACLE)), cfg)
-    with pytest.raises(RuntimeError, match="odometry broke"):
+    with pytest.raises(SystemRunError, match="odometry broke") as info:
         _in_thread(lambda: system.run(seq.frames()), timeout=60)
+    assert isinstance(info.value.error, RuntimeError) and info.value.__cause__ is info.value.error
     assert not system.mapper.running and system.mapper.stats.stopped_by == "interrupt"
+    partial = info.value.result          # frames 0-5 were done before frame 6 broke
+    assert partial.frames_processed == 6 and len(partial.trajectory) == 6 and not partial.interrupted
 
 
 def test_full_stage_runs_dso_and_the_mapper_end_to_end(tmp_path):
     """`mgso run --stage full` (the default): the real DSO odometry feeding the mapper on the synthetic room. The
     trajectory is checked against the scene's exact poses and the map against held-out frames."""
-    from mgso.runner import run_sequence
+    from mgso.app.stages import run_sequence
+    from mgso.app.writer import RunWriter
 
     folder = synthetic.cached_sequence_folder(num_frames=60, width=128, height=96, seed=0)
     cfg = load_config(None, [*BASE, "output.plot=false", "system.eval_photo_slam=false"])
     seq = open_sequence(str(folder), config=cfg.input)
-    s = run_sequence(seq, cfg, tmp_path, stage="full")
+    s = run_sequence(seq, cfg, RunWriter(tmp_path), stage="full")
     assert s.ok and s.frames == 60
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     gt = read_tum(tmp_path / "groundtruth.txt")

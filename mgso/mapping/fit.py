@@ -3,15 +3,15 @@
 :func:`fit_sequence` splits the sequence's frames into training views and held-out frames (every
 ``mapping.train.holdout_every``-th frame, never trained on), makes the initial Gaussians (random points in the
 training views' frusta, or a PLY), trains with :class:`~mgso.mapping.trainer.Trainer` for
-``mapping.train.iterations`` steps, then renders the held-out frames at their poses and writes into the output
-folder:
+``mapping.train.iterations`` steps, then renders the held-out frames at their poses and writes through the run
+writer it is given (:class:`mgso.app.writer.RunWriter`: ``write_gaussians``, ``write_image``, ``write_metrics``):
 
 - ``map.ply``: the map in the standard 3DGS layout (:mod:`mgso.io.ply`);
 - ``renders/NNNNNN.png`` and ``gt/NNNNNN.png``: each held-out frame's render and its image (frame index of the
   sequence selection; 3DGS's ``renders`` / ``gt`` folders);
 - ``metrics.json``: PSNR / SSIM of the held-out frames (``mgso.eval``, protocol "held-out every 5th frame"),
   Gaussians, times, iterations and iterations per second, views used, the initial cloud;
-- ``config.yaml``: the full configuration used.
+- ``config.yaml``: the full configuration used (written by the caller, before the work).
 
 The poses are the sequence's ground truth (``open_sequence(..., groundtruth=FILE)`` replaces it by a trajectory file,
 e.g. one estimated by ``mgso run``). Frames without a pose are left out (logged).
@@ -25,14 +25,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 
-from mgso.config import Config, save_config
+from mgso.config import Config
 from mgso.eval.render_metrics import RenderMetrics, RenderProtocol, evaluate_renders
-from mgso.eval.report import write_metrics_json
 from mgso.geometry import orthonormalize, se3_inverse
-from mgso.io.ply import PlyError, read_gaussians_ply, read_point_cloud_ply, write_gaussians_ply
+from mgso.io.ply import PlyError, read_gaussians_ply, read_point_cloud_ply
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap, num_sh_coeffs
 from mgso.mapping.init import gaussians_from_points, random_frustum_points
 from mgso.mapping.trainer import StepResult, Trainer, TrainSummary
@@ -83,16 +81,6 @@ def _pose(seq, i: int) -> np.ndarray | None:
     T = np.array(T, dtype=np.float64)
     T[:3, :3] = orthonormalize(T[:3, :3])   # e.g. 7-Scenes' KinectFusion poses carry 4e-4 orthonormality error
     return T
-
-
-def _to_u8(rgb: np.ndarray) -> np.ndarray:
-    return np.clip(np.round(np.asarray(rgb, np.float64) * 255.0), 0, 255).astype(np.uint8)
-
-
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(_to_u8(rgb), cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write the PNG")
 
 
 def _fit_sh(arrays: GaussianArrays, degree: int, where: str) -> GaussianArrays:
@@ -192,10 +180,11 @@ def _no_progress(total: int, desc: str):
     return _NoBar()
 
 
-def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random", device: str | None = None,
+def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str | None = None,
                  progress: Callable[[int, str], object] | None = None,
                  on_step: Callable[[StepResult], object] | None = None) -> FitResult:
-    """Fit a map to ``seq`` (a :class:`mgso.io.Sequence` with poses) and write the outputs into ``out_dir``.
+    """Fit a map to ``seq`` (a :class:`mgso.io.Sequence` with poses) and write the outputs through ``writer`` (a
+    :class:`mgso.app.writer.RunWriter`, whose folder ``FitResult.out_dir`` is).
 
     ``cfg``: the full configuration (``mapping`` for the map and training, ``runtime`` for the device and seed);
     ``init``: ``"random"`` or a PLY path (see :func:`load_initial_gaussians`); ``device``: overrides
@@ -204,8 +193,7 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
     every training step.
     """
     t_start = time.perf_counter()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(writer.out)
     progress = progress or _no_progress
     mc, tc = cfg.mapping, cfg.mapping.train
     dev = runtime.init(device or cfg.runtime.device, threads=cfg.runtime.threads,
@@ -270,7 +258,7 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
     train_seconds = summary.seconds
 
     written: list[Path] = []
-    written.append(write_gaussians_ply(out / "map.ply", gmap.to_numpy()))
+    written.append(writer.write_gaussians(gmap.to_numpy()))
     metrics = None
     if held_pos:
         protocol = heldout_protocol(tc.holdout_every)
@@ -279,8 +267,8 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
             for i in held_pos:
                 gt = seq.load(i).rgb
                 rgb = trainer.render(cam, se3_inverse(poses[i]))
-                _write_png(out / "renders" / f"{i:06d}.png", np.clip(rgb, 0.0, 1.0))
-                _write_png(out / "gt" / f"{i:06d}.png", gt)
+                writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0.0, 1.0))
+                writer.write_image(f"gt/{i:06d}.png", gt)
                 yield rgb, gt
 
         metrics = evaluate_renders(pairs(), held_pos, protocol)
@@ -307,10 +295,7 @@ def fit_sequence(seq, cfg: Config, out_dir: str | Path, *, init: str = "random",
         "loss_window": n_loss,
         "sequence": {"path": str(seq.path), "layout": seq.layout, "frames": len(seq)},
     }
-    write_metrics_json(out / "metrics.json", renders=metrics, extra=figures)
-    written.append(out / "metrics.json")
-    save_config(cfg, out / "config.yaml")
-    written.append(out / "config.yaml")
+    written.append(writer.write_metrics(renders=metrics, extra=figures))
     return FitResult(out_dir=out, metrics=metrics, num_gaussians=int(gmap.n), iterations=int(summary.steps),
                      train_seconds=train_seconds, total_seconds=total_seconds, train_frames=train_pos,
                      heldout_frames=held_pos, summary=summary, figures=figures, written=written)

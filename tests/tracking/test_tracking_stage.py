@@ -5,9 +5,9 @@ import json
 import pytest
 
 from mgso import synthetic
-from mgso.cli import main
+from mgso.app.cli import main
 from mgso.io.trajectory import read_tum
-from mgso.runner import STAGE_HELP, STAGES
+from mgso.app.stages import STAGE_HELP, STAGES
 
 
 @pytest.fixture(scope="module")

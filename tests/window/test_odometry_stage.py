@@ -6,9 +6,9 @@ import pytest
 from plyfile import PlyData
 
 from mgso import synthetic
-from mgso.cli import main
+from mgso.app.cli import main
 from mgso.io.trajectory import read_tum
-from mgso.runner import STAGE_HELP, STAGES
+from mgso.app.stages import STAGE_HELP, STAGES
 
 
 @pytest.fixture(scope="module")

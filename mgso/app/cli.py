@@ -1,7 +1,11 @@
 """The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``.
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
-Every command that writes files takes ``--out DIR`` and writes the configuration it used there (``config.yaml``).
+Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
+prepare_out_dir`), writes through one :class:`~mgso.app.writer.RunWriter` and writes the configuration it used there
+(``config.yaml``). Exit codes, the same for every command and stage (README "Exit codes"): 0 done; 1 failed (an
+error, or no frame got a pose: the outputs of what was done are written); 2 usage; 128 + the signal's number when a
+signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP: the outputs of what was done are written).
 """
 
 from __future__ import annotations
@@ -9,17 +13,20 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
 from typing import Sequence
 
-from . import __version__
-from .config import Config, ConfigError, describe_config, load_config, save_config
+from mgso import __version__
+from mgso.config import Config, ConfigError, check_runtime, describe_config, load_config
+
+from .signals import StopState, exit_code_for
+from .stages import EXIT_FAILED, EXIT_OK, EXIT_USAGE
+from .writer import OutputError, RunWriter
 
 log = logging.getLogger("mgso")
-
-EXIT_OK, EXIT_USAGE, EXIT_FAILED = 0, 2, 1
 
 
 class CliError(Exception):
@@ -39,13 +46,9 @@ def _load_cfg(args) -> Config:
         overrides.append(f"runtime.device={args.device}")
     if getattr(args, "realtime", False):
         overrides.append("system.mode=realtime")
-    return load_config(getattr(args, "config", None), overrides)
-
-
-def _out_dir(path: str | None, default: Path) -> Path:
-    out = Path(path) if path else default
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+    cfg = load_config(getattr(args, "config", None), overrides)
+    check_runtime(cfg)
+    return cfg
 
 
 def _print(args, *lines: str) -> None:
@@ -63,7 +66,7 @@ def _progress(args, total: int, desc: str):
 
 
 def _open(path: str, calib: str | None, cfg: Config, groundtruth: str | None = None):
-    from .io import open_sequence
+    from mgso.io import open_sequence
 
     return open_sequence(path, calib=calib, config=cfg.input, groundtruth=groundtruth)
 
@@ -116,8 +119,8 @@ def cmd_info(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from .eval import compute_ate, compute_rpe, write_metrics_json, format_report
-    from .io.trajectory import read_trajectory
+    from mgso.eval import compute_ate, compute_rpe, format_report
+    from mgso.io.trajectory import read_trajectory
 
     est = read_trajectory(args.estimate)
     gt_path = Path(args.gt)
@@ -135,33 +138,42 @@ def cmd_eval(args) -> int:
     if args.rpe:
         rpe = compute_rpe(est, ref, align=args.align, max_diff=args.max_diff, delta=args.rpe_delta,
                           delta_unit=args.rpe_unit, label=args.label)
+    writer = RunWriter(args.out) if args.out else None    # a bad --out fails before any output
     _print(args, format_report(ate=ate, rpe=rpe))
-    if args.out:
-        out = _out_dir(args.out, Path("."))
-        write_metrics_json(out / "metrics.json", ate=ate, rpe=rpe)
+    if writer is not None:
+        writer.write_metrics(ate=ate, rpe=rpe)
         try:
-            from .eval import plot_trajectory
+            from mgso.eval import plot_trajectory
 
-            plot_trajectory(out / "trajectory.png", ate, reference=ref)
+            writer.write_with("trajectory.png", lambda p: plot_trajectory(p, ate, reference=ref))
         except ImportError as exc:
             log.warning("no plot: %s", exc)
-        _print(args, f"wrote {out / 'metrics.json'}")
+        _print(args, *(f"wrote {p}" for p in writer.written_paths()))
     if args.json:
         print(json.dumps(ate.as_dict(), default=str))
     return EXIT_OK
 
 
 def cmd_run(args) -> int:
-    from .runner import run_sequence
+    from .stages import run_sequence
 
     cfg = _load_cfg(args)
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
-    out = _out_dir(args.out, Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
-    save_config(cfg, out / "config.yaml")
-    _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {out}")
-    summary = run_sequence(seq, cfg, out, stage=args.stage, progress=lambda total, desc: _progress(args, total, desc))
+    writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    writer.write_config(cfg)
+    _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {writer.out}")
+    state = StopState()
+    summary = run_sequence(seq, cfg, writer, stage=args.stage, state=state,
+                           progress=lambda total, desc: _progress(args, total, desc))
     _print(args, *summary.lines())
-    return EXIT_OK if summary.ok else EXIT_FAILED
+    if summary.outcome == "failed":
+        # the reason on stderr too, in the one-line form of every other error
+        print(f"mgso {args.command}: error: {summary.error or 'no frame got a pose'} (outputs of what was done in "
+              f"{writer.out})", file=sys.stderr)
+    elif summary.outcome == "interrupted":
+        print(f"mgso {args.command}: {summary.signal or 'SIGINT'}: stopped after {summary.frames} frames; the "
+              f"outputs of what was done are in {writer.out}", file=sys.stderr)
+    return summary.exit_code
 
 
 #: The demo's mapping budget (a few minutes on a 2-core CPU; docs/mgso.md): fewer steps a keyframe than a recorded
@@ -172,7 +184,7 @@ DEMO_OVERRIDES = ("mapping.mapper.iterations_per_keyframe=30", "mapping.mapper.f
 
 
 def cmd_demo(args) -> int:
-    from .synthetic import cached_sequence_folder
+    from mgso.synthetic import cached_sequence_folder
 
     args.set = list(DEMO_OVERRIDES) + list(args.set or [])
     _load_cfg(args)                     # a bad --set fails before the scene is made
@@ -185,7 +197,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from .mapping.fit import fit_sequence
+    from mgso.mapping.fit import fit_sequence
 
     overrides = []
     if args.iterations is not None:
@@ -211,10 +223,11 @@ def cmd_fit(args) -> int:
     init = args.init
     if init != "random" and not Path(init).is_file():
         raise CliError(f"fit: --init {init}: no such file (give 'random' or a PLY file)")
-    out = _out_dir(args.out, Path("runs") / f"fit-{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    writer = RunWriter(args.out or Path("runs") / f"fit-{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    writer.write_config(cfg)
     size = seq.calibration.output.size
     _print(args, f"mgso {__version__} fit: {seq.layout} sequence {seq.name!r}, {len(seq)} frames at "
-                 f"{size[0]}x{size[1]}, {cfg.mapping.train.iterations} iterations, init {init} -> {out}")
+                 f"{size[0]}x{size[1]}, {cfg.mapping.train.iterations} iterations, init {init} -> {writer.out}")
 
     def progress(total: int, desc: str):
         from tqdm import tqdm
@@ -222,7 +235,7 @@ def cmd_fit(args) -> int:
         return tqdm(total=total, desc=desc, unit="frame" if desc == "load" else "it",
                     disable=getattr(args, "quiet", False), dynamic_ncols=True, file=sys.stderr)
 
-    result = fit_sequence(seq, cfg, out, init=init, progress=progress)
+    result = fit_sequence(seq, cfg, writer, init=init, progress=progress)
     _print(args, *result.lines())
     return EXIT_OK
 
@@ -244,7 +257,7 @@ def _common(p: argparse.ArgumentParser, *, config: bool = True) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .runner import DEFAULT_STAGE, STAGE_HELP, STAGES
+    from .stages import DEFAULT_STAGE, STAGE_HELP, STAGES
 
     parser = argparse.ArgumentParser(prog="mgso", description="Monocular SLAM with a Gaussian Splatting map "
                                                               "(DSO tracking + DSO-seeded 3DGS mapping).")
@@ -332,29 +345,36 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     _setup_logging(args.quiet, args.verbose)
-    from .camera import CalibrationError
-    from .io import DatasetError
-    from .io.trajectory import TrajectoryError
+    from mgso.camera import CalibrationError
+    from mgso.eval import EvaluationError
+    from mgso.io import DatasetError
+    from mgso.io.ply import PlyError
+    from mgso.io.trajectory import TrajectoryError
 
-    try:
-        from .eval import EvaluationError
-    except ImportError:  # pragma: no cover
-        EvaluationError = CliError  # type: ignore
-    from .io.ply import PlyError
-
-    errors: tuple = (CliError, ConfigError, DatasetError, CalibrationError, TrajectoryError, EvaluationError, PlyError)
+    errors: tuple = (CliError, ConfigError, OutputError, DatasetError, CalibrationError, TrajectoryError,
+                     EvaluationError, PlyError)
     if args.command == "fit":  # imports Warp and the trainer: only for the command that needs them
-        from .mapping.fit import FitError
+        from mgso.mapping.fit import FitError
 
         errors += (FitError,)
+    from .signals import Terminated, stop_signals
+
+    state = StopState()
     try:
-        return args.func(args)
+        with stop_signals(state):   # before a run's own handling begins (and for the commands without one)
+            return args.func(args)
     except errors as exc:
         print(f"mgso {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
-    except KeyboardInterrupt:
-        print(f"mgso {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except OSError as exc:   # a full disk, a file that vanished: one line, never a traceback
+        print(f"mgso {args.command}: error: {exc.filename or ''}{': ' if exc.filename else ''}"
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+        print(f"mgso {args.command}: interrupted ({'SIGINT' if signum == signal.SIGINT else str(exc)})",
+              file=sys.stderr)
+        return exit_code_for(signum)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,251 @@
+"""The outputs of a full run (``mgso run --stage full``, ``mgso demo``): what :class:`mgso.system.System` did,
+written through the :class:`~mgso.app.writer.RunWriter` in two phases (docs/mgso.md lists every file and figure).
+
+1. **What must exist** (signals deferred): ``trajectory.txt`` (every frame with a pose, TUM; with
+   ``output.trajectory_format: kitti`` also ``trajectory_kitti.txt`` and ``keyframes_kitti.txt``), ``keyframes.txt``,
+   ``map.ply`` (3DGS layout), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
+   ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), and ``metrics.json`` with the ATE, the counts and
+   the timings (``"evaluation": "pending"``).
+2. **Evaluation** (a signal cuts it short): ``trajectory.png`` (``output.plot``), the renders of the evaluation
+   frames (``renders/``, ``output.save_renders``) and their PSNR/SSIM; ``metrics.json`` is written again with them
+   (``"evaluation": "done"``, or ``"interrupted"`` / ``"failed: ..."`` with the figures of phase 1 kept).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import nullcontext
+from typing import Any, Callable
+
+import numpy as np
+
+from mgso.config import Config
+from mgso.geometry import orthonormalize, se3_inverse
+from mgso.mapping.mapper import Mapper
+from mgso.system import SystemResult, peak_memory_mb
+
+from .signals import StopState, deferred_signals, hurried_signals
+from .writer import RunWriter
+
+__all__ = ["METRICS_KEYS", "write_full_outputs", "write_outputs"]
+
+log = logging.getLogger(__name__)
+
+#: Every key of a full run's metrics.json (tests check them; docs/mgso.md explains each).
+METRICS_KEYS = (
+    "ate", "rpe", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db",
+    "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
+    "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
+    "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "sequence", "protocols",
+)
+
+
+def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, *,
+                       odometry_name: str = "", progress: Callable[[int, str], Any] | None = None,
+                       state: StopState | None = None, error: str | None = None, frames_unreadable: int = 0) -> dict:
+    """Write the outputs of a run (the two phases of the module doc) and return the metrics as written.
+
+    ``seq``: the :class:`mgso.io.Sequence` the frames came from (images for evaluation, ground truth, camera; may be
+    ``None``: no evaluation). ``state``: the run's :class:`~mgso.app.signals.StopState` (``None``: no signal
+    handling, for library use). ``error``: the error that stopped the run, recorded in metrics.json."""
+    from mgso.eval import EvaluationError, compute_ate
+
+    t_out = time.perf_counter()
+    guard = (lambda: deferred_signals(state)) if state is not None else nullcontext
+    hurry = (lambda: hurried_signals(state)) if state is not None else nullcontext
+    traj, kf_traj = result.trajectory, result.keyframe_trajectory
+    gt = seq.groundtruth if seq is not None else None
+    ate: dict[str, Any] = {}
+
+    with guard():
+        writer.write_trajectories(traj, kf_traj, cfg.output.trajectory_format)
+        writer.write_gaussians(mapper.gmap.to_numpy())
+        map_mb = writer.path("map.ply").stat().st_size / 1e6
+        pts, cols, hosts = result.cloud.arrays()
+        writer.write_points(pts, cols, extra={"keyframe": hosts.astype(np.float32)})
+        # the map's refinement of the poses (mapping.train.refine_poses): the odometry's trajectory moved by the
+        # keyframes' corrections; the map is in its frame
+        refined = mapper.refined_trajectory(traj) if mapper.refines_poses else None
+        if refined is not None:
+            writer.write_trajectories(refined, None, "tum", name="trajectory_refined")
+        for key, tr, label in (("all", traj, "all frames"), ("keyframes", kf_traj, "keyframes"),
+                               ("refined", refined, "all frames, refined by the map")):
+            if gt is None or tr is None or len(tr) < 3:
+                continue
+            try:
+                ate[key] = compute_ate(tr, gt, align="sim3", label=label, max_diff=0.01)
+            except EvaluationError as exc:
+                log.warning("no ATE on %s: %s", label, exc)
+        figures = _figures(result, mapper, seq, cfg, ate, [], map_mb, odometry_name, error, frames_unreadable)
+        figures["evaluation"] = "pending"
+        figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
+        writer.write_metrics(ate=list(ate.values()), extra=figures)
+
+    renders: list = []
+    status = "done"
+    try:
+        with hurry():
+            if "all" in ate and cfg.output.plot:
+                _plot(writer, ate["all"], gt, kf_traj, f"{seq.name}: {odometry_name}" if seq is not None else "")
+            renders = _evaluate_renders(result, mapper, seq, cfg, writer, refined if refined is not None else traj,
+                                        progress)
+    except KeyboardInterrupt as exc:
+        if state is not None and state.signum is None:   # not through a handler (raised by a callback)
+            state.record_exception(exc)
+        status = "interrupted"
+        log.warning("evaluation stopped by a signal: metrics.json keeps the trajectory figures, without the "
+                    "renders' PSNR/SSIM")
+    except Exception as exc:  # noqa: BLE001 - evaluation must not lose the run's outputs
+        status = f"failed: {type(exc).__name__}: {exc}"
+        log.warning("evaluation failed: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
+
+    with guard():
+        figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error, frames_unreadable)
+        figures["evaluation"] = status
+        figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
+        writer.write_metrics(ate=list(ate.values()), renders=renders, extra=figures)
+    import json
+
+    metrics = json.loads(writer.path("metrics.json").read_text(encoding="utf-8"))
+    metrics["written"] = list(writer.written)
+    return metrics
+
+
+def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_dir, *, odometry_name: str = "",
+                  progress: Callable[[int, str], Any] | None = None) -> dict:
+    """:func:`write_full_outputs` into the folder ``out_dir`` (made if needed), without signal handling: for
+    scripts and profiles that run a :class:`mgso.system.System` themselves."""
+    return write_full_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
+                              progress=progress)
+
+
+def _plot(writer: RunWriter, ate_all, gt, kf_traj, title: str) -> None:
+    try:
+        from mgso.eval import plot_trajectory
+    except ImportError as exc:
+        log.warning("no trajectory plot: %s", exc)
+        return
+    writer.write_with("trajectory.png", lambda p: plot_trajectory(p, ate_all, reference=gt,
+                                                                  keyframe_timestamps=kf_traj.timestamps,
+                                                                  title=title))
+
+
+def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, render_traj,
+                      progress) -> list:
+    """Rendering quality at the final poses (no alignment needed: the map is in their frame)."""
+    from mgso.eval import MONOGS, PHOTO_SLAM, evaluate_renders, select_frames
+
+    pose_at = {float(t): T for t, T in zip(render_traj.timestamps, render_traj.cam_to_world)}
+    log_ = result.frame_log
+    tracked = [k for k in range(len(log_)) if log_.timestamp[k] in pose_at]
+    tracked_idx = [log_.index[k] for k in tracked]
+    pos_of = {log_.index[k]: k for k in tracked}
+    # keyframes = every frame that reached the map as a training view (DSO's first keyframe is announced frames
+    # after its own frame, when the initialiser succeeds: the frame's is_keyframe cannot say it)
+    kf_idx = sorted(set(result.keyframe_frames) | {log_.index[k] for k in range(len(log_)) if log_.is_keyframe[k]})
+    cam = seq.calibration.output if seq is not None else None
+    sc = cfg.system
+
+    def exposure_of(k: int):
+        if not sc.eval_exposure:
+            return None
+        return mapper.exposure_for(log_.affine[k], log_.exposure_ms[k])
+
+    def pairs(indices, save: bool, bar):
+        for i in indices:
+            k = pos_of[i]
+            w2c = se3_inverse(pose_at[log_.timestamp[k]])
+            w2c[:3, :3] = orthonormalize(w2c[:3, :3])
+            rgb = mapper.render(cam, w2c, exposure=exposure_of(k))
+            gt_img = seq.load(i).rgb
+            if save:
+                if sc.renders_side_by_side:
+                    writer.write_image(f"renders/{i:06d}.png", np.concatenate([gt_img, np.clip(rgb, 0, 1)], axis=1))
+                else:
+                    writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0, 1))
+                    writer.write_image(f"gt/{i:06d}.png", gt_img)
+            if bar is not None:
+                bar.update(1)
+            yield rgb, gt_img
+
+    renders = []
+    if not (seq is not None and mapper.gmap.n > 0 and tracked_idx):
+        return renders
+    for proto, on in ((MONOGS, sc.eval_monogs), (PHOTO_SLAM, sc.eval_photo_slam)):
+        if not on:
+            continue
+        frames = select_frames(proto, tracked_idx, kf_idx)
+        if not frames:
+            continue
+        save = proto is MONOGS and cfg.output.save_renders
+        bar = progress(len(frames), f"eval {proto.key}") if progress is not None else None
+        try:
+            renders.append(evaluate_renders(pairs(frames, save, bar), frames, proto))
+        finally:
+            if bar is not None:
+                bar.close()
+    return renders
+
+
+def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, renders: list, map_mb: float,
+             odometry_name: str, error: str | None, frames_unreadable: int) -> dict:
+    from mgso.eval import MONOGS, PHOTO_SLAM
+
+    by_key = {r.protocol_key: r for r in renders}
+    st = result.mapper
+    cam = seq.calibration.output if seq is not None else None
+    sc = cfg.system
+    refined = "refined" in ate or mapper.refines_poses
+    return {
+        "ate_all_frames_m": ate["all"].rmse if "all" in ate else None,
+        "ate_keyframes_m": ate["keyframes"].rmse if "keyframes" in ate else None,
+        "ate_refined_all_frames_m": ate["refined"].rmse if "refined" in ate else None,
+        "psnr_monogs_db": by_key["monogs"].mean_psnr if "monogs" in by_key else None,
+        "ssim_monogs": by_key["monogs"].mean_ssim if "monogs" in by_key else None,
+        "psnr_photo_slam_db": by_key["photo-slam"].mean_psnr if "photo-slam" in by_key else None,
+        "ssim_photo_slam": by_key["photo-slam"].mean_ssim if "photo-slam" in by_key else None,
+        "num_gaussians": int(mapper.gmap.n),
+        "map_size_mb": map_mb,
+        "peak_memory_mb": peak_memory_mb(),
+        "tracking_fps": result.tracking_fps,
+        "mapping_iterations_per_s": st.iterations_per_s,
+        "end_to_end_fps": result.end_to_end_fps,
+        "frames": {"read": result.frames_read, "processed": result.frames_processed,
+                   "dropped": result.frames_dropped, "unreadable": int(frames_unreadable),
+                   "without_pose": result.frames_lost, "in_trajectory": len(result.trajectory)},
+        "keyframes": {"sent": result.keyframes, "in_map": len(mapper.views),
+                      "in_trajectory": len(result.keyframe_trajectory)},
+        "mode": result.mode,
+        "interrupted": result.interrupted,
+        "error": error,
+        "odometry": odometry_name,
+        "device": mapper.device,
+        "image_size": None if cam is None else [cam.width, cam.height],
+        "timing_s": {"odometry": result.odometry_seconds, "frame_loop": result.loop_seconds,
+                     "finish_and_final_refinement": result.finish_seconds, "mapping_train": st.train_seconds,
+                     "final_refinement": st.final_seconds, "seeding": st.seed_seconds,
+                     "outputs_and_evaluation": None},
+        "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"},
+        "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
+                                              "frames": len(seq)},
+        "protocols": {
+            "ate": "RMSE of positions after Sim(3) Umeyama alignment (evo_ape -as), on all frames with a pose and on "
+                   "keyframes",
+            "psnr_monogs_db": MONOGS.name, "psnr_photo_slam_db": PHOTO_SLAM.name,
+            "render_poses": ("the odometry's final poses moved by the map's keyframe corrections "
+                             "(trajectory_refined.txt; no alignment: the map is in their frame)" if refined
+                             else "the odometry's final poses (no alignment: the map is in the odometry's frame)"),
+            "render_exposure": (f"each frame's exposure by mapping.mapper.exposure = {cfg.mapping.mapper.exposure} "
+                                "(odometry: DSO's affine and exposure time), as in training"
+                                if sc.eval_exposure else "none (the map's radiance)"),
+            "map_size_mb": "map.ply as written, 10^6 bytes",
+            "peak_memory_mb": "resource.getrusage(RUSAGE_SELF).ru_maxrss: peak resident set size of the whole "
+                              "process, 10^6 bytes",
+            "tracking_fps": "frames processed / the odometry's time on them",
+            "mapping_iterations_per_s": "training steps / the mapper's time inside them (final refinement "
+                                        "included)",
+            "end_to_end_fps": "frames processed / wall time of the frame loop (odometry and mapping; the final "
+                              "refinement after the last frame is not in it)",
+        },
+    }

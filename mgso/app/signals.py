@@ -1,0 +1,122 @@
+"""How a run hears that it must stop: Ctrl-C (SIGINT), SIGTERM (``timeout``, ``kill``, ``docker stop``, job
+schedulers) and SIGHUP (the terminal went away) all end a run the same way, as an interrupt that still writes what
+was done; the exit code says which (docs/architecture.md, README "Exit codes").
+
+- :func:`stop_signals` (around the work): SIGTERM and SIGHUP raise :class:`Terminated`, a ``KeyboardInterrupt``,
+  so every ``except KeyboardInterrupt`` of the core (the system's frame loop, the mapper's final refinement) treats
+  them as Ctrl-C.
+- :func:`deferred_signals` (around writing the files that must exist): a signal is remembered, not raised; the
+  block finishes its files.
+- :func:`hurried_signals` (around evaluation after the essential files): a signal raises, the evaluation stops,
+  and the files already written stand.
+
+Handlers are only installed in the main thread (Python delivers signals there); elsewhere these are no-ops.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from contextlib import contextmanager
+from typing import Iterator
+
+__all__ = ["Terminated", "StopState", "stop_signals", "deferred_signals", "hurried_signals", "exit_code_for"]
+
+log = logging.getLogger(__name__)
+
+_NAMES = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
+if hasattr(signal, "SIGHUP"):
+    _NAMES[signal.SIGHUP] = "SIGHUP"
+
+
+class Terminated(KeyboardInterrupt):
+    """A stop signal other than Ctrl-C (``signum``: SIGTERM or SIGHUP)."""
+
+    def __init__(self, signum: int):
+        super().__init__(_NAMES.get(signum, str(signum)))
+        self.signum = int(signum)
+
+
+class StopState:
+    """The first stop signal of a run (``None``: none) and how many came."""
+
+    def __init__(self):
+        self.signum: int | None = None
+        self.count = 0
+
+    def record(self, signum: int) -> None:
+        if self.signum is None:
+            self.signum = int(signum)
+        self.count += 1
+
+    def record_exception(self, exc: BaseException) -> None:
+        self.record(exc.signum if isinstance(exc, Terminated) else signal.SIGINT)
+
+    @property
+    def name(self) -> str:
+        return _NAMES.get(self.signum, "") if self.signum is not None else ""
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _signals() -> list[int]:
+    return list(_NAMES)
+
+
+@contextmanager
+def _handlers(handler) -> Iterator[None]:
+    if not _main_thread():
+        yield
+        return
+    old = {}
+    for s in _signals():
+        try:
+            old[s] = signal.signal(s, handler)
+        except (ValueError, OSError):  # not settable here
+            pass
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+@contextmanager
+def stop_signals(state: StopState) -> Iterator[StopState]:
+    """SIGINT, SIGTERM and SIGHUP raise (``KeyboardInterrupt`` / :class:`Terminated`) and are recorded."""
+
+    def handler(signum, frame):
+        state.record(signum)
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise Terminated(signum)
+
+    with _handlers(handler):
+        yield state
+
+
+@contextmanager
+def deferred_signals(state: StopState, what: str = "writing the outputs") -> Iterator[StopState]:
+    """Signals are recorded and logged, not raised, while the block runs."""
+
+    def handler(signum, frame):
+        state.record(signum)
+        log.warning("%s received while %s: finishing them first", _NAMES.get(signum, signum), what)
+
+    with _handlers(handler):
+        yield state
+
+
+@contextmanager
+def hurried_signals(state: StopState) -> Iterator[StopState]:
+    """Like :func:`stop_signals`: used around work that may be cut short (evaluation after the essential files)."""
+    with stop_signals(state):
+        yield state
+
+
+def exit_code_for(signum: int | None) -> int:
+    """128 + the signal's number, as a shell reports a process killed by it (SIGINT 130, SIGTERM 143, SIGHUP 129)."""
+    return 128 + int(signum) if signum is not None else 0
