@@ -143,8 +143,10 @@ class InputConfig:
     width: int = opt(0, "output (undistorted) image width; 0 = the calibration's output size")
     height: int = opt(0, "output (undistorted) image height; 0 = the calibration's output size")
     photometric: bool = opt(True, "apply photometric calibration (response, vignette, exposure) when present")
-    rectify: str = opt("", "undistortion output: crop (no black border), full (whole input visible), none (input "
-                           "intrinsics); empty = what the calibration file says (crop for a distorted lens if silent)")
+    rectify: str = opt("", "undistortion output: keep (nearly the whole field of view; the few pixels without a "
+                           "source lie in the outer 3 rows/columns, marked invalid), crop (DSO's: no pixel without a "
+                           "source, fr1 loses 26 %), full (whole input visible), none (input intrinsics); empty = "
+                           "what the calibration file says (keep for a distorted lens if silent)")
     camera: str = opt("", "camera of a multi-camera layout (EuRoC cam0/cam1, KITTI image_0/image_2); empty = the "
                           "layout's first camera")
     fps: float = opt(30.0, "frame rate for timestamps when a layout has none (image folders without times.txt, "
@@ -862,6 +864,11 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def _child(where: str, key: str) -> str:
+    """``file: section.key`` (the source once, then the dotted path that --set also uses)."""
+    return f"{where}.{key}" if ": " in where else f"{where}: {key}"
+
+
 def _build(cls, data: Mapping[str, Any], where: str):
     hints = _type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
@@ -871,7 +878,7 @@ def _build(cls, data: Mapping[str, Any], where: str):
     kwargs, problems = {}, []
     for k, v in data.items():
         try:
-            kwargs[k] = _coerce(v, hints[k], f"{where}: {k}")
+            kwargs[k] = _coerce(v, hints[k], _child(where, k))
         except _RangeError as exc:  # the other sections are still checked: every range problem in one message
             problems.append(str(exc))
     if problems:

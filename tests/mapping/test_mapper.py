@@ -96,7 +96,7 @@ def test_config_checks_mapper_and_system():
         load_config(None, ["mapping.mapper.queue_size=0"])
     with pytest.raises(ConfigError, match="init"):
         load_config(None, ["mapping.mapper.init=grid"])
-    with pytest.raises(ConfigError, match="system: mode"):
+    with pytest.raises(ConfigError, match="system.mode"):
         load_config(None, ["system.mode=fast"])
 
 
