@@ -882,7 +882,7 @@ class PhotometricCalibration:
             out = out * self._inv_vignette
         if normalize_exposure:
             if exposure_ms is None or not exposure_ms > 0:
-                raise ValueError(f"normalize_exposure needs a positive exposure time, got {exposure_ms!r}")
+                raise ValueError(f"normalize_exposure needs a positive exposure time, got {exposure_ms if exposure_ms is None else float(exposure_ms)}")
             out = out / np.float32(exposure_ms)
         return out.astype(np.float32, copy=False)
 

@@ -275,6 +275,8 @@ class Odometry:
         self.config = config or Config()
         self.emit_messages = bool(emit_messages)
         self._outbox: list = []  # mapper messages of the frame being processed (emit_messages)
+        self._valid_src: np.ndarray | None = None  # the frames' validity mask (Frame.valid: the same array for all)
+        self._valid_weights: np.ndarray | None = None  # ... in the odometry's geometry, as loss weights
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
@@ -348,6 +350,11 @@ class Odometry:
         img = self.geometry.adjust(gray)
         img = np.where(np.isfinite(img), img, 0.0).astype(np.float32)
         exposure = float(getattr(frame, "exposure_ms", None) or 0.0)
+        valid = getattr(frame, "valid", None)
+        if valid is not self._valid_src:  # pixels without a source (undistortion): left out of the map's loss
+            self._valid_src = valid
+            self._valid_weights = (None if valid is None or bool(np.all(valid))
+                                   else (self.geometry.adjust(np.asarray(valid, np.float32)) > 0.5).astype(np.float32))
         rec = FrameRecord(int(frame.index), float(frame.timestamp), self.segment, FrameStatus.INITIALIZING)
         prev_img, self._prev_image = self._prev_image, img
         if (self.config.tracking.skip_duplicate_frames and self.initialized and prev_img is not None
@@ -439,7 +446,8 @@ class Odometry:
         """A :class:`~mgso.mapping.messages.KeyframeMessage`: the keyframe's RGB and camera in the odometry's image
         geometry (the pyramid crop), its pose in the common world, DSO's affine (a, b) and exposure time, and every
         active point of the window (depth refined by the window) projected into it (the depth map the coarse
-        tracker tracks against; a new keyframe hosts no point with a depth yet)."""
+        tracker tracks against; a new keyframe hosts no point with a depth yet); ``mask``: the frames' ``valid``
+        pixels (``None`` when all are), so that the map never trains on pixels undistortion had no source for."""
         from .mapping.messages import KeyframeMessage
 
         w = self.window
@@ -461,7 +469,7 @@ class Odometry:
         exposure = float(w.exposure_[slot])
         return KeyframeMessage(keyframe_id, rec.index, rec.timestamp, w.rgb_[slot], cam, c2w, uv[ok], 1.0 / z[ok],
                                affine=tuple(w.affine_[slot]), exposure_ms=exposure if exposure > 0 else None,
-                               segment=rec.segment)
+                               segment=rec.segment, mask=self._valid_weights)
 
     def _emit_window(self, keyframe_ids: list[int], cam_to_world: np.ndarray) -> None:
         if self.emit_messages:

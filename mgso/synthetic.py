@@ -932,7 +932,8 @@ _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
 def _readme(spec: SequenceSpec, scene: Scene, k: Intrinsics, files: list[str]) -> str:
-    params = "\n".join(f"  {n} = {v!r}" for n, v in spec.to_dict().items())
+    params = "\n".join(f"  {n} = {np.asarray(v).tolist() if isinstance(v, (np.generic, np.ndarray)) else v!r}"
+                       for n, v in spec.to_dict().items())
     return f"""mgso synthetic sequence (TUM RGB-D layout)
 
 A rendered sequence of a procedurally textured room with boxes, with exact camera poses and depth, made by

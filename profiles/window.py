@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "window")
 
 from mgso import synthetic  # noqa: E402
 from mgso.window.backend import WindowOptimizer  # noqa: E402
-from mgso.window.energy import BundleSettings, WindowProblem  # noqa: E402
+from mgso.config import WindowConfig  # noqa: E402
+from mgso.window.energy import WindowProblem  # noqa: E402
 from mgso_kernels import runtime  # noqa: E402
 from mgso_kernels import window as kw  # noqa: E402
 from window_helpers import window_from_sequence  # noqa: E402
@@ -74,7 +75,7 @@ def main():
            "points": int(a.n), "residuals": int(np.sum(a.res_state == 1))}
     times = {k: [] for k in ("optimize", "linearize", "solve", "threshold", "marginalize", "iterations",
                              "accepted")}
-    s = BundleSettings()
+    s = WindowConfig()
     for rep in range(args.repeats + 1):
         restore()
         be = WindowOptimizer(s, device=device)

@@ -308,3 +308,20 @@ def test_the_full_stage_writes_frames_csv(wp_device, room, tmp_path):
     assert any(r["keyframe"] not in ("", "-1") for r in rows) and all(r["rmse"] != "" for r in rows
                                                                        if r["status"] == "tracked")
     _check_consistent(out, 40)
+
+
+def test_messages_show_plain_numbers_not_numpy_reprs():
+    """Defect 7: `np.float64(...)` appeared in messages (NumPy 2's repr of its scalars)."""
+    from mgso.camera import PhotometricCalibration
+    from mgso.mapping.messages import _affine
+
+    with pytest.raises(ValueError) as e1:
+        _affine((np.float64(np.nan), np.float64(1.0)), "KeyframeMessage(3).affine")
+    with pytest.raises(ValueError) as e2:
+        _affine(np.array([1.0]), "PoseUpdate.affine[2]")
+    with pytest.raises(ValueError) as e3:
+        PhotometricCalibration().apply(np.zeros((4, 4), np.float32), exposure_ms=np.float64(-2.0),
+                                       normalize_exposure=True)
+    for e in (e1, e2, e3):
+        assert "np." not in str(e.value), str(e.value)
+    assert "got (nan, 1.0)" in str(e1.value) and "got -2.0" in str(e3.value)

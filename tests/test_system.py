@@ -403,3 +403,33 @@ def test_full_stage_runs_dso_and_the_mapper_end_to_end(tmp_path):
     assert s.figures["ate_all_frames_m"] < 0.05 * extent        # Sim(3)-aligned, against the exact poses
     assert metrics["num_gaussians"] > 200 and s.figures["psnr_monogs_db"] > 20
     assert read_gaussians_ply(tmp_path / "map.ply").means.shape[0] == metrics["num_gaussians"]
+
+
+def test_dso_keyframe_messages_carry_the_frames_valid_mask(wp_device):
+    """Pixels undistortion had no source for (Frame.valid False) are left out of the map's loss: the DSO odometry
+    puts them in every KeyframeMessage's mask. Frames without a mask give none (negative control)."""
+    from mgso.io.sequence import Frame
+    from mgso.mapping.messages import KeyframeMessage
+    from mgso.odometry import Odometry
+
+    folder = synthetic.cached_sequence_folder(num_frames=24, width=96, height=72, seed=0)
+    cfg = load_config(None)
+    seq = open_sequence(str(folder), config=cfg.input)
+    valid = np.ones((72, 96), bool)
+    valid[:, :3] = valid[:2, :] = False
+    valid.flags.writeable = False
+    for mask in (valid, None):
+        odo = Odometry.for_camera(seq.calibration.output, cfg, emit_messages=True)
+        msgs = []
+        for f in seq.frames():
+            msgs += odo.process(Frame(f.index, f.timestamp, f.gray, f.exposure_ms, f.source, rgb=f.rgb,
+                                      valid=mask)).messages
+        kfs = [m for m in msgs if isinstance(m, KeyframeMessage)]
+        assert len(kfs) >= 2
+        for m in kfs:
+            if mask is None:
+                assert m.mask is None
+            else:
+                cut = odo.geometry.adjust(valid)
+                assert m.mask.shape == cut.shape and np.array_equal(m.mask > 0, cut)
+                assert m.mask[:, :3].max() == 0 and m.mask.sum() == cut.sum()

@@ -59,10 +59,18 @@ def _affine(ab, where: str) -> tuple[float, float]:
     try:
         a, b = (float(v) for v in ab)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: expected a pair (a, b), got {ab!r}") from None
+        raise ValueError(f"{where}: expected a pair (a, b), got {_plain(ab)!r}") from None
     if not (math.isfinite(a) and math.isfinite(b)):
-        raise ValueError(f"{where}: (a, b) must be finite, got {ab!r}")
+        raise ValueError(f"{where}: (a, b) must be finite, got ({a}, {b})")
     return a, b
+
+
+def _plain(x):
+    """NumPy values as plain Python ones for messages (``(nan, 1.0)``, not ``(np.float64(nan), ...)``)."""
+    try:
+        return np.asarray(x).tolist()
+    except Exception:  # noqa: BLE001 - whatever it is, its repr
+        return x
 
 
 def map_exposure(affine: tuple[float, float], exposure_ms: float | None,
