@@ -325,3 +325,25 @@ def test_messages_show_plain_numbers_not_numpy_reprs():
     for e in (e1, e2, e3):
         assert "np." not in str(e.value), str(e.value)
     assert "got (nan, 1.0)" in str(e1.value) and "got -2.0" in str(e3.value)
+
+
+def test_ctrl_c_during_the_real_time_final_refinement(room, tmp_path):
+    """Issue 13's report: Ctrl-C in --realtime during the final refinement crashed the mapping thread ("this
+    RenderOutput is stale": CPython's Thread.join, interrupted, reported the thread stopped while it still trained,
+    and the evaluation rendered beside it), the run exited 0 and metrics.json said the mapper stopped by nothing."""
+    out = tmp_path / "run"
+    proc = _spawn(["run", str(room), "--out", str(out), "--realtime", "-q", *SMALL_MAP,
+                   "--set", "mapping.mapper.final_iterations=100000"])
+    try:
+        _wait_rows(proc, out / "frames.csv", 1)
+        time.sleep(8.0)             # 40 frames played at 30 frames/s: the loop is long over, the refinement runs
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "stale" not in err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["interrupted"] is True and m["evaluation"] == "done" and m["mode"] == "realtime"
+    assert m["mapper"]["stopped_by"] == "interrupt" and 0 < m["mapper"]["final_steps"] < 100000

@@ -166,6 +166,7 @@ class Mapper:
         self._last_step: StepResult | None = None
         self._thread: threading.Thread | None = None
         self._interrupt = threading.Event()
+        self._done = threading.Event()      # set by the mapping thread as it ends (see stop)
         self._error: BaseException | None = None
         self._stopped = False
 
@@ -173,7 +174,7 @@ class Mapper:
     @property
     def running(self) -> bool:
         """Whether the real-time mapping thread is alive."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._thread is not None and not self._done.is_set()
 
     def submit(self, msg: MapperMessage) -> None:
         """Put ``msg`` on the queue. When it is full: in real time the caller waits for room (counted in
@@ -265,6 +266,8 @@ class Mapper:
         except BaseException as exc:  # handed to the odometry side at its next submit / at stop
             log.exception("the mapping thread failed")
             self._error = exc
+        finally:
+            self._done.set()
 
     def stop(self, refine: bool = True, timeout: float | None = None) -> MapperStats:
         """End the stream: in real time, send :class:`Stop` (``refine``: run the final refinement) and wait for the
@@ -279,11 +282,16 @@ class Mapper:
             self.submit(Stop(refine))
             self.process_pending()
         else:
-            if self._thread.is_alive():
+            if not self._done.is_set():
                 self.submit(Stop(refine))
-            self._thread.join(timeout)
-            if self._thread.is_alive():
-                raise MapperError(f"the mapping thread did not stop within {timeout} s")
+            # Wait on an Event, not Thread.join: a KeyboardInterrupt inside join() can leave CPython (<= 3.12)
+            # reporting the thread as stopped while it still runs (bpo-45274's fix releases the lock the running
+            # thread holds), and the caller would then render while the thread still trains.
+            t0 = time.perf_counter()
+            while not self._done.wait(0.05):
+                if timeout is not None and time.perf_counter() - t0 > timeout:
+                    raise MapperError(f"the mapping thread did not stop within {timeout} s")
+            self._thread.join(1.0)
         self._stopped = True
         self._raise_if_failed()
         return self.stats
@@ -291,7 +299,8 @@ class Mapper:
     def _finish(self, msg: Stop) -> None:
         if msg.refine and not self._interrupt.is_set():
             self.refine(self.cfg.final_iterations)
-            self.stats.stopped_by = "stop"
+            # an interrupt during the refinement ends it early (train() checks it between steps)
+            self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
         else:
             self.stats.stopped_by = "interrupt"
         self.observer.on_map_updated(MapUpdate(-1, self.gmap.n, len(self.views), self.stats.steps, None,
@@ -506,7 +515,7 @@ class Mapper:
         """Run up to ``iterations`` training steps now (fewer when nothing can be trained yet). Returns the steps."""
         done = 0
         for _ in range(int(iterations)):
-            if not self.can_train():
+            if not self.can_train() or self._interrupt.is_set():   # stop(refine=False) ends a refinement too
                 break
             self._step()
             done += 1
