@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Iterable
 
-__all__ = ["Observer", "ObserverList"]
+__all__ = ["Observer", "ObserverList", "no_progress"]
 
 log = logging.getLogger(__name__)
 
@@ -89,3 +89,27 @@ class ObserverList(Observer):
 
     def on_sequence_end(self, summary):
         self._call("on_sequence_end", summary)
+
+
+class _NoBar:
+    """A progress bar that shows nothing (``update``, ``set_postfix``, ``close``, a context manager)."""
+
+    def update(self, n=1):
+        pass
+
+    def set_postfix(self, *args, **kwargs):
+        pass
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def no_progress(total: int, desc: str) -> _NoBar:
+    """The default of every ``progress(total, desc)`` argument (the CLI passes tqdm bars): shows nothing."""
+    return _NoBar()

@@ -142,12 +142,7 @@ def cmd_eval(args) -> int:
     _print(args, format_report(ate=ate, rpe=rpe))
     if writer is not None:
         writer.write_metrics(ate=ate, rpe=rpe)
-        try:
-            from mgso.eval import plot_trajectory
-
-            writer.write_with("trajectory.png", lambda p: plot_trajectory(p, ate, reference=ref))
-        except ImportError as exc:
-            log.warning("no plot: %s", exc)
+        writer.write_trajectory_plot(ate, ref)
         _print(args, *(f"wrote {p}" for p in writer.written_paths()))
     if args.json:
         print(json.dumps(ate.as_dict(), default=str))

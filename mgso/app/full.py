@@ -87,7 +87,8 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
     try:
         with hurry():
             if "all" in ate and cfg.output.plot:
-                _plot(writer, ate["all"], gt, kf_traj, f"{seq.name}: {odometry_name}" if seq is not None else "")
+                writer.write_trajectory_plot(ate["all"], gt, kf_traj.timestamps,
+                                             f"{seq.name}: {odometry_name}" if seq is not None else "")
             renders = _evaluate_renders(result, mapper, seq, cfg, writer, refined if refined is not None else traj,
                                         progress)
     except KeyboardInterrupt as exc:
@@ -118,17 +119,6 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     scripts and profiles that run a :class:`mgso.system.System` themselves."""
     return write_full_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
                               progress=progress)
-
-
-def _plot(writer: RunWriter, ate_all, gt, kf_traj, title: str) -> None:
-    try:
-        from mgso.eval import plot_trajectory
-    except ImportError as exc:
-        log.warning("no trajectory plot: %s", exc)
-        return
-    writer.write_with("trajectory.png", lambda p: plot_trajectory(p, ate_all, reference=gt,
-                                                                  keyframe_timestamps=kf_traj.timestamps,
-                                                                  title=title))
 
 
 def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, render_traj,

@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 from mgso.config import Config
-from mgso.observers import Observer, ObserverList
+from mgso.observers import Observer, ObserverList, no_progress
 
 from .signals import StopState, deferred_signals, exit_code_for, hurried_signals, stop_signals
 from .writer import RunWriter, frame_row, unreadable_row
@@ -107,28 +107,6 @@ class RunSummary:
         else:
             self.outcome, self.exit_code = "ok", EXIT_OK
         return self
-
-
-class _NoBar:
-    def update(self, n=1):
-        pass
-
-    def set_postfix(self, *args, **kwargs):
-        pass
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-def no_progress(total: int, desc: str):
-    """A progress bar that shows nothing (the ``progress`` argument's default)."""
-    return _NoBar()
 
 
 class UnreadableFrames:
@@ -292,7 +270,8 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     if ates and cfg.output.plot:
         try:
             with hurried_signals(state):
-                _plot(writer, ates[0], seq.groundtruth, kfs, f"{seq.name}: DSO ({summary.stage} stage)")
+                writer.write_trajectory_plot(ates[0], seq.groundtruth, kfs.timestamps,
+                                             f"{seq.name}: DSO ({summary.stage} stage)")
         except KeyboardInterrupt:
             log.warning("the trajectory plot was cut short by a signal")
     if tracked == 0 and n:
@@ -341,16 +320,6 @@ def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary) -> list:
         log.warning("ATE not computed: %s", exc)
         summary.messages.append(f"ATE not computed: {exc}")
     return ates
-
-
-def _plot(writer: RunWriter, ate, gt, kfs, title: str) -> None:
-    try:
-        from mgso.eval import plot_trajectory
-    except ImportError as exc:
-        log.info("no trajectory plot: %s", exc)
-        return
-    writer.write_with("trajectory.png", lambda p: plot_trajectory(p, ate, reference=gt,
-                                                                  keyframe_timestamps=kfs.timestamps, title=title))
 
 
 # ------------------------------------------------------------------------------------------------ full

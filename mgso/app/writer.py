@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 import tempfile
 import threading
@@ -27,6 +28,8 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 __all__ = ["OutputError", "prepare_out_dir", "RunWriter", "FrameLogWriter", "FRAME_COLUMNS"]
+
+log = logging.getLogger(__name__)
 
 
 class OutputError(Exception):
@@ -212,6 +215,17 @@ class RunWriter:
                 raise OSError(f"{p}: could not write the PNG")
 
         return self.write_with(name, write)
+
+    def write_trajectory_plot(self, ate, reference, keyframe_timestamps=None, title: str = "") -> Path | None:
+        """``trajectory.png``: the Sim(3)-aligned trajectory of ``ate`` over ``reference``, coloured by error
+        (:func:`mgso.eval.plot_trajectory`); ``None`` (logged) without matplotlib."""
+        try:
+            from mgso.eval import plot_trajectory
+        except ImportError as exc:
+            log.warning("no trajectory plot: %s", exc)
+            return None
+        return self.write_with("trajectory.png", lambda p: plot_trajectory(
+            p, ate, reference=reference, keyframe_timestamps=keyframe_timestamps, title=title))
 
     def write_metrics(self, **kwargs) -> Path:
         """``metrics.json`` from :func:`mgso.eval.metrics_report` (``ate=``, ``rpe=``, ``renders=``, ``extra=``)."""

@@ -35,6 +35,7 @@ from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap, num_sh_coeffs
 from mgso.mapping.init import gaussians_from_points, random_frustum_points
 from mgso.mapping.trainer import StepResult, Trainer, TrainSummary
 from mgso.mapping.views import TrainView, ViewSet
+from mgso.observers import no_progress
 from mgso_kernels import runtime
 
 __all__ = ["FitError", "FitResult", "fit_sequence", "split_frames", "heldout_protocol", "load_initial_gaussians"]
@@ -159,27 +160,6 @@ class FitResult:
         return out
 
 
-class _NoBar:
-    def update(self, n=1):
-        pass
-
-    def set_postfix(self, *args, **kwargs):
-        pass
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-def _no_progress(total: int, desc: str):
-    return _NoBar()
-
-
 def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str | None = None,
                  progress: Callable[[int, str], object] | None = None,
                  on_step: Callable[[StepResult], object] | None = None) -> FitResult:
@@ -194,7 +174,7 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
     """
     t_start = time.perf_counter()
     out = Path(writer.out)
-    progress = progress or _no_progress
+    progress = progress or no_progress
     mc, tc = cfg.mapping, cfg.mapping.train
     dev = runtime.init(device or cfg.runtime.device, threads=cfg.runtime.threads,
                        blas_threads=cfg.runtime.blas_threads)
