@@ -280,7 +280,7 @@ class Odometry:
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
-        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
+        self.device = runtime.device_or_cpu(device)
         self.observer = observer or Observer()
         self.window = Window(geometry, max_frames=cfg.window.max_frames, point_capacity=cfg.window.point_capacity,
                              immature_capacity=cfg.window.immature_capacity, device=self.device)
@@ -292,7 +292,7 @@ class Odometry:
                                       min_grad_hist_add=t.min_grad_hist_add,
                                       grad_downweight_per_level=t.grad_downweight_per_level,
                                       select_direction_distribution=t.select_direction_distribution,
-                                      initial_potential=t.selector_initial_potential, seed=cfg.runtime.seed)
+                                      initial_potential=t.selector_initial_potential, seed=cfg.runtime.seed, device=self.device)
         self.activator = PointActivator(t)
         self.trace_params = trace_params_from_config(geometry.width, geometry.height, t, seed=cfg.runtime.seed)
         self._pool = _PyramidPool(geometry, self.device)

@@ -123,7 +123,7 @@ def point_depth_residuals(params: DepthParams, key_target: np.ndarray, key_R: np
     ``color/weight [n, 8]``; ``pair_key [M]`` index into the keys. ``uv``, ``color``, ``weight`` may be wp.arrays on
     ``device`` already (kept across the iterations of one activation: no copies).
     """
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(images)
     kt = np.ascontiguousarray(key_target, dtype=np.int32)
     nk = len(kt)
     pp = np.ascontiguousarray(pair_point, dtype=np.int32)

@@ -336,7 +336,7 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
     ``steps``: [N] int32 updates received per Gaussian (incremented for every updated row).
     ``visible``: [N] uint8, required when ``hyper.sparse`` and ``hyper.use_visible`` are set.
     """
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(params.means)
     n = params.means.shape[0]
     k = params.sh.shape[1] if params.sh is not None else 0
     for name, s in (("params", params), ("grads", grads), ("exp_avg", exp_avg), ("exp_avg_sq", exp_avg_sq)):
@@ -358,7 +358,7 @@ def adam_step_array(param: wp.array, grad: wp.array, exp_avg: wp.array, exp_avg_
                     beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15, bias_correction: bool = True,
                     device: str | None = None) -> None:
     """Dense Adam step (step count ``step`` >= 1 after this update) on flat float32 arrays of equal length."""
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(param)
     n = param.size
     for name, a in (("grad", grad), ("exp_avg", exp_avg), ("exp_avg_sq", exp_avg_sq)):
         if a.dtype != param.dtype or a.size != n:
@@ -376,7 +376,7 @@ def adam_step_array(param: wp.array, grad: wp.array, exp_avg: wp.array, exp_avg_
 
 def gather(src: wp.array, index: wp.array, dst: wp.array, device: str | None = None) -> None:
     """``dst[i] = src[index[i]]`` for i < len(index); 1-D arrays of float32/int32/uint8/vec3/vec4 or 2-D vec3."""
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(src)
     m = index.shape[0]
     if m == 0:
         return
@@ -402,7 +402,7 @@ def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, 
     ``radii``: [N] float32 or int32 screen radius in pixels, 0 for Gaussians not drawn in this view;
     ``width``, ``height``: the image size, pixels (for the pixel -> NDC conversion, x W/2 and x H/2).
     """
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(stats.grad2d_sum)
     n = stats.grad2d_sum.shape[0]
     if v_means2d.dtype != wp.vec2 or v_means2d.shape[0] != n:
         raise ValueError(f"accumulate_stats: v_means2d must be {n} vec2 (pixels), got {v_means2d.dtype.__name__} "

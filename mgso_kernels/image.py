@@ -356,7 +356,7 @@ class ImagePyramid:
 
     def __init__(self, geometry: PyramidGeometry, device: str | None = None):
         self.geometry = geometry
-        self.device = device or runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         self.intensity: list[wp.array] = []
         self.dI: list[wp.array] = []
         self.grad_sq: list[wp.array] = []

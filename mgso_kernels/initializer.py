@@ -334,7 +334,7 @@ class InitWorkspace:
 
     def __init__(self, uv: np.ndarray, ref_color: np.ndarray, device: str | None = None,
                  points_per_block: int = POINTS_PER_BLOCK, neighbours: np.ndarray | None = None):
-        self.device = device or runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         uv = np.ascontiguousarray(uv, dtype=np.float32)
         col = np.ascontiguousarray(ref_color, dtype=np.float32)
         if uv.ndim != 2 or uv.shape[1] != 2:

@@ -406,7 +406,7 @@ class L1SSIMLoss:
             raise ValueError(f"image size must be positive, got {width}x{height}")
         if not 0.0 <= lambda_dssim <= 1.0:
             raise ValueError(f"lambda_dssim must be in [0, 1], got {lambda_dssim}")
-        self.device = runtime.resolve_device(device or runtime.default_device())
+        self.device = runtime.device_or_cpu(device)
         self.height, self.width = int(height), int(width)
         self.lambda_dssim = float(lambda_dssim)
         self.c1, self.c2 = float(c1), float(c2)

@@ -35,7 +35,8 @@ __all__ = [
     "is_initialised",
     "resolve_device",
     "cuda_device_count",
-    "default_device",
+    "device_or_cpu",
+    "device_of",
     "cpu_threads",
     "set_cpu_threads",
     "set_blas_threads",
@@ -49,7 +50,6 @@ log = logging.getLogger(__name__)
 _lock = threading.RLock()
 _initialised = False  # Warp started (kernel cache set)
 _configured = False  # init() called (the BLAS default applied)
-_default_device: str | None = None
 _threads = 0  # 0 = all available cores
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
@@ -74,7 +74,8 @@ def is_initialised() -> bool:
 
 def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threads: int | None = None,
          quiet: bool = True, blas_threads: int | None = None) -> str:
-    """Initialise Warp (once per process) and return the resolved default device name.
+    """Initialise Warp (once per process) and return the resolved name of ``device``, for the caller to pass to
+    what it makes (nothing keeps it as a default).
 
     ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (the first CUDA device when there is one, else the CPU).
     ``cache_dir``: where compiled kernels are kept; default :func:`default_cache_dir`. Only honoured when this
@@ -83,7 +84,7 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
     ``blas_threads``: threads NumPy's BLAS may use (:func:`set_blas_threads`); ``None``: 1 on the first call, then
     unchanged.
     """
-    global _configured, _default_device
+    global _configured
     with _lock:
         _start(cache_dir, quiet)
         if not _configured:
@@ -94,8 +95,7 @@ def init(device: str = "auto", cache_dir: str | os.PathLike | None = None, threa
             set_cpu_threads(threads)
         if blas_threads is not None:
             set_blas_threads(blas_threads)
-        _default_device = resolve_device(device)
-        return _default_device
+        return resolve_device(device)
 
 
 def _start(cache_dir: str | os.PathLike | None = None, quiet: bool = True) -> None:
@@ -140,11 +140,21 @@ def resolve_device(device: str | None = "auto") -> str:
     return name
 
 
-def default_device() -> str:
-    """The device chosen by the last :func:`init` call (initialising on the CPU if nobody did)."""
-    if _default_device is None:
-        return init("cpu")
-    return _default_device
+def device_or_cpu(device: str | None) -> str:
+    """The device a kernel object or launch runs on: ``device`` resolved (:func:`resolve_device`), the CPU when it
+    is ``None``. There is no module-wide default device: whoever makes the object says where it runs (``mgso run``
+    passes ``runtime.device`` down; ``init`` returns the name to pass)."""
+    return resolve_device(device if device is not None else "cpu")
+
+
+def device_of(*arrays: Any, default: str | None = None) -> str:
+    """The device of the first Warp array among ``arrays`` (a launch on arrays runs where they are); ``default``
+    (or the CPU) when none is a Warp array."""
+    for a in arrays:
+        dev = getattr(a, "device", None)
+        if dev is not None and isinstance(a, wp.array):
+            return str(dev)
+    return device_or_cpu(default)
 
 
 def cpu_threads() -> int:
@@ -231,7 +241,7 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     launch of the tracker's 13 arguments. The entries keep their arrays alive (so an ``id`` is never reused while
     cached); the dict is cleared when it reaches 16 entries.
     """
-    device = device or default_device()
+    device = device or device_of(*inputs)
     if dim <= 0:
         return 0
     args = kernel.adj.args

@@ -162,7 +162,7 @@ def select_map(dxy0: np.ndarray, grad_sq, thresholds: np.ndarray, pot: int, dir2
     ``[H // 32, W // 32]`` block thresholds (squared), ``dir2/dir3/dir4`` direction indices (0-15) per ``pot`` /
     ``2pot`` / ``4pot`` cell (at least ``[ceil(H/c), ceil(W/c)]``).
     """
-    device = device or runtime.default_device()
+    device = runtime.device_or_cpu(device)
     if pot < 1:
         raise ValueError(f"pot must be >= 1, got {pot}")
     g0 = np.ascontiguousarray(grad_sq[0], np.float32)

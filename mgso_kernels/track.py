@@ -257,7 +257,7 @@ class TrackWorkspace:
             raise ValueError(f"pattern_size must be 1 (DSO coarse tracker) or 8 (pattern), got {pattern_size}")
         if points_per_block < 1:
             raise ValueError(f"points_per_block must be >= 1, got {points_per_block}")
-        self.device = device or runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         self.capacity = int(capacity)
         self.pattern_size = int(pattern_size)
         self.points_per_block = int(points_per_block)

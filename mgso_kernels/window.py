@@ -457,7 +457,8 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     ``cache``: a dict the caller keeps while the pairs, ``uv``, ``color`` and ``weight`` stay the same (the iterations
     of one optimisation); the block plan, those inputs and the output buffers are made once and reused.
     """
-    device = device or runtime.default_device()
+    device = device or runtime.device_of(
+        target_images if not isinstance(target_images, dict) else next(iter(target_images.values()), None))
     nk = len(keys)
     M = int(np.asarray(pair_point).shape[0])
     n = int(np.asarray(uv).shape[0])
@@ -518,7 +519,7 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
     ``num_slots``: keyframe slots ``K`` (the frame parameters are ``8 K``, slot-major). ``extra_h/extra_b [n]``: added
     to each point's ``H_dd`` / ``b_d`` (an inverse-depth prior, damping).
     """
-    device = device or runtime.default_device()
+    device = runtime.device_or_cpu(device)
     M = len(lin.state)
     ps = _arr(point_start, np.int32, (np.asarray(point_start).shape[0],), "point_start")
     n = len(ps) - 1

@@ -19,6 +19,26 @@ def wp_device():
     return runtime.init(os.environ.get("MGSO_TEST_DEVICE", "cpu"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _unnamed_device_is_the_test_device():
+    """mgso has no default device: an object made without ``device=`` runs on the CPU
+    (``mgso_kernels.runtime.device_or_cpu``). Many tests make helpers without naming one; when the suite runs on a
+    GPU (``MGSO_TEST_DEVICE=cuda``) those follow the test device, so that a test never mixes a CPU object with the
+    GPU arrays it is given. Nothing changes on the CPU."""
+    name = os.environ.get("MGSO_TEST_DEVICE", "cpu")
+    if name == "cpu":
+        yield
+        return
+    from mgso_kernels import runtime
+
+    original = runtime.device_or_cpu
+    runtime.device_or_cpu = lambda device: original(device if device is not None else name)
+    try:
+        yield
+    finally:
+        runtime.device_or_cpu = original
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """``../shared/data`` (or ``$MGSO_DATA``); tests that need it skip when it is absent."""

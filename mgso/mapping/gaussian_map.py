@@ -252,7 +252,7 @@ class GaussianMap:
                  optim: OptimConfig | None = None, scene_extent: float = 1.0):
         if capacity < 1:
             raise ValueError(f"GaussianMap capacity must be >= 1, got {capacity}")
-        self.device = runtime.resolve_device(device or runtime.default_device())
+        self.device = runtime.device_or_cpu(device)
         self.sh_degree = int(sh_degree)
         self.num_sh = num_sh_coeffs(self.sh_degree)
         self.optim = optim if optim is not None else OptimConfig()

@@ -115,7 +115,7 @@ class TrainStep:
     def __init__(self, cfg: MappingConfig, device: str | None = None, *, strategy: DefaultStrategy | None = None,
                  rasterizer: Rasterizer | None = None, seed: int = 0, timing: bool = False):
         self.cfg = cfg
-        self.device = runtime.resolve_device(device) if device is not None else runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         self.rasterizer = rasterizer if rasterizer is not None else Rasterizer(self.device)
         self.strategy = strategy if strategy is not None else DefaultStrategy(cfg.densify)
         # ONLY changed by __call__ (through the strategy's hooks).

@@ -289,7 +289,7 @@ class CoarseTracker:
             raise ValueError("CoarseTracker needs a PyramidGeometry with intrinsics")
         self.geometry = geometry
         self.config = config or TrackingConfig()
-        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
+        self.device = runtime.device_or_cpu(device)
         p = 8 if self.config.coarse_pattern else 1
         self.workspaces = []
         self.cams = []

@@ -183,7 +183,7 @@ class CoarseInitializer:
         if geometry.camera is None:
             raise ValueError("CoarseInitializer needs a PyramidGeometry with intrinsics")
         self.geometry = geometry
-        self.device = device or runtime.default_device()  # where the residual kernel runs (the frames' pyramids)
+        self.device = runtime.device_or_cpu(device)
         self.config = config or TrackingConfig()
         self.seed = int(seed)
         self.levels_used = geometry.levels
@@ -246,7 +246,7 @@ class CoarseInitializer:
                                     min_grad_hist_add=cfg.min_grad_hist_add,
                                     grad_downweight_per_level=cfg.grad_downweight_per_level,
                                     select_direction_distribution=cfg.select_direction_distribution,
-                                    initial_potential=3, seed=self.seed)
+                                    initial_potential=3, seed=self.seed, device=self.device)
                 lv = [pyr.numpy(i) for i in range(min(3, g.levels))]
                 gs = [pyr.grad_sq[i].numpy() for i in range(min(3, g.levels))]
                 while len(lv) < 3:

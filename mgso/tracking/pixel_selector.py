@@ -111,12 +111,13 @@ class PixelSelector:
 
     def __init__(self, width: int, height: int, *, min_grad_hist_cut: float = 0.5, min_grad_hist_add: float = 7.0,
                  grad_downweight_per_level: float = 0.75, select_direction_distribution: bool = True,
-                 initial_potential: int = 3, seed: int = 0):
+                 initial_potential: int = 3, seed: int = 0, device: str | None = None):
         if width < BLOCK or height < BLOCK:
             raise ValueError(f"pixel selection needs at least a {BLOCK}x{BLOCK} image, got {width}x{height}")
         if initial_potential < 1:
             raise ValueError(f"initial_potential must be >= 1, got {initial_potential}")
         self.width, self.height = int(width), int(height)
+        self.device = device  # where the selection kernel runs (None: the CPU)
         self.hist_cut = float(min_grad_hist_cut)
         self.hist_add = float(min_grad_hist_add)
         self.downweight = float(grad_downweight_per_level)
@@ -154,7 +155,7 @@ class PixelSelector:
             return self._rng.integers(0, 16, size=(-(-h // cell), -(-w // cell)))
 
         m = select_map(dxy0, grad_sq, thresholds, pot, dirs(pot), dirs(2 * pot), dirs(4 * pot), th_factor,
-                       self.downweight, self.use_directions)
+                       self.downweight, self.use_directions, device=self.device)
         have = int(np.count_nonzero(m))
         quotia = density / max(have, 1)
         K = have * (pot + 1) ** 2

@@ -128,7 +128,7 @@ class WindowProblem:
         self.window = window
         self.s = config
         self.prior = prior
-        self.device = device or runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         a = window.active
         self.K = window.capacity
         self.nf = 8 * self.K

@@ -133,7 +133,7 @@ class PointBuffer:
             raise ValueError(f"{type(self).__name__}: capacity must be >= 1, got {capacity}")
         self.capacity = int(capacity)
         self.columns = int(columns)
-        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
+        self.device = runtime.device_or_cpu(device)
         self.n = 0
         self._wp_full: dict[str, wp.array] = {}
         for f in self.fields():
@@ -365,7 +365,7 @@ class Window:
         if not 2 <= max_frames <= 16:
             raise ValueError(f"max_frames must be in [2, 16], got {max_frames}")
         self.geometry = geometry
-        self.device = device or runtime.default_device()  # None: where Warp's kernels run by default
+        self.device = runtime.device_or_cpu(device)
         self.max_frames = int(max_frames)
         self.capacity = self.max_frames + 1
         K = self.capacity

@@ -153,7 +153,7 @@ class _Buffer:
 class Rasterizer:
     """Workspace + entry points of the rasteriser (forward, alpha-only forward, backward).
 
-    ``device``: Warp device name (``None``: :func:`mgso_kernels.runtime.default_device`). ``eps2d``: low-pass
+    ``device``: Warp device name (``None``: the CPU). ``eps2d``: low-pass
     dilation of the 2D covariance (px^2, 3DGS's 0.3). ``antialiased``: also multiply each opacity by
     ``sqrt(det(J Sigma J^T) / det(J Sigma J^T + eps2d I))`` (Mip-Splatting's compensation, gsplat's ``antialiased`` mode);
     off by default, as in the original 3DGS. ``pixels_per_thread``: pixels a blending thread shades: 256 = a whole
@@ -167,7 +167,7 @@ class Rasterizer:
     def __init__(self, device: str | None = None, *, eps2d: float = 0.3, antialiased: bool = False,
                  pixels_per_thread: int | None = None, threads: int | None = None, min_chunk: int = 4096,
                  profile: bool = False):
-        self.device = runtime.resolve_device(device) if device is not None else runtime.default_device()
+        self.device = runtime.device_or_cpu(device)
         self.eps2d = float(eps2d)
         self.antialiased = bool(antialiased)
         self.threads = threads

@@ -93,3 +93,27 @@ def test_recorded_launches_follow_new_scalars_and_arrays(wp_device):
             np.testing.assert_allclose(out.numpy(), gain * s.numpy() + np.arange(20000), rtol=1e-6)
             assert n == (threads if wp.get_device(wp_device).is_cpu else 1)
     assert len(cache) == (4 if wp.get_device(wp_device).is_cpu else 2)  # (src, src2) x (1, 2 chunks)
+
+
+def test_the_device_is_passed_not_a_module_default(wp_device, monkeypatch):
+    """Issue 14: the device an object runs on is what its maker passed. ``init`` keeps no default (an object made
+    without ``device=`` runs on the CPU), launches on arrays run where the arrays are, and the DSO odometry hands its
+    own device to every part it makes (the pixel selector used to follow the last ``init()``: the mapper's device when
+    ``runtime.odometry_device`` differed)."""
+    import numpy as np
+    import warp as wp
+
+    from mgso.config import Config
+    from mgso.odometry import Odometry, geometry_for
+
+    assert not hasattr(runtime, "default_device")
+    assert runtime.device_or_cpu(None) == "cpu" and runtime.device_or_cpu("cpu") == "cpu"
+    a = wp.zeros(4, dtype=wp.float32, device=wp_device)
+    assert runtime.device_of(np.zeros(3), a) == str(a.device) and runtime.device_of(np.zeros(3)) == "cpu"
+    calls = []
+    real = runtime.device_or_cpu
+    monkeypatch.setattr(runtime, "device_or_cpu", lambda d: calls.append(d) or real(d))
+    odo = Odometry(geometry_for(160, 120, 150.0, 150.0, 79.5, 59.5, Config()), Config(), device=wp_device)
+    parts = [odo.window, odo.tracker, odo.initializer, odo.selector, odo.back_end]
+    assert all(getattr(p, "device", wp_device) == wp_device for p in parts)
+    assert odo.selector.device == wp_device and None not in calls      # nothing fell back to the CPU rule

@@ -3,11 +3,14 @@ true inverse depth (or perturbed), for the back-end tests."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from mgso import synthetic
 from mgso.geometry import se3_exp, se3_inverse
 from mgso.window.window import Window
+from mgso_kernels import runtime
 from mgso_kernels.image import ImagePyramid, plan_pyramid
 from mgso_kernels.photometric import extract_patterns
 
@@ -27,11 +30,12 @@ def window_from_sequence(seq, frames, points_per_kf=150, *, seed=0, pose_noise=0
     rng = np.random.default_rng(seed)
     k = seq.intrinsics
     geo = plan_pyramid(k.width, k.height, camera=_pinhole(k))
-    w = Window(geo, max_frames=max_frames, point_capacity=4000, immature_capacity=200)
+    device = runtime.init(os.environ.get("MGSO_TEST_DEVICE", "cpu"))   # the wp_device fixture's (no global default)
+    w = Window(geo, max_frames=max_frames, point_capacity=4000, immature_capacity=200, device=device)
     c2w0 = seq.trajectory.cam_to_world[frames[0]]
     truth = {}
     for i, f in enumerate(frames):
-        pyr = ImagePyramid(geo).build(seq.images[f] @ GRAY * np.float32(255.0))
+        pyr = ImagePyramid(geo, device=device).build(seq.images[f] @ GRAY * np.float32(255.0))
         w2c_true = se3_inverse(c2w0) @ seq.trajectory.cam_to_world[f]
         w2c_true = se3_inverse(w2c_true)
         w2c = w2c_true if i == 0 else se3_exp(rng.normal(0, pose_noise, 6)) @ w2c_true
