@@ -51,7 +51,7 @@ from .geometry import make_pose, so3_exp
 from .io.trajectory import Trajectory, write_tum
 
 __all__ = [
-    "SYNTHETIC_VERSION", "Intrinsics", "Surface", "Box", "Scene", "SequenceSpec", "SyntheticFrame",
+    "SYNTHETIC_VERSION", "SyntheticCamera", "Surface", "Box", "Scene", "SequenceSpec", "SyntheticFrame",
     "SyntheticSequence", "make_scene", "render", "camera_path", "vignette_factor", "exposure_schedule",
     "apply_photometric", "iter_frames", "make_sequence", "write_tum_rgbd", "cached_sequence_folder",
     "default_cache_dir", "TUM_DEPTH_FACTOR", "depth_to_points",
@@ -65,7 +65,7 @@ TUM_DEPTH_FACTOR = 5000.0
 
 # ---------------------------------------------------------------------------------------------- camera model
 @dataclass(frozen=True)
-class Intrinsics:
+class SyntheticCamera:
     """Pinhole intrinsics in pixels, pixel centres at integer coordinates (see the module text)."""
 
     fx: float
@@ -76,7 +76,7 @@ class Intrinsics:
     height: int
 
     @classmethod
-    def from_fov(cls, width: int, height: int, fov_x_deg: float = 70.0) -> "Intrinsics":
+    def from_fov(cls, width: int, height: int, fov_x_deg: float = 70.0) -> "SyntheticCamera":
         """Square pixels, principal point at the image centre ``((W-1)/2, (H-1)/2)``, horizontal field of view."""
         if width < 2 or height < 2:
             raise ValueError(f"image size must be at least 2x2, got {width}x{height}")
@@ -607,11 +607,11 @@ def _edge_pixels(sid_image: np.ndarray) -> np.ndarray:
     return maximum_filter(sid_image, size=3, mode="nearest") != minimum_filter(sid_image, size=3, mode="nearest")
 
 
-def render(scene: Scene, camera: Intrinsics, cam_to_world, *, supersample: int = 2,
+def render(scene: Scene, camera: SyntheticCamera, cam_to_world, *, supersample: int = 2,
            adaptive: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Render the scene's radiance and exact z-depth from a camera pose.
 
-    ``camera``: :class:`Intrinsics` (or any object with ``fx, fy, cx, cy, width, height``). ``cam_to_world``: 4x4.
+    ``camera``: :class:`SyntheticCamera` (or any object with ``fx, fy, cx, cy, width, height``). ``cam_to_world``: 4x4.
 
     Anti-aliasing: textures are mip-mapped (trilinear, level from each ray's footprint), and pixels on geometric
     edges -- whose 3x3 neighbourhood sees more than one face -- are ``supersample x supersample`` supersampled
@@ -663,7 +663,7 @@ def render(scene: Scene, camera: Intrinsics, cam_to_world, *, supersample: int =
     return np.clip(rgb, 0.0, 1.0), depth
 
 
-def depth_to_points(depth: np.ndarray, camera: Intrinsics, cam_to_world, image: np.ndarray | None = None,
+def depth_to_points(depth: np.ndarray, camera: SyntheticCamera, cam_to_world, image: np.ndarray | None = None,
                     stride: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
     """Back-project a z-depth map to world points: ``X_w = R (depth * K^-1 [u, v, 1]) + t`` for every
     ``stride``-th pixel with finite, positive depth. Returns points ``[N, 3]`` (float64) and, when ``image`` is
@@ -820,8 +820,8 @@ class SequenceSpec:
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     @property
-    def intrinsics(self) -> Intrinsics:
-        return Intrinsics.from_fov(self.width, self.height, self.fov_x_deg)
+    def intrinsics(self) -> SyntheticCamera:
+        return SyntheticCamera.from_fov(self.width, self.height, self.fov_x_deg)
 
     def scene(self) -> Scene:
         return make_scene(self.seed, num_boxes=self.num_boxes, texels_per_metre=self.texels_per_metre,
@@ -874,7 +874,7 @@ class SyntheticSequence:
 
     spec: SequenceSpec
     scene: Scene
-    intrinsics: Intrinsics
+    intrinsics: SyntheticCamera
     trajectory: Trajectory  # cam_to_world ground truth at the frame timestamps
     images: np.ndarray  # [N, H, W, 3] float32 in [0, 1], photometric model applied
     depths: np.ndarray  # [N, H, W] float32 z-depth, metres
@@ -931,7 +931,7 @@ def _depth_u16(depth: np.ndarray) -> np.ndarray:
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
-def _readme(spec: SequenceSpec, scene: Scene, k: Intrinsics, files: list[str]) -> str:
+def _readme(spec: SequenceSpec, scene: Scene, k: SyntheticCamera, files: list[str]) -> str:
     params = "\n".join(f"  {n} = {np.asarray(v).tolist() if isinstance(v, (np.generic, np.ndarray)) else v!r}"
                        for n, v in spec.to_dict().items())
     return f"""mgso synthetic sequence (TUM RGB-D layout)

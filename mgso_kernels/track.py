@@ -39,7 +39,7 @@ from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gra
                           in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f)
 
 __all__ = [
-    "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "ResidualState",
+    "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
     "make_track_params", "reduce_tracking_system", "REDUCE_KERNELS", "track_system", "COARSE_CUTOFF_TH",
 ]
 
@@ -65,7 +65,7 @@ mat88d = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
 
-class ResidualState:
+class TrackState:
     """Per-residual outcome written to ``TrackWorkspace.state``."""
 
     IN = 0  # in the system
@@ -97,7 +97,7 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                                params: TrackParams,
                                residual: wp.array2d(dtype=float),  # [N, P] out: r (0 when not in bounds)
                                weight: wp.array2d(dtype=float),  # [N, P] out: W in the system (0 when not in it)
-                               state: wp.array2d(dtype=wp.int32),  # [N, P] out: ResidualState
+                               state: wp.array2d(dtype=wp.int32),  # [N, P] out: TrackState
                                jacobian: wp.array2d(dtype=vec8f),  # [N, P] out if store_jacobians, else [1, 1]
                                partials: wp.array2d(dtype=wp.float64)):  # [blocks, NUM_SLOTS] out
         blk = offset + wp.tid()

@@ -61,7 +61,7 @@ def write_distorted(folder: Path, lens: RadTanCamera, spec: synthetic.SequenceSp
     # a pinhole with the lens's focal lengths whose image holds every ray of the distorted camera
     cx, cy = -lo[0] * lens.fx + pad, -lo[1] * lens.fy + pad
     rw, rh = int(np.ceil(hi[0] * lens.fx + cx + pad)) + 1, int(np.ceil(hi[1] * lens.fy + cy + pad)) + 1
-    render_cam = synthetic.Intrinsics(lens.fx, lens.fy, cx, cy, rw, rh)
+    render_cam = synthetic.SyntheticCamera(lens.fx, lens.fy, cx, cy, rw, rh)
     map_x = (xn[:, 0] * lens.fx + cx).reshape(H, W).astype(np.float32)
     map_y = (xn[:, 1] * lens.fy + cy).reshape(H, W).astype(np.float32)
     scene, traj = spec.scene(), spec.trajectory()

@@ -314,3 +314,34 @@ def test_known_cycles_are_what_the_cycle_test_leaves_out(tmp_path):
     config.write_text(text.replace(anchor, anchor + '\n    "mgso.io.* -> mgso.mapping",'))
     with pytest.raises(AssertionError, match="no wildcard"):
         known_cycle_imports(config)
+
+
+# --------------------------------------------------------------------------------------------- class names
+def class_names(root: Path) -> dict[str, list[str]]:
+    """Top-level class name -> the modules (``path:line``) that define it, over mgso and mgso_kernels."""
+    import ast
+
+    found: dict[str, list[str]] = {}
+    for pkg in ("mgso", "mgso_kernels"):
+        for path in sorted((root / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+            for node in tree.body:
+                if isinstance(node, ast.ClassDef):
+                    found.setdefault(node.name, []).append(f"{path.relative_to(root)}:{node.lineno}")
+    return found
+
+
+def test_no_two_classes_share_a_name():
+    """Issue 14: Odometry, PointCloud, RefineResult and MarginalizedPoints each named two classes; a reader (and an
+    import) could take one for the other."""
+    shared = {n: where for n, where in class_names(ROOT).items() if len(where) > 1}
+    assert not shared, f"classes that share a name: {shared}"
+
+
+def test_shared_class_names_are_found(tmp_path):
+    """The check above on a copy with one name defined twice (negative control)."""
+    for pkg in ("mgso", "mgso_kernels"):
+        (tmp_path / pkg).mkdir()
+    (tmp_path / "mgso" / "a.py").write_text("class Thing:\n    pass\n")
+    (tmp_path / "mgso_kernels" / "b.py").write_text("x = 1\n\n\nclass Thing:\n    pass\n")
+    assert class_names(tmp_path)["Thing"] == ["mgso/a.py:1", "mgso_kernels/b.py:4"]

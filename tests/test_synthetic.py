@@ -42,7 +42,7 @@ def _brute_force_depth(scene, cam, T, u, v):
 
 def test_depth_is_z_depth_on_a_fronto_parallel_wall():
     scene = S.make_scene(0)
-    cam = S.Intrinsics.from_fov(W, H, 70.0)
+    cam = S.SyntheticCamera.from_fov(W, H, 70.0)
     _, depth = S.render(scene, cam, np.eye(4))
     far = scene.room_max[2]
     # rows through the image centre see the far wall (boxes are lower, side walls farther out): z-depth is the
@@ -55,7 +55,7 @@ def test_depth_is_z_depth_on_a_fronto_parallel_wall():
 
 def test_depth_matches_brute_force_intersection():
     scene = S.make_scene(0)
-    cam = S.Intrinsics.from_fov(W, H, 70.0)
+    cam = S.SyntheticCamera.from_fov(W, H, 70.0)
     traj = S.camera_path(200, motion_scale=1.0)
     rng = np.random.default_rng(0)
     surfaces_seen = set()
@@ -153,7 +153,7 @@ def test_scene_has_smooth_and_textured_regions(seq):
 
 def test_edges_are_antialiased():
     scene = S.make_scene(0)
-    cam = S.Intrinsics.from_fov(W, H, 70.0)
+    cam = S.SyntheticCamera.from_fov(W, H, 70.0)
     T = S.camera_path(1).cam_to_world[0]
     ref, _ = S.render(scene, cam, T, supersample=6)
     plain, _ = S.render(scene, cam, T, supersample=1)
@@ -269,7 +269,7 @@ def test_cached_sequence_folder_reuses(tmp_path):
 
 def test_bad_requests_are_refused():
     scene = S.make_scene(0)
-    cam = S.Intrinsics.from_fov(W, H)
+    cam = S.SyntheticCamera.from_fov(W, H)
     T = np.eye(4)
     T[0, 3] = 10.0
     with pytest.raises(ValueError, match="outside the room"):

@@ -94,7 +94,7 @@ def test_reduction_is_exact_float64_sum_of_the_kernels_terms(wp_device, setup):
     J = ws.jacobian.numpy().astype(np.float64).reshape(-1, 8)
     Wt = ws.weight.numpy().astype(np.float64).ravel()
     r = ws.residual.numpy().astype(np.float64).ravel()
-    inl = ws.state.numpy().ravel() == tk.ResidualState.IN
+    inl = ws.state.numpy().ravel() == tk.TrackState.IN
     H64 = np.einsum("k,ki,kj->ij", Wt[inl], J[inl], J[inl])
     b64 = np.einsum("k,ki,k->i", Wt[inl], J[inl], r[inl])
     np.testing.assert_allclose(got.H, H64, rtol=1e-10, atol=1e-12 * np.abs(H64).max())
