@@ -347,3 +347,25 @@ def test_ctrl_c_during_the_real_time_final_refinement(room, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True and m["evaluation"] == "done" and m["mode"] == "realtime"
     assert m["mapper"]["stopped_by"] == "interrupt" and 0 < m["mapper"]["final_steps"] < 100000
+
+
+@pytest.mark.parametrize("args,key", [(["--device", "tpu"], "runtime.device"),
+                                      (["--device", "cuda"], "runtime.device"),
+                                      (["--set", "runtime.threads=-5"], "runtime.threads"),
+                                      (["--set", "runtime.blas_threads=-1"], "runtime.blas_threads"),
+                                      (["--set", "tracking.huber_th=-1"], "tracking.huber_th")])
+def test_bad_settings_are_refused_by_info_and_the_check_stage(room, tmp_path, capsys, args, key):
+    """Defect 6: these passed until tracking started, then ended in a traceback (math domain error for huber_th).
+    This machine has no CUDA device, so --device cuda is a bad setting here."""
+    import warp as wp
+
+    if "cuda" in args and wp.is_cuda_available():
+        pytest.skip("this machine has a CUDA device: --device cuda is a good setting here")
+    out = tmp_path / "run"
+    assert main(["info", str(room), *args]) == 1
+    assert main(["run", str(room), "--out", str(out), "--stage", "check", "-q", *args]) == 1
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 2 and all(key in ln for ln in lines) and "Traceback" not in err, err
+    assert not out.exists()                                  # refused before any output
+    assert main(["run", str(room), "--out", str(out), "--stage", "check", "-q"]) == 0      # negative control
