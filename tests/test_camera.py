@@ -18,7 +18,7 @@ from mgso.camera import (KEEP_BORDER_PX, Calibration, CalibrationError, CameraSp
                          crop_output_camera, full_output_camera, keep_output_camera, make_output_camera,
                          read_inverse_response, read_vignette)
 # calibration files are read in mgso.io (each dataset's format beside its reader)
-from mgso.io import (TUM_RGBD_FREIBURG, load_calibration, read_camera_file, read_dso_camera_txt,
+from mgso.io import (load_calibration, read_camera_file, read_dso_camera_txt,
                      read_euroc_sensor_yaml, read_kitti_calib, read_plain_intrinsics, read_replica_cam_params,
                      tum_rgbd_default)
 

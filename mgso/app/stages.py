@@ -90,9 +90,7 @@ class RunSummary:
     def lines(self) -> list[str]:
         word = {"ok": "ok", "failed": "FAILED", "interrupted": f"INTERRUPTED ({self.signal or 'SIGINT'})"}
         out = [f"stage {self.stage}: {self.frames} frames, {word.get(self.outcome, self.outcome)}"]
-        if self.error:
-            out.append(f"error: {self.error}")
-        out += self.messages
+        out += self.messages          # the error itself: the CLI prints it on stderr, in the one-line form
         out += [f"wrote {p}" for p in self.written]
         return out
 
