@@ -6,9 +6,11 @@ written through the :class:`~mgso.app.writer.RunWriter` in two phases (docs/mgso
    ``map.ply`` (3DGS layout), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
    ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), and ``metrics.json`` with the ATE, the counts and
    the timings (``"evaluation": "pending"``).
-2. **Evaluation** (a signal cuts it short): ``trajectory.png`` (``output.plot``), the renders of the evaluation
-   frames (``renders/``, ``output.save_renders``) and their PSNR/SSIM; ``metrics.json`` is written again with them
-   (``"evaluation": "done"``, or ``"interrupted"`` / ``"failed: ..."`` with the figures of phase 1 kept).
+2. **Evaluation** (a signal cuts it short): ``trajectory.png`` (``output.plot``, with ground truth), the renders of
+   the evaluation frames (``renders/``, ``output.save_renders``) and their PSNR/SSIM, then ``report.png``
+   (``output.plot``, with or without ground truth: :func:`mgso.eval.plot_report`; skipped when a signal cut the
+   evaluation short); ``metrics.json`` is written again with them (``"evaluation": "done"``, or ``"interrupted"`` /
+   ``"failed: ..."`` with the figures of phase 1 kept; a report that could not be drawn is such a failure).
 """
 
 from __future__ import annotations
@@ -101,6 +103,23 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
         status = f"failed: {type(exc).__name__}: {exc}"
         log.warning("evaluation failed: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
 
+    if cfg.output.plot and status != "interrupted":
+        try:
+            with hurry():
+                figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error,
+                                   frames_unreadable)
+                figures["evaluation"] = status
+                _write_report(writer, result, seq, cfg, ate, renders, figures, traj, kf_traj, gt, odometry_name)
+        except KeyboardInterrupt as exc:
+            if state is not None and state.signum is None:
+                state.record_exception(exc)
+            status = "interrupted"
+            log.warning("report.png was cut short by a signal")
+        except Exception as exc:  # noqa: BLE001 - a figure must not lose the run's outputs
+            what = f"report.png: {type(exc).__name__}: {exc}"
+            status = f"failed: {what}" if status == "done" else f"{status}; {what}"
+            log.warning("no report.png: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
+
     with guard():
         figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error, frames_unreadable)
         figures["evaluation"] = status
@@ -119,6 +138,65 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     scripts and profiles that run a :class:`mgso.system.System` themselves."""
     return write_full_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
                               progress=progress)
+
+
+def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate: dict, renders: list, figures: dict,
+                  traj, kf_traj, gt, odometry_name: str) -> None:
+    """``report.png`` (:func:`mgso.eval.plot_report`) from the run's values."""
+    from mgso.eval import PsnrSeries, ReportData, plot_report
+
+    log_ = result.frame_log
+    time_of = {int(i): float(t) for i, t in zip(log_.index, log_.timestamp)}
+    stamps = list(log_.timestamp) or list(traj.timestamps)
+    t0 = float(stamps[0]) if stamps else 0.0
+    t_end = float(stamps[-1]) - t0 if stamps else 0.0
+    series = [PsnrSeries(r.protocol, np.array([time_of.get(int(f), np.nan) - t0 for f in r.frame_indices]),
+                         np.asarray(r.psnr, np.float64)) for r in renders]
+    hist = np.array([(t_end if not np.isfinite(t) else t - t0, steps, n) for _, t, steps, n in result.mapper.history],
+                    np.float64).reshape(-1, 3)
+    sc = cfg.system
+    notes = {"psnr": ("rendering evaluation off (system.eval_monogs, system.eval_photo_slam)"
+                      if not (sc.eval_monogs or sc.eval_photo_slam)
+                      else f"no rendering evaluation (evaluation: {figures['evaluation']})"
+                      if figures["evaluation"] != "done" else "no frame to evaluate (no map or no tracked frame)")}
+    if gt is not None and "all" not in ate:
+        notes["error"] = "no trajectory error: the ATE could not be computed (see the log)"
+    data = ReportData(title=f"{seq.name}: {odometry_name}" if seq is not None else odometry_name,
+                      ate=ate.get("all"), reference=gt, trajectory=traj, keyframe_timestamps=kf_traj.timestamps,
+                      t0=t0, psnr=series, map_history=hist, headline=_headline(figures), notes=notes)
+    writer.write_with("report.png", lambda p: plot_report(p, data))
+
+
+def _headline(f: dict) -> list[str]:
+    """The text panel of report.png: the headline figures of metrics.json."""
+    def num(v, fmt):
+        return "n/a" if v is None else format(v, fmt)
+
+    fr, kf = f["frames"], f["keyframes"]
+    size = f"{f['image_size'][0]}x{f['image_size'][1]}" if f.get("image_size") else "?"
+    lines = [f"{f['odometry'] or 'odometry'} + map, {f['mode']} mode, {size}, device {f['device']}",
+             f"frames: {fr['processed']} processed of {fr['read']} read, {fr['dropped']} dropped, "
+             f"{fr['without_pose']} without pose; keyframes: {kf['sent']} ({kf['in_map']} in the map)"]
+    if f["ate_all_frames_m"] is None:
+        lines.append("ATE: no ground truth")
+    else:
+        ref = (f", refined {f['ate_refined_all_frames_m']:.4f} m" if f["ate_refined_all_frames_m"] is not None
+               else "")
+        lines.append(f"ATE RMSE (Sim(3)): all frames {f['ate_all_frames_m']:.4f} m, keyframes "
+                     f"{num(f['ate_keyframes_m'], '.4f')} m{ref}")
+    psnr = []
+    if f["psnr_monogs_db"] is not None:
+        psnr.append(f"MonoGS protocol {f['psnr_monogs_db']:.2f} dB / SSIM {f['ssim_monogs']:.3f}")
+    if f["psnr_photo_slam_db"] is not None:
+        psnr.append(f"Photo-SLAM protocol {f['psnr_photo_slam_db']:.2f} dB / SSIM {f['ssim_photo_slam']:.3f}")
+    lines.append("PSNR: " + ("; ".join(psnr) if psnr else "not evaluated"))
+    lines.append(f"map: {f['num_gaussians']:,} Gaussians, {f['map_size_mb']:.2f} MB; peak memory "
+                 f"{num(f['peak_memory_mb'], '.0f')} MB")
+    lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s, end to end {f['end_to_end_fps']:.2f} frames/s, "
+                 f"mapping {f['mapping_iterations_per_s']:.1f} steps/s")
+    lines.append(f"interrupted: {'yes' if f['interrupted'] else 'no'}; evaluation: {f['evaluation']}"
+                 + (f"; error: {f['error']}" if f.get("error") else ""))
+    return lines
 
 
 def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, render_traj,

@@ -1,7 +1,7 @@
 """Trajectory plot: top view of the aligned estimate over the ground truth, coloured by ATE, keyframes marked.
 
-matplotlib is optional (``pip install "mgso[eval]"``) and imported only when a plot is drawn. The figure is drawn on
-matplotlib's Agg canvas directly (no pyplot, no display, no global backend switch), so it works headless and in
+matplotlib (a dependency of mgso) is imported only when a plot is drawn. The figure is drawn on matplotlib's Agg
+canvas directly (no pyplot, no display, no global backend switch), so it works headless and in
 threads, and leaves the caller's matplotlib state alone.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 from ..io.trajectory import Trajectory
 from .ate import AteResult
 
-__all__ = ["plot_trajectory", "choose_plane", "PLANES", "MatplotlibMissingError"]
+__all__ = ["plot_trajectory", "draw_top_view", "choose_plane", "PLANES", "MatplotlibMissingError"]
 
 PLANES: dict[str, tuple[int, int]] = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 _AXIS = "xyz"
@@ -30,9 +30,9 @@ def _import_matplotlib():
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.collections import LineCollection
         from matplotlib.figure import Figure
-    except ImportError as e:  # pragma: no cover - matplotlib is in the test extra
+    except ImportError as e:  # pragma: no cover - matplotlib is a dependency of mgso
         raise MatplotlibMissingError(
-            'trajectory plots need matplotlib: pip install "mgso[eval]" (or pip install matplotlib)') from e
+            "plots need matplotlib, a dependency of mgso that is missing here: pip install matplotlib") from e
     return Figure, FigureCanvasAgg, LineCollection
 
 
@@ -56,37 +56,68 @@ def plot_trajectory(path: str | Path, ate: AteResult, *, reference: Trajectory |
     ``reference``: the whole ground truth to draw (default: the associated poses in ``ate``). ``plane``: ``"auto"``
     (:func:`choose_plane` on the reference), ``"xy"``, ``"xz"`` or ``"yz"``. Returns the path written.
     """
-    Figure, FigureCanvasAgg, LineCollection = _import_matplotlib()
-    ref = reference if reference is not None else ate.reference
-    est = ate.aligned_estimate
-    if plane == "auto":
-        plane = choose_plane(ref.positions)
-    if plane not in PLANES:
+    Figure, FigureCanvasAgg, _ = _import_matplotlib()
+    if plane != "auto" and plane not in PLANES:
         raise ValueError(f"plot_trajectory: plane must be 'auto' or one of {sorted(PLANES)}, got {plane!r}")
-    a, b = PLANES[plane]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
 
     fig = Figure(figsize=size_inches, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    rp, ep = ref.positions, est.positions
-    ax.plot(rp[:, a], rp[:, b], "--", color="0.55", lw=1.5, label="ground truth", zorder=1)
-    err = ate.errors
-    if len(ep) >= 2:
+    draw_top_view(ax, ate, reference=reference, keyframe_timestamps=keyframe_timestamps, plane=plane,
+                  max_diff=max_diff)
+    if title is None:
+        what = f" ({ate.label})" if ate.label else ""
+        title = f"ATE RMSE {ate.rmse:.4f} m{what}\n{ate.alignment_text}, {ate.num_pairs} poses"
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=dpi)
+    return path
+
+
+def draw_top_view(ax, ate: AteResult | None, *, reference: Trajectory | None = None,
+                  estimate: Trajectory | None = None, keyframe_timestamps: Sequence[float] | None = None,
+                  plane: str = "auto", max_diff: float | None = None, colorbar: bool = True) -> str:
+    """Draw the top view of :func:`plot_trajectory` on the matplotlib axes ``ax`` (no title) and return the plane.
+
+    With ``ate``: the ground truth (``reference``, default the associated poses) and the aligned estimate coloured
+    by its per-pose ATE. Without (``ate=None``, no ground truth): ``estimate`` alone, in its own frame, with start,
+    end and keyframes."""
+    _, _, LineCollection = _import_matplotlib()
+    if ate is None and estimate is None:
+        raise ValueError("draw_top_view: give an ATE result or an estimate")
+    est = ate.aligned_estimate if ate is not None else estimate
+    ref = (reference if reference is not None else ate.reference) if ate is not None else None
+    if plane == "auto":
+        plane = choose_plane(ref.positions if ref is not None else est.positions)
+    if plane not in PLANES:
+        raise ValueError(f"plot_trajectory: plane must be 'auto' or one of {sorted(PLANES)}, got {plane!r}")
+    a, b = PLANES[plane]
+    fig = ax.figure
+    ep = est.positions
+    if ref is not None:
+        rp = ref.positions
+        ax.plot(rp[:, a], rp[:, b], "--", color="0.55", lw=1.5, label="ground truth", zorder=1)
+    if ate is not None and len(ep) >= 2:
+        err = ate.errors
         segs = np.stack([ep[:-1][:, [a, b]], ep[1:][:, [a, b]]], axis=1)
         lc = LineCollection(segs, cmap="viridis", linewidths=2.0, zorder=2)
         lc.set_array(0.5 * (err[:-1] + err[1:]))
         lc.set_clim(float(err.min()), float(max(err.max(), err.min() + 1e-12)))
         ax.add_collection(lc)
-        cb = fig.colorbar(lc, ax=ax, fraction=0.046, pad=0.04)
-        cb.set_label("ATE per pose (m)")
+        if colorbar:
+            cb = fig.colorbar(lc, ax=ax, fraction=0.046, pad=0.04)
+            cb.set_label("ATE per pose (m)")
         ax.plot([], [], color="#21918c", lw=2, label="estimate (aligned, colour = ATE)")
-    ax.plot(ep[0, a], ep[0, b], "o", color="tab:green", ms=8, mfc="none", label="start", zorder=3)
-    ax.plot(ep[-1, a], ep[-1, b], "s", color="tab:red", ms=7, mfc="none", label="end", zorder=3)
-    if keyframe_timestamps is not None and len(keyframe_timestamps):
+    elif len(ep):
+        ax.plot(ep[:, a], ep[:, b], "-", color="tab:blue", lw=1.8, label="estimate (no ground truth)", zorder=2)
+    if len(ep):
+        ax.plot(ep[0, a], ep[0, b], "o", color="tab:green", ms=8, mfc="none", label="start", zorder=3)
+        ax.plot(ep[-1, a], ep[-1, b], "s", color="tab:red", ms=7, mfc="none", label="end", zorder=3)
+    if keyframe_timestamps is not None and len(keyframe_timestamps) and len(est):
         kt = np.asarray(keyframe_timestamps, dtype=np.float64)
-        tol = ate.max_diff if max_diff is None else max_diff
+        tol = (ate.max_diff if ate is not None else 0.01) if max_diff is None else max_diff
         idx = np.searchsorted(est.timestamps, kt)
         idx = np.clip(idx, 0, len(est) - 1)
         left = np.clip(idx - 1, 0, len(est) - 1)
@@ -101,10 +132,4 @@ def plot_trajectory(path: str | Path, ate: AteResult, *, reference: Trajectory |
     ax.autoscale_view()
     ax.grid(True, lw=0.4, alpha=0.5)
     ax.legend(loc="best", fontsize=8)
-    if title is None:
-        what = f" ({ate.label})" if ate.label else ""
-        title = f"ATE RMSE {ate.rmse:.4f} m{what}\n{ate.alignment_text}, {ate.num_pairs} poses"
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=dpi)
-    return path
+    return plane

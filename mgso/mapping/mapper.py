@@ -92,6 +92,9 @@ class MapperStats:
                                                    "skipped_capacity": 0, "opacity_resets": 0,
                                                    "clamped_aspect": 0})
     seed_results: list = field(default_factory=list)   # SeedResult per seeding, in order
+    # (frame index, timestamp, training steps so far, Gaussians) after each keyframe is applied, and once after the
+    # final refinement (frame index -1, timestamp nan): the map's growth over time (report.png); not in as_dict
+    history: list = field(default_factory=list)
     stopped_by: str = ""                    # "stop" (end of stream) or "interrupt"
 
     @property
@@ -99,7 +102,8 @@ class MapperStats:
         return self.steps / self.train_seconds if self.train_seconds > 0 else 0.0
 
     def as_dict(self) -> dict:
-        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "seed_results"}
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+             if f.name not in ("seed_results", "history")}
         d["iterations_per_s"] = self.iterations_per_s
         d["seeding"] = [{"keyframe_id": r.keyframe_id, "status": r.status.value, "candidates": r.num_candidates,
                          "fill": r.num_fill, "rejected_visibility": r.num_rejected_visibility,
@@ -303,6 +307,7 @@ class Mapper:
             self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
         else:
             self.stats.stopped_by = "interrupt"
+        self.stats.history.append((-1, float("nan"), self.stats.steps, int(self.gmap.n)))
         self.observer.on_map_updated(MapUpdate(-1, self.gmap.n, len(self.views), self.stats.steps, None,
                                                self._last_step))
 
@@ -346,6 +351,7 @@ class Mapper:
         self._dso_exposure[kid] = exposure
         self._exposure_ms[kid] = msg.exposure_ms
         self.stats.keyframes += 1
+        self.stats.history.append((int(msg.frame_index), float(msg.timestamp), self.stats.steps, int(self.gmap.n)))
         self.observer.on_map_updated(MapUpdate(kid, self.gmap.n, len(self.views), self.stats.steps, res,
                                                self._last_step))
 
