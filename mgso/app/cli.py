@@ -1,4 +1,4 @@
-"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``.
+"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``, ``export``.
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
 Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
@@ -235,6 +235,18 @@ def cmd_fit(args) -> int:
     return EXIT_OK
 
 
+def cmd_export(args) -> int:
+    from .export import ExportError, export_run
+
+    try:
+        result = export_run(args.run_dir, args.out, args.format, input_path=args.input, calib=args.calib,
+                            all_frames=args.all_frames, progress=lambda total, desc: _progress(args, total, desc))
+    except ExportError as exc:
+        raise CliError(str(exc)) from None
+    _print(args, *result.lines())
+    return EXIT_OK
+
+
 def _demo_scene_params(args) -> dict:
     return dict(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
 
@@ -322,6 +334,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the ATE figures as one JSON line")
     _common(p)
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("export", help="a finished run's keyframes (undistorted images, poses) and DSO's points as a "
+                                      "COLMAP model or a nerfstudio transforms.json (docs/export.md)")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="the output folder of an mgso run")
+    p.add_argument("--format", required=True, choices=["colmap", "nerfstudio"],
+                   help="colmap: images/ + sparse/0/ (cameras, images, points3D; text and binary); nerfstudio: "
+                        "images/ + transforms.json + sparse_pc.ply")
+    p.add_argument("--out", help="output folder (default RUN_DIR/<format>)")
+    p.add_argument("--input", help="the run's input sequence, when it has moved since the run (default: the path in "
+                                   "RUN_DIR/sequence.json)")
+    p.add_argument("--calib", help="calibration file, when the run's --calib file has moved")
+    p.add_argument("--all-frames", action="store_true",
+                   help="every frame with a pose in trajectory.txt, not only the keyframes of keyframes.txt")
+    _common(p, config=False)
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("info", help="what is detected in a dataset path: layout, frames, calibration, ground truth")
     p.add_argument("path", nargs="?", help="dataset folder, image folder or video file")
