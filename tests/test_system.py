@@ -36,14 +36,56 @@ def room():
     return synthetic.cached_sequence_folder(num_frames=24, width=96, height=72, seed=0)
 
 
-def _run(folder, out_dir, *over, frames=None, oracle=None, odometry_wrapper=None):
+def _run(folder, out_dir, *over, frames=None, oracle=None, odometry_wrapper=None, ground_truth=True):
     cfg = load_config(None, [*BASE, *over])
     seq = open_sequence(str(folder), config=cfg.input)
     odo = OracleOdometry.from_sequence(seq, **(oracle or ORACLE))
     system = System(odometry_wrapper(odo) if odometry_wrapper else odo, cfg)
     result = system.run(frames(seq) if frames else seq.frames())
-    metrics = write_outputs(result, system.mapper, seq, cfg, out_dir, odometry_name=odo.name)
+    out_seq = seq if ground_truth else _WithoutGroundTruth(seq)   # the oracle needs it; the outputs then do not see it
+    metrics = write_outputs(result, system.mapper, out_seq, cfg, out_dir, odometry_name=odo.name)
     return result, metrics, system, odo, seq
+
+
+class _WithoutGroundTruth:
+    """A sequence as the outputs see it when the recording has no ground truth."""
+
+    groundtruth = None
+
+    def __init__(self, seq):
+        self._seq = seq
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+    def __len__(self):
+        return len(self._seq)
+
+
+# report.png's panels (mgso.eval.report_plot.REPORT_PANELS) as fractions of the page: (x0, x1, y0, y1), inside each
+# panel's axes (tight_layout moves the edges a little: the boxes keep a margin)
+REPORT_BOXES = {"trajectory": (0.06, 0.40, 0.06, 0.42), "error": (0.56, 0.94, 0.06, 0.42),
+                "psnr": (0.06, 0.44, 0.50, 0.80), "map": (0.56, 0.94, 0.50, 0.80), "text": (0.05, 0.70, 0.85, 0.96)}
+# colours of the series drawn in each panel (BGR, as OpenCV decodes): matplotlib's tab: colours
+TAB = {"blue": (180, 119, 31), "orange": (14, 127, 255), "green": (44, 160, 44), "purple": (189, 103, 148),
+       "brown": (75, 86, 140)}
+
+
+def _report_panels(path):
+    """report.png decoded: its size and, per panel, the number of distinct colours and the number of pixels of each
+    tab: colour (within 12 levels per channel)."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert img is not None, f"{path}: not a readable PNG"
+    h, w = img.shape[:2]
+    panels = {}
+    for name, (x0, x1, y0, y1) in REPORT_BOXES.items():
+        cell = img[int(y0 * h):int(y1 * h), int(x0 * w):int(x1 * w)].reshape(-1, 3).astype(np.int32)
+        colours = len(np.unique(cell, axis=0))
+        hits = {c: int((np.abs(cell - np.array(bgr)).max(axis=1) <= 12).sum()) for c, bgr in TAB.items()}
+        panels[name] = (colours, hits)
+    return (w, h), panels
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +143,7 @@ def test_outputs_exist_and_parse(det_run):
     img = cv2.imread(str(renders[0]))
     assert img.shape == (72, 2 * 96, 3)                      # input | render
     assert (out / "trajectory.png").stat().st_size > 1000
+    assert metrics["written"][-2:] == ["renders/", "report.png"]    # written last, after the evaluation
     data = json.loads((out / "metrics.json").read_text())
     assert set(METRICS_KEYS) <= set(data)
     assert [a["label"] for a in data["ate"]] == ["all frames", "keyframes"]
@@ -114,6 +157,64 @@ def test_outputs_exist_and_parse(det_run):
     assert data["peak_memory_mb"] > 50 and data["tracking_fps"] > 0 and data["end_to_end_fps"] > 0
     assert data["mapping_iterations_per_s"] > 0 and data["frames"]["processed"] == 24
     assert data["mode"] == "deterministic" and data["interrupted"] is False
+
+
+def test_report_png_draws_every_panel(det_run):
+    """report.png (issue 15): one page of the expected size; each panel drawn, with its series in its colours."""
+    from mgso.eval.report_plot import REPORT_DPI, REPORT_PANELS, REPORT_SIZE_INCHES
+
+    *_, out = det_run
+    size, panels = _report_panels(out / "report.png")
+    assert size == (round(REPORT_SIZE_INCHES[0] * REPORT_DPI), round(REPORT_SIZE_INCHES[1] * REPORT_DPI))
+    assert set(panels) == set(REPORT_PANELS)
+    for name, (colours, _) in panels.items():
+        assert colours > 2, f"panel {name} is blank ({colours} colours)"
+    assert panels["trajectory"][0] > 50                                  # the estimate coloured by ATE (viridis)
+    assert panels["error"][1]["purple"] > 50                             # the error over time
+    assert panels["psnr"][1]["blue"] > 20 and panels["psnr"][1]["orange"] > 20   # MonoGS and Photo-SLAM series
+    assert panels["map"][1]["green"] > 50 and panels["map"][1]["brown"] > 50     # Gaussians and steps
+    # the series are where they belong (a panel drawn with the wrong data or in the wrong place fails here)
+    assert panels["error"][1]["orange"] == 0 and panels["map"][1]["purple"] == 0
+
+
+# small runs for the report's cases: 2 steps a keyframe, 5 final steps, the MonoGS protocol only
+SMALL = ("mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=5", "system.eval_photo_slam=false")
+
+
+def test_report_png_without_ground_truth(room, tmp_path):
+    """Without ground truth: no trajectory.png (nothing to align to), report.png still, with the estimate alone."""
+    _, metrics, system, *_ = _run(room, tmp_path, *SMALL, ground_truth=False)
+    assert metrics["ate_all_frames_m"] is None and metrics["evaluation"] == "done"
+    assert not (tmp_path / "trajectory.png").exists()
+    assert "report.png" in metrics["written"]
+    _, panels = _report_panels(tmp_path / "report.png")
+    assert panels["trajectory"][1]["blue"] > 50            # the estimate alone (no ATE colouring)
+    assert panels["error"][1]["purple"] == 0 and panels["error"][0] > 2   # no error curve: the panel says why
+    assert panels["psnr"][1]["blue"] > 20 and panels["map"][1]["green"] > 20
+    assert len(system.mapper.stats.history) == system.mapper.stats.keyframes + 1   # a sample per keyframe, final
+    assert "history" not in metrics["mapper"]
+
+
+def test_output_plot_false_writes_no_png(room, tmp_path):
+    """Negative control: output.plot=false writes neither trajectory.png nor report.png; the rest as usual."""
+    _, metrics, *_ = _run(room, tmp_path, *SMALL, "output.plot=false")
+    assert metrics["evaluation"] == "done" and metrics["psnr_monogs_db"] is not None
+    assert not (tmp_path / "trajectory.png").exists() and not (tmp_path / "report.png").exists()
+    assert not {"trajectory.png", "report.png"} & set(metrics["written"])
+
+
+def test_a_failing_report_does_not_take_the_run_down(room, tmp_path, monkeypatch):
+    import mgso.eval
+
+    def boom(path, data, **kw):
+        raise RuntimeError("no canvas")
+
+    monkeypatch.setattr(mgso.eval, "plot_report", boom)
+    _, metrics, *_ = _run(room, tmp_path, *SMALL)
+    assert metrics["evaluation"] == "failed: report.png: RuntimeError: no canvas"
+    assert metrics["psnr_monogs_db"] is not None and metrics["ate_all_frames_m"] is not None   # the figures kept
+    assert (tmp_path / "trajectory.png").is_file() and (tmp_path / "map.ply").is_file()
+    assert not (tmp_path / "report.png").exists() and not list(tmp_path.glob(".report-*"))
 
 
 def test_deterministic_mode_is_bitwise_reproducible(det_run, room, tmp_path):
@@ -323,7 +424,7 @@ def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
     assert any(b.desc == "eval monogs" and b.n == b.total == 3 for b in bars)
     names = {p.name for p in s.written}
     assert {"trajectory.txt", "keyframes.txt", "map.ply", "points.ply", "metrics.json", "trajectory.png",
-            "renders"} <= names
+            "renders", "report.png"} <= names
     text = "\n".join(s.lines())
     assert "ATE" in text and "keyframes, Sim(3)" in text and "MonoGS protocol" in text and "Gaussians" in text
     assert s.figures["num_gaussians"] > 0 and s.figures["psnr_monogs_db"] > 15
