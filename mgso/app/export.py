@@ -132,6 +132,9 @@ def _open_input(info: dict, cfg, input_path: str | None, calib: str | None):
     if not path.exists():
         if input_path:
             raise ExportError(f"--input {path}: no such file or folder")
+        if not path.is_absolute():
+            raise ExportError(f"the run's input {path} is not found from {Path.cwd()} (a path relative to the folder "
+                              "the run was started in; give --input PATH)")
         raise ExportError(f"the run's input {path} is gone or moved (give --input PATH)")
     seq = open_sequence(path, calib=_calibration_arg(info, old, calib), config=cfg.input)
     # the input must be the one the run saw: its output camera and frame count
