@@ -753,9 +753,10 @@ class MappingConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
-    trajectory_format: str = opt("tum", "trajectory file format: tum (timestamp tx ty tz qx qy qz qw) or kitti")
+    trajectory_format: str = opt("tum", "trajectory.txt is always TUM (timestamp tx ty tz qx qy qz qw); kitti also "
+                                        "writes trajectory_kitti.txt and keyframes_kitti.txt (3x4 rows)")
     save_renders: bool = opt(True, "write renders of evaluation frames next to the input")
-    plot: bool = opt(True, "write a trajectory plot when ground truth is present (needs matplotlib)")
+    plot: bool = opt(True, "write trajectory.png (with ground truth) and, for a full run, report.png")
 
     def __post_init__(self):
         c = _Checks("output", self)
