@@ -312,3 +312,31 @@ def test_a_pose_left_in_mgso_axes_fails_the_checks(run, tmp_path, monkeypatch):
     imgs = [_png(exp / f["file_path"]) for f in meta["frames"]]
     K = (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"])
     assert not _passes(*project_check(K, (W, H), [np.linalg.inv(T) for T in gl], imgs, xyz, rgb, opengl=True))
+
+
+def test_a_distorted_lens_exports_the_undistorted_camera_and_masks(tmp_path):
+    """A RadTan lens undistorted with DSO's ``full`` output: the exports carry the output camera (not the lens'), the
+    images are the undistorted ones, and nerfstudio gets masks of the pixels without a source, as many as
+    sequence.json's valid_fraction says."""
+    room = synthetic.write_tum_rgbd(tmp_path / "room", seed=0, num_frames=24, width=W, height=H)
+    (room / "camera.txt").write_text(f"RadTan 68.551104 68.551104 47.5 35.5 -0.2 0.05 0 0\n{W} {H}\nfull\n{W} {H}\n")
+    out = tmp_path / "run"
+    main(["run", str(room), "--out", str(out), "--stage", "odometry", "-q", "--set", "output.plot=false"])
+    assert len(read_tum(out / "keyframes.txt")) >= 2
+    info = json.loads((out / "sequence.json").read_text())
+    k = info["intrinsics"]
+    assert abs(k["fx"] - 68.551104) > 1.0 and 0.5 < info["valid_fraction"] < 0.99   # the lens is really undistorted
+    assert main(["export", str(out), "--format", "nerfstudio", "--out", str(tmp_path / "ns"), "-q"]) == 0
+    meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
+    assert np.allclose((meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"]),
+                       (k["fx"], k["fy"], k["cx"] + 0.5, k["cy"] + 0.5), atol=1e-9)
+    kf = read_tum(out / "keyframes.txt")
+    for f, t in zip(meta["frames"], kf.timestamps):
+        mask = cv2.imread(str(tmp_path / "ns" / f["mask_path"]), cv2.IMREAD_GRAYSCALE)
+        assert mask.shape == (H, W) and set(np.unique(mask)) == {0, 255}
+        assert abs((mask > 0).mean() - info["valid_fraction"]) < 1e-9
+        assert np.abs(_png(tmp_path / "ns" / f["file_path"]).astype(int) - _room_rgb_at(room, t)).mean() > 5
+    assert main(["export", str(out), "--format", "colmap", "--out", str(tmp_path / "col"), "-q"]) == 0
+    m = read_colmap_text(tmp_path / "col" / "sparse" / "0")
+    assert np.allclose(m["K"], (k["fx"], k["fy"], k["cx"] + 0.5, k["cy"] + 0.5), atol=1e-9)
+    assert not (tmp_path / "col" / "masks").exists()
