@@ -340,3 +340,21 @@ def test_a_distorted_lens_exports_the_undistorted_camera_and_masks(tmp_path):
     m = read_colmap_text(tmp_path / "col" / "sparse" / "0")
     assert np.allclose(m["K"], (k["fx"], k["fy"], k["cx"] + 0.5, k["cy"] + 0.5), atol=1e-9)
     assert not (tmp_path / "col" / "masks").exists()
+
+
+def test_a_run_started_with_a_relative_path_exports_from_anywhere(run, tmp_path, monkeypatch):
+    """sequence.json keeps the input as typed (relative to where the run started) and its absolute path; the export
+    finds the input from another folder. Without the absolute path it could not (negative control)."""
+    room, out = run
+    monkeypatch.chdir(room.parent)
+    rel_out = tmp_path / "rel"
+    assert main(["run", room.name, "--out", str(rel_out), "--stage", "check", "-q"]) == 0
+    info = json.loads((rel_out / "sequence.json").read_text())
+    assert info["path"] == room.name and info["path_absolute"] == str(room.resolve())
+    for name in ("keyframes.txt", "trajectory.txt", "points.ply"):
+        shutil.copy(out / name, rel_out / name)
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", str(rel_out), "--format", "colmap", "--out", str(tmp_path / "e1"), "-q"]) == 0
+    del info["path_absolute"]
+    (rel_out / "sequence.json").write_text(json.dumps(info))
+    assert main(["export", str(rel_out), "--format", "colmap", "--out", str(tmp_path / "e2"), "-q"]) == 1

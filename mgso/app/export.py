@@ -111,6 +111,8 @@ def _calibration_arg(info: dict, old_input: Path, calib: str | None) -> str | No
     if not src:
         return None
     p = Path(src)
+    if not p.is_absolute() and info.get("run_cwd"):   # relative to where the run was started
+        p = Path(info["run_cwd"]) / p
     folder = old_input if old_input.suffix == "" else old_input.parent
     try:
         p.relative_to(folder)
@@ -128,6 +130,8 @@ def _open_input(info: dict, cfg, input_path: str | None, calib: str | None):
     from mgso.io import open_sequence
 
     old = Path(info["path"])
+    if not old.is_absolute() and info.get("path_absolute"):   # written by runs since sequence.json had it
+        old = Path(info["path_absolute"])
     path = Path(input_path).expanduser() if input_path else old
     if not path.exists():
         if input_path:

@@ -173,7 +173,11 @@ class RunWriter:
         """``sequence.json`` (what ``mgso info`` says about the input) and, when there is one, ``groundtruth.txt``."""
         from mgso.io.trajectory import write_tum
 
-        self.write_json("sequence.json", seq.describe())
+        info = dict(seq.describe())
+        # where relative paths in it start from, so that the input is found from anywhere (mgso export)
+        info["path_absolute"] = str(Path(seq.path).resolve())
+        info["run_cwd"] = os.getcwd()
+        self.write_json("sequence.json", info)
         if seq.groundtruth is not None:
             self.write_with("groundtruth.txt", lambda p: write_tum(p, seq.groundtruth))
 
