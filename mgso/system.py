@@ -198,13 +198,6 @@ class SystemRunError(RuntimeError):
         self.error = error
 
 
-def _only(traj: Trajectory, timestamps: set) -> Trajectory:
-    keep = np.array([float(t) in timestamps for t in traj.timestamps], bool)
-    if keep.all():
-        return traj
-    return Trajectory(traj.timestamps[keep], traj.cam_to_world[keep])
-
-
 # --------------------------------------------------------------------------------------------- playback
 _END = object()
 
@@ -384,7 +377,7 @@ class System:
         if player is not None:
             read = player.read
         done = set(self.frame_log.timestamp)   # a frame cut off mid-way by an interrupt is not in the results
-        traj = _only(self.odometry.trajectory(), done)
+        traj = self.odometry.trajectory().at_times(done)
         # without a pose in the end (a frame that had none when it was tracked may get one later: DSO's first
         # frame, once the initialiser succeeds)
         lost = processed - len(traj)
@@ -393,7 +386,7 @@ class System:
             frames_dropped=player.dropped if player is not None else 0, keyframes=self._keyframes,
             pose_updates=self._pose_updates, interrupted=interrupted,
             trajectory=traj,
-            keyframe_trajectory=_only(self.odometry.keyframe_trajectory(), done), frame_log=self.frame_log,
+            keyframe_trajectory=self.odometry.keyframe_trajectory().at_times(done), frame_log=self.frame_log,
             cloud=self.cloud, mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,
             finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames))
         self.observer.on_sequence_end(result)

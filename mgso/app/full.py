@@ -27,7 +27,7 @@ from mgso.geometry import orthonormalize, se3_inverse
 from mgso.mapping.mapper import Mapper
 from mgso.system import SystemResult, peak_memory_mb
 
-from .signals import StopState, deferred_signals, hurried_signals
+from .signals import StopState, deferred_signals, stop_signals
 from .writer import RunWriter
 
 __all__ = ["METRICS_KEYS", "write_full_outputs", "write_outputs"]
@@ -55,7 +55,7 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
 
     t_out = time.perf_counter()
     guard = (lambda: deferred_signals(state)) if state is not None else nullcontext
-    hurry = (lambda: hurried_signals(state)) if state is not None else nullcontext
+    hurry = (lambda: stop_signals(state)) if state is not None else nullcontext
     traj, kf_traj = result.trajectory, result.keyframe_trajectory
     gt = seq.groundtruth if seq is not None else None
     ate: dict[str, Any] = {}

@@ -7,8 +7,8 @@ was done; the exit code says which (docs/architecture.md, README "Exit codes").
   them as Ctrl-C.
 - :func:`deferred_signals` (around writing the files that must exist): a signal is remembered, not raised; the
   block finishes its files.
-- :func:`hurried_signals` (around evaluation after the essential files): a signal raises, the evaluation stops,
-  and the files already written stand.
+- :func:`stop_signals` again around the evaluation after the essential files: a signal raises, the evaluation
+  stops, and the files already written stand.
 
 Handlers are only installed in the main thread (Python delivers signals there); elsewhere these are no-ops.
 """
@@ -21,7 +21,7 @@ import threading
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["Terminated", "StopState", "stop_signals", "deferred_signals", "hurried_signals", "exit_code_for"]
+__all__ = ["Terminated", "StopState", "stop_signals", "deferred_signals", "exit_code_for"]
 
 log = logging.getLogger(__name__)
 
@@ -107,13 +107,6 @@ def deferred_signals(state: StopState, what: str = "writing the outputs") -> Ite
         log.warning("%s received while %s: finishing them first", _NAMES.get(signum, signum), what)
 
     with _handlers(handler):
-        yield state
-
-
-@contextmanager
-def hurried_signals(state: StopState) -> Iterator[StopState]:
-    """Like :func:`stop_signals`: used around work that may be cut short (evaluation after the essential files)."""
-    with stop_signals(state):
         yield state
 
 

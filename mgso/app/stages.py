@@ -42,7 +42,7 @@ import numpy as np
 from mgso.config import Config
 from mgso.observers import Observer, ObserverList, no_progress
 
-from .signals import StopState, deferred_signals, exit_code_for, hurried_signals, stop_signals
+from .signals import StopState, deferred_signals, exit_code_for, stop_signals
 from .writer import RunWriter, frame_row, unreadable_row
 
 __all__ = ["STAGES", "STAGE_HELP", "DEFAULT_STAGE", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "RunSummary",
@@ -240,7 +240,7 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     # a frame cut off mid-way by an interrupt is in no output
     summary.frames = n
     with deferred_signals(state):
-        traj = _only_frames(odo.trajectory(), odo, done)
+        traj = odo.trajectory().at_times({float(f.timestamp) for f in odo.frames if f.index in done})
         kfs = odo.keyframe_trajectory()
         writer.write_trajectories(traj, kfs, cfg.output.trajectory_format)
         pts, cols = odo.point_cloud_world()
@@ -267,7 +267,7 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
                                f"{n / wall if wall else 0:.2f} frames/s ({geo.width}x{geo.height}, {device})")
     if ates and cfg.output.plot:
         try:
-            with hurried_signals(state):
+            with stop_signals(state):
                 writer.write_trajectory_plot(ates[0], seq.groundtruth, kfs.timestamps,
                                              f"{seq.name}: DSO ({summary.stage} stage)")
         except KeyboardInterrupt:
@@ -276,14 +276,6 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
         summary.messages.append("no frame got a pose: the odometry never initialised (a monocular start needs the "
                                 "camera to translate; see the log for the initialiser's reasons)")
     summary.conclude(state, no_pose=(tracked == 0 and n > 0))
-
-
-def _only_frames(traj, odo, done: set):
-    from mgso.io.trajectory import Trajectory
-
-    ts = {float(f.timestamp) for f in odo.frames if f.index in done}
-    keep = np.array([float(t) in ts for t in traj.timestamps], bool)
-    return traj if keep.all() else Trajectory(traj.timestamps[keep], traj.cam_to_world[keep])
 
 
 def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary) -> list:

@@ -72,8 +72,8 @@ FRAME_COLUMNS = ("index", "timestamp", "status", "segment", "keyframe", "keyfram
 
 
 class FrameLogWriter:
-    """``frames.csv``, a row per frame appended and flushed as the frame finishes; :meth:`skipped` adds a row for a
-    frame that could not be read (status ``unreadable``)."""
+    """``frames.csv``, a row per frame appended and flushed as the frame finishes (a frame that could not be read
+    gets a row too: :func:`unreadable_row`)."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -81,7 +81,6 @@ class FrameLogWriter:
         self._csv = csv.writer(self._fh)
         self._csv.writerow(FRAME_COLUMNS)
         self._fh.flush()
-        self.rows = 0
         self._lock = threading.Lock()   # rows come from the frame loop and from the reader's thread (unreadable)
 
     def add(self, row: dict) -> None:
@@ -90,7 +89,6 @@ class FrameLogWriter:
                 return
             self._csv.writerow([_cell(row.get(c)) for c in FRAME_COLUMNS])
             self._fh.flush()
-            self.rows += 1
 
     def close(self) -> None:
         with self._lock:
@@ -158,10 +156,6 @@ class RunWriter:
 
     def write_json(self, name: str, obj: Any) -> Path:
         return self.write_text(name, json.dumps(obj, indent=2, default=_json_default, allow_nan=False) + "\n")
-
-    def mark(self, name: str) -> None:
-        """Record ``name`` (a folder filled file by file, e.g. ``renders/``) as written."""
-        self._note(name)
 
     # ------------------------------------------------------------------------------------------ run files
     def write_config(self, cfg) -> Path:
@@ -271,14 +265,14 @@ def pose_columns(cam_to_world) -> dict:
     return {"tx": T[0, 3], "ty": T[1, 3], "tz": T[2, 3], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3]}
 
 
-def frame_row(r, *, segment=None, keyframe=None) -> dict:
+def frame_row(r) -> dict:
     """A ``frames.csv`` row from what an odometry says about a frame: a :class:`mgso.odometry.FrameResult` (DSO,
     with its tracking figures) or any object with ``index``, ``timestamp``, ``status``, ``cam_to_world``."""
     status = getattr(r, "status", "")
     row = {"index": r.index, "timestamp": float(r.timestamp), "status": getattr(status, "value", status),
-           "segment": getattr(r, "segment", segment),
+           "segment": getattr(r, "segment", None),
            "keyframe_reason": getattr(r, "keyframe_reason", "") or ""}
-    kf = getattr(r, "keyframe_id", keyframe)   # the keyframe id, -1 for other frames; empty when unknown
+    kf = getattr(r, "keyframe_id", None)   # the keyframe id, -1 for other frames; empty when unknown
     row["keyframe"] = kf if kf is not None else ("" if getattr(r, "is_keyframe", False) else -1)
     tr = getattr(r, "track", None)
     if tr is not None:

@@ -49,6 +49,11 @@ class Trajectory:
     def subset(self, index) -> "Trajectory":
         return Trajectory(self.timestamps[index], self.cam_to_world[index])
 
+    def at_times(self, timestamps) -> "Trajectory":
+        """The poses whose timestamp is one of ``timestamps`` (exact, as the frames' own); itself when all are."""
+        keep = np.isin(self.timestamps, np.asarray(list(timestamps), np.float64))
+        return self if keep.all() else self.subset(keep)
+
     def path_length(self) -> float:
         p = self.positions
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
