@@ -39,6 +39,7 @@ __all__ = [
     "device_of",
     "cpu_threads",
     "set_cpu_threads",
+    "cpu_threads_setting",
     "set_blas_threads",
     "split_ranges",
     "launch_split",
@@ -165,6 +166,11 @@ def cpu_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def cpu_threads_setting() -> int:
+    """The setting of :func:`set_cpu_threads` (0 = all available cores), to put back after a temporary change."""
+    return _threads
 
 
 def set_cpu_threads(threads: int) -> None:
