@@ -159,10 +159,19 @@ class InputConfig:
                                                         "wrong size): skip it with a warning, counted in metrics.json "
                                                         "and frames.csv, or stop the run (the outputs of the frames "
                                                         "before it are written either way)")
+    live_timeout_s: float = opt(5.0, "live camera or stream (docs/live.md): a source that delivers no frame for this "
+                                     "many seconds (unplugged, network gone) ends the run as at the end of the input, "
+                                     "with a warning, outputs written")
+    live_max_frames: int = opt(0, "live camera or stream: end the run after this many frames captured (mgso run "
+                                  "--max-frames); 0 = no limit")
+    live_duration_s: float = opt(0.0, "live camera or stream: end the run after this many seconds of frames (mgso "
+                                      "run --duration); 0 = no limit")
 
     def __post_init__(self):
         c = _Checks("input", self)
         c.ge(0, "start", "end", "width", "height", "prefetch", "gt_max_dt")
+        c.within(0.1, 3600.0, "live_timeout_s")
+        c.ge(0, "live_max_frames", "live_duration_s")
         c.rule(self.end == 0 or self.end > self.start, "end", f"0 (to the end) or > start ({self.start})")
         c.ge(1, "stride")
         c.gt(0, "fps")

@@ -207,11 +207,17 @@ class Player:
     releases each at ``t0 + (timestamp - first) / speed``; the consumer takes the newest released frame. A frame
     released while the previous one was not yet taken replaces it (counted in :attr:`dropped`). ``speed = 0``: no
     pacing and nothing dropped (the consumer's pace). Errors of the source (including ``KeyboardInterrupt``) are
-    raised in the consumer."""
+    raised in the consumer.
+
+    A live source (``frames.live`` true: :class:`mgso.io.live.LiveSource`'s frames) is never paced (the device is
+    the clock) and always drops, whatever ``speed``; it is closed before the player's thread is joined (that thread
+    may be waiting in it for the next frame), and the frames the source itself replaced before the player took them
+    (``frames.dropped``) are added to :attr:`read` and :attr:`dropped`."""
 
     def __init__(self, frames: Iterable, speed: float = 1.0):
         self.speed = float(speed)
         self._frames = frames
+        self.live = bool(getattr(frames, "live", False))
         self._cond = threading.Condition()
         self._slot: Any = None
         self._has = False
@@ -239,13 +245,13 @@ class Player:
                 if self._stop.is_set():
                     return
                 self.read += 1
-                if self.speed > 0:
+                if self.speed > 0 and not self.live:
                     if t0 is None:
                         t0, ts0 = time.perf_counter(), float(frame.timestamp)
                     wait = t0 + (float(frame.timestamp) - ts0) / self.speed - time.perf_counter()
                     if wait > 0 and self._stop.wait(wait):
                         return
-                if not self._put(frame, replace=self.speed > 0):
+                if not self._put(frame, replace=self.speed > 0 or self.live):
                     return
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
             self._put(exc, replace=False)
@@ -270,10 +276,16 @@ class Player:
             self._stop.set()
             with self._cond:
                 self._cond.notify_all()
-            self._thread.join(timeout=5.0)
             close = getattr(self._frames, "close", None)
-            if close is not None:
+            if self.live and close is not None:
                 close()
+            self._thread.join(timeout=5.0)
+            if close is not None and not self.live:
+                close()
+            if self.live:
+                at_source = int(getattr(self._frames, "dropped", 0))
+                self.read += at_source
+                self.dropped += at_source
 
 
 # ----------------------------------------------------------------------------------------------- system

@@ -75,7 +75,8 @@ def _format_info(info: dict) -> list[str]:
     lines = [f"layout:       {info.get('layout')}",
              f"path:         {info.get('path')}",
              f"frames:       {info.get('frames')}" + (f" (of {info['frames_total']})"
-                                                      if info.get("frames_total") != info.get("frames") else "")]
+                                                      if info.get("frames_total") != info.get("frames") else "")
+             if not info.get("live") else "frames:       live (no length; docs/live.md)"]
     size_in, size_out = info.get("image_size_in"), info.get("image_size_out")
     lines.append(f"image:        {size_in[0]}x{size_in[1]} {'colour' if info.get('color') else 'gray'}"
                  + (f" -> {size_out[0]}x{size_out[1]}" if size_out != size_in else ""))
@@ -152,11 +153,17 @@ def cmd_eval(args) -> int:
 def cmd_run(args) -> int:
     from .stages import run_sequence
 
-    cfg = _load_cfg(args)
+    cfg = _live_and_limits(args, _load_cfg(args))
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
     writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
-    _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {writer.out}")
+    if getattr(seq, "live", False):
+        w, h = seq.calibration.output_size
+        _print(args, f"mgso {__version__}: live source {seq.what} ({w}x{h}, {seq.fps:.1f} fps nominal) -> "
+                     f"{writer.out}; runs until Ctrl-C, SIGTERM, a limit (--max-frames, --duration) or "
+                     f"{cfg.input.live_timeout_s:g} s without a frame")
+    else:
+        _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {writer.out}")
     state = StopState()
     summary = run_sequence(seq, cfg, writer, stage=args.stage, state=state,
                            progress=lambda total, desc: _progress(args, total, desc))
@@ -169,6 +176,44 @@ def cmd_run(args) -> int:
         print(f"mgso {args.command}: {summary.signal or 'SIGINT'}: stopped after {summary.frames} frames; the "
               f"outputs of what was done are in {writer.out}", file=sys.stderr)
     return summary.exit_code
+
+
+def _live_and_limits(args, cfg: Config) -> Config:
+    """``mgso run``'s input limits and a live source's settings (docs/live.md).
+
+    A live camera or stream always runs in real time (``system.mode=realtime``; a deterministic run of it is
+    meaningless: a warning when ``--set system.mode=deterministic`` asked for one) and has no ground truth, so no
+    evaluation that reads frames back (``system.eval_monogs`` / ``eval_photo_slam`` off); ``--max-frames N`` and
+    ``--duration S`` bound it (``input.live_max_frames`` / ``input.live_duration_s``). For a recorded sequence
+    ``--max-frames N`` keeps its first N selected frames (``input.end``); ``--duration`` is for live sources."""
+    import dataclasses
+
+    from mgso.io import is_live_source
+
+    n, dur = getattr(args, "max_frames", None), getattr(args, "duration", None)
+    if n is not None and n < 1:
+        raise CliError(f"run: --max-frames must be >= 1, got {n}")
+    if dur is not None and not dur > 0:
+        raise CliError(f"run: --duration must be > 0 seconds, got {dur}")
+    inp, sysc = cfg.input, cfg.system
+    if is_live_source(args.path):
+        if n is not None:
+            inp = dataclasses.replace(inp, live_max_frames=n)
+        if dur is not None:
+            inp = dataclasses.replace(inp, live_duration_s=dur)
+        asked = [s for s in (getattr(args, "set", None) or []) if s.replace(" ", "").startswith("system.mode=")]
+        if sysc.mode != "realtime" and asked:
+            log.warning("%s: a live source always runs in real time (a deterministic run of a live camera makes no "
+                        "sense); system.mode=%s ignored", args.path, sysc.mode)
+        sysc = dataclasses.replace(sysc, mode="realtime", eval_monogs=False, eval_photo_slam=False)
+    else:
+        if dur is not None:
+            raise CliError("run: --duration bounds a live camera or stream; for a recorded sequence give "
+                           "--max-frames N (or --set input.end=N)")
+        if n is not None:
+            end = inp.start + (n - 1) * inp.stride + 1
+            inp = dataclasses.replace(inp, end=min(end, inp.end) if inp.end else end)
+    return dataclasses.replace(cfg, input=inp, system=sysc)
 
 
 #: The demo's mapping budget (a few minutes on a 2-core CPU; docs/mgso.md): fewer steps a keyframe than a recorded
@@ -271,8 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mgso {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("run", help="run on a recorded sequence (dataset folder, image folder or video)")
-    p.add_argument("path", help="dataset folder, image folder or video file (layout detected)")
+    p = sub.add_parser("run", help="run on a recorded sequence (dataset folder, image folder or video) or a live "
+                                   "camera or stream (camera:N, rtsp://..., http://...: docs/live.md)")
+    p.add_argument("path", help="dataset folder, image folder or video file (layout detected), or a live source: "
+                                "camera:N (OpenCV's camera N), rtsp:// http:// udp:// ... (with --calib)")
     p.add_argument("--out", help="output folder (default runs/<name>-<time>)")
     p.add_argument("--calib", help="calibration file (DSO camera.txt, or 'fx fy cx cy [k1 k2 p1 p2]') when the "
                                    "dataset has none")
@@ -282,7 +329,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help="play the sequence at its frame rate as a live camera would, the map trained in its own "
                         "thread; frames that arrive while the odometry is busy are dropped (system.mode=realtime; "
-                        "default: deterministic)")
+                        "default: deterministic; a live camera or stream always runs so)")
+    p.add_argument("--max-frames", type=int, metavar="N",
+                   help="stop after N frames: a live source's first N captured (input.live_max_frames), a recorded "
+                        "sequence's first N selected (input.end)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="a live camera or stream: stop after S seconds of frames (input.live_duration_s)")
     _common(p)
     p.set_defaults(func=cmd_run)
 

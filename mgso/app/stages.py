@@ -138,6 +138,11 @@ class UnreadableFrames:
         return len(self.indices)
 
 
+def _total(seq) -> int | None:
+    """The progress bar's total: the sequence's length; ``None`` (unknown) for a live source (docs/live.md)."""
+    return None if getattr(seq, "live", False) else len(seq)
+
+
 def _error_text(exc: BaseException) -> str:
     from mgso.io import DatasetError
 
@@ -152,7 +157,7 @@ def _check_frames(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     t0 = time.perf_counter()
     size, n = None, 0
     try:
-        with stop_signals(state), progress(len(seq), "decode") as bar:
+        with stop_signals(state), progress(_total(seq), "decode") as bar:
             for frame in seq.frames(on_unreadable=bad):
                 img = frame.gray
                 if size is None:
@@ -211,7 +216,7 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     done: set[int] = set()
     track_ms, map_ms = [], []   # of tracked frames (a FrameResult a frame would hold 2 KB: profiles/memory.py)
     try:
-        with stop_signals(state), progress(len(seq), "track") as bar:
+        with stop_signals(state), progress(_total(seq), "track") as bar:
             for frame in seq.frames(on_unreadable=bad):
                 r = odo.process(frame)
                 frame_log.add(frame_row(r))
@@ -348,7 +353,7 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     state = state or StopState()
     summary = summary or RunSummary(stage="full", out_dir=writer.out)
     bad = UnreadableFrames(cfg.input.on_bad_frame, writer, seq)
-    bar = progress(len(seq), f"{cfg.system.mode}")
+    bar = progress(_total(seq), f"{cfg.system.mode}")
     frame_bar = _FrameBar(bar)
     system = System(odometry, cfg, device=device,
                     observer=ObserverList([frame_bar, _FrameLogObserver(writer), *observers]))
@@ -433,6 +438,8 @@ def run_sequence(seq, cfg: Config, writer: RunWriter, *, stage: str | None = Non
         _run_tracking(seq, cfg, writer, summary, progress, state)
     else:
         _run_full(seq, cfg, writer, summary, progress, state)
+    if getattr(seq, "live", False):     # why a live source ended (docs/live.md)
+        summary.messages.insert(0, seq.end_message())
     writer.close()
     summary.written = writer.written_paths()
     return summary

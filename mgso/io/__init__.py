@@ -2,7 +2,8 @@
 
 ``open_sequence(path, calib=None, config=None)`` detects the layout of a dataset folder (TUM RGB-D, TUM monoVO,
 EuRoC, KITTI, Replica, 7-Scenes, an image folder) or opens a video file, and returns a :class:`Sequence` of
-:class:`Frame` (undistorted, photometrically corrected, with the mask of pixels that have a source). Calibration files
+:class:`Frame` (undistorted, photometrically corrected, with the mask of pixels that have a source); a live camera or
+stream (``camera:N``, ``rtsp://...``) opens as a :class:`LiveSource` (frames as they come, no length; docs/live.md). Calibration files
 are read here too (:func:`read_camera_file`; each dataset's format beside its reader). See docs/datasets.md.
 """
 
@@ -12,6 +13,7 @@ from .errors import DatasetError
 from .euroc import EurocSequence, read_euroc_sensor_yaml
 from .folder import ImageFolderSequence, VideoSequence
 from .kitti import KittiSequence, read_kitti_calib
+from .live import LiveSource, is_live_source
 from .paths import shared_data_dir
 from .replica import REPLICA_NICE_SLAM, ReplicaSequence, read_replica_cam_params
 from .sequence import Frame, Sequence, poses_at_times
@@ -23,7 +25,7 @@ from .tum import TUM_RGBD_FREIBURG, TumMonoSequence, TumRgbdSequence, tum_rgbd_d
 __all__ = [
     "open_sequence", "detect_layout", "LAYOUTS", "DatasetError", "Frame", "Sequence", "poses_at_times",
     "TumRgbdSequence", "TumMonoSequence", "EurocSequence", "KittiSequence", "ReplicaSequence", "SevenScenesSequence",
-    "ImageFolderSequence", "VideoSequence",
+    "ImageFolderSequence", "VideoSequence", "LiveSource", "is_live_source",
     "Trajectory", "TrajectoryError", "associate", "matching_time_indices", "read_kitti", "read_trajectory",
     "read_tum", "write_kitti", "write_tum", "shared_data_dir",
     "read_camera_file", "read_dso_camera_txt", "read_plain_intrinsics", "load_calibration", "read_euroc_sensor_yaml",

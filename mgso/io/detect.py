@@ -12,6 +12,7 @@ from .euroc import EurocSequence, euroc_root
 from .folder import ImageFolderSequence, VideoSequence
 from .images import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS
 from .kitti import KittiSequence
+from .live import LiveSource, is_live_source
 from .replica import ReplicaSequence
 from .sequence import Sequence
 from .sevenscenes import SevenScenesSequence
@@ -28,6 +29,7 @@ LAYOUTS: dict[str, type[Sequence]] = {
     "7scenes": SevenScenesSequence,
     "images": ImageFolderSequence,
     "video": VideoSequence,
+    "live": LiveSource,       # camera:N, rtsp:// http:// udp:// ... (docs/live.md); not a Sequence: no length
 }
 
 _LOOKED_FOR = (
@@ -39,11 +41,14 @@ _LOOKED_FOR = (
     "7-Scenes: frame-XXXXXX.color.png/.jpg",
     "image folder: image files (" + " ".join(IMAGE_EXTENSIONS) + ")",
     "video file: " + " ".join(VIDEO_EXTENSIONS),
+    "live camera or stream: camera:N, rtsp://..., http://..., udp://... (with --calib)",
 )
 
 
 def detect_layout(path: str | Path) -> str:
-    """The layout name (a key of :data:`LAYOUTS`) of a dataset folder or video file."""
+    """The layout name (a key of :data:`LAYOUTS`) of a dataset folder, video file or live source."""
+    if is_live_source(path):
+        return "live"
     path = Path(path).expanduser()
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
@@ -73,7 +78,9 @@ def detect_layout(path: str | Path) -> str:
 
 def open_sequence(path: str | Path, calib: CalibArg = None, config: InputConfig | None = None, *,
                   layout: str | None = None, groundtruth: str | Path | None = None) -> Sequence:
-    """Open a dataset folder or video file as a :class:`Sequence`, detecting its layout.
+    """Open a dataset folder or video file as a :class:`Sequence`, detecting its layout; a live camera or stream
+    (``camera:N``, ``rtsp://...``, ``http://...``, ...: :func:`mgso.io.live.is_live_source`) as a
+    :class:`~mgso.io.live.LiveSource` (no length, no end of its own, ``calib`` required; docs/live.md).
 
     ``calib``: a calibration file (DSO camera.txt, EuRoC sensor.yaml, KITTI calib.txt, Replica cam_params.json,
     ``fx fy cx cy [k1 k2 p1 p2 [k3]]``), a :class:`~mgso.camera.CameraSpec` or a ready
@@ -81,8 +88,10 @@ def open_sequence(path: str | Path, calib: CalibArg = None, config: InputConfig 
     undistortion output, camera choice (:class:`~mgso.config.InputConfig`). ``layout``: skip detection (a key of
     :data:`LAYOUTS`). ``groundtruth``: a TUM or KITTI file of *camera* poses, overriding the dataset's own.
     """
-    path = Path(path).expanduser()
     name = layout or detect_layout(path)
+    if name == "live":    # a URL is no Path (Path("rtsp://h/x") would lose a slash)
+        return LiveSource(str(path), calib=calib, config=config or InputConfig(), groundtruth=groundtruth)
+    path = Path(path).expanduser()
     if name not in LAYOUTS:
         raise DatasetError(f"unknown layout {name!r}; known: {sorted(LAYOUTS)}")
     return LAYOUTS[name](path, calib=calib, config=config or InputConfig(), groundtruth=groundtruth)
