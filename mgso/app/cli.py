@@ -409,6 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--show-config", action="store_true", help="print every setting with its reason")
     _common(p)
     p.set_defaults(func=cmd_info)
+
+    from .bench import add_parser as add_bench_parser   # mgso bench (docs/bench.md)
+
+    add_bench_parser(sub)
     return parser
 
 
