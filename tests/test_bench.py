@@ -1,0 +1,238 @@
+"""``mgso bench`` (issue 16, docs/bench.md) on a real local Ray with 2 CPUs: two short synthetic sequences x 2
+variants x 2 seeds. The table's figures are those of a direct ``mgso run`` of the same job, a second invocation skips
+every task, a task that fails is recorded in its row without stopping the others, and a bad spec is one line before
+any task starts. One Ray session serves the module (started by a fixture; the bench uses an initialised Ray as it is).
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mgso import synthetic
+from mgso.app.bench_report import compare_tables, read_results_csv, summary_markdown
+from mgso.app.bench_spec import SpecError, load_spec
+from mgso.app.cli import main
+
+ray = pytest.importorskip("ray", reason="mgso bench needs Ray (the test extra installs it)")
+
+SMALL_FULL = ["mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=5", "output.plot=false",
+              "system.eval_photo_slam=false"]
+
+
+def _spec_text(seqs: list[str], *, seeds=(0, 1), variants: str | None = None) -> str:
+    variants = variants or ("variants:\n  odo: {}\n  full:\n    stage: full\n    set:\n"
+                            + "".join(f"      - {s}\n" for s in SMALL_FULL))
+    return (f"name: tiny\nstage: odometry\nseeds: [{', '.join(map(str, seeds))}]\ndata_root: data\n"
+            f"sequences: [{', '.join(seqs)}]\n{variants}")
+
+
+@pytest.fixture(scope="module")
+def bench_dir(tmp_path_factory):
+    """A folder with data/a, data/b (24 frames of the synthetic room at 96x72, two scene seeds) and spec.yaml."""
+    root = tmp_path_factory.mktemp("bench")
+    for name, seed in (("a", 0), ("b", 1)):
+        synthetic.write_tum_rgbd(root / "data" / name, seed=seed, num_frames=24, width=96, height=72)
+    (root / "spec.yaml").write_text(_spec_text(["a", "b"]))
+    return root
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    started = not ray.is_initialized()
+    if started:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield ray
+    if started:
+        ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def first_bench(bench_dir, ray_session):
+    """The first invocation: every task runs."""
+    out = bench_dir / "out"
+    rc = main(["bench", str(bench_dir / "spec.yaml"), "--out", str(out), "-q"])
+    return rc, out, read_results_csv(out / "results.csv")
+
+
+def _row(rows, seq, variant, seed):
+    [r] = [r for r in rows if (r["sequence"], r["variant"], r["seed"]) == (seq, variant, str(seed))]
+    return r
+
+
+def test_bench_runs_every_task_with_the_figures_of_a_direct_run(first_bench, bench_dir, tmp_path):
+    rc, out, rows = first_bench
+    assert rc == 0
+    assert len(rows) == 8
+    assert {(r["sequence"], r["variant"], r["seed"]) for r in rows} == {
+        (s, v, str(k)) for s in "ab" for v in ("odo", "full") for k in (0, 1)}
+    assert all(r["status"] == "ok" and r["exit_code"] == "0" and r["skipped"] == "False" for r in rows)
+    for r in rows:    # each task wrote the run folder of an mgso run, with its record
+        d = Path(r["run_dir"])
+        assert d.parent == out / "runs" and d.name == r["key"]
+        assert {"metrics.json", "trajectory.txt", "config.yaml", "frames.csv", "bench.json"} <= {
+            p.name for p in d.iterdir()}
+        assert float(r["wall_s"]) > 0 and float(r["cpu_s"]) > 0 and r["host"] and r["mgso_version"]
+        assert r["ate_m"] != ""
+    assert all(_row(rows, s, "full", k)["gaussians"] not in ("", "0") for s in "ab" for k in (0, 1))
+    assert len({r["key"] for r in rows}) == 8
+
+    # a direct `mgso run` of two of the jobs (its own process, as a user would type it) gives the same figures
+    spec = load_spec(bench_dir / "spec.yaml")
+    for seq, variant, seed in (("b", "full", 1), ("a", "odo", 0)):
+        [task] = [t for t in spec.tasks if (t.sequence, t.variant, t.seed) == (seq, variant, seed)]
+        direct = tmp_path / f"{seq}-{variant}-{seed}"
+        p = subprocess.run([sys.executable, "-m", "mgso.app.cli", *task.run_args(direct), "-q"], capture_output=True,
+                           text=True)
+        assert p.returncode == 0, p.stderr[-2000:]
+        row = _row(rows, seq, variant, seed)
+        direct_row = _direct_figures(direct)
+        for col in ("ate_m", "gaussians", "map_mb"):
+            assert row[col] == direct_row[col], (col, row[col], direct_row[col])
+        assert (direct / "trajectory.txt").read_bytes() == (Path(row["run_dir"]) / "trajectory.txt").read_bytes()
+
+    # the comparison can fail: another seed of the same job gives other figures
+    assert _row(rows, "b", "full", 0)["ate_m"] != _row(rows, "b", "full", 1)["ate_m"]
+    assert (out / "summary.md").is_file() and (out / "ate.png").stat().st_size > 1000
+
+
+def _direct_figures(run_dir: Path) -> dict:
+    """The headline figures of a run folder as the bench puts them in its table."""
+    import json
+
+    from mgso.app.bench_report import _cell, flatten_metrics, headline
+
+    return {k: _cell(v) for k, v in headline(flatten_metrics(json.loads((run_dir / "metrics.json").read_text()))).items()}
+
+
+def test_a_second_invocation_skips_every_finished_task(first_bench, bench_dir):
+    rc, out, rows = first_bench
+    stamps = {r["key"]: (Path(r["run_dir"]) / "bench.json").stat().st_mtime_ns for r in rows}
+    assert main(["bench", str(bench_dir / "spec.yaml"), "--out", str(out), "-q"]) == 0
+    again = read_results_csv(out / "results.csv")
+    assert len(again) == 8 and all(r["skipped"] == "True" and r["status"] == "ok" for r in again)
+    assert {r["key"]: (Path(r["run_dir"]) / "bench.json").stat().st_mtime_ns for r in again} == stamps
+    for a, b in zip(rows, again):        # the table is the same but for the skipped column
+        assert {k: v for k, v in a.items() if k != "skipped"} == {k: v for k, v in b.items() if k != "skipped"}
+
+    # negative control: a task recorded as failed runs again (and only that one)
+    victim = _row(again, "a", "odo", 1)
+    rec = Path(victim["run_dir"]) / "bench.json"
+    rec.write_text(rec.read_text().replace('"status": "ok"', '"status": "failed"'))
+    assert main(["bench", str(bench_dir / "spec.yaml"), "--out", str(out), "-q"]) == 0
+    third = read_results_csv(out / "results.csv")
+    assert [r["skipped"] for r in third].count("False") == 1
+    assert _row(third, "a", "odo", 1)["skipped"] == "False" and _row(third, "a", "odo", 1)["status"] == "ok"
+    assert _row(third, "a", "odo", 1)["ate_m"] == victim["ate_m"]
+
+
+def test_a_failing_task_is_recorded_in_its_row_and_the_others_go_on(first_bench, bench_dir, tmp_path, capsys):
+    from mgso.app.bench import run_bench
+
+    rc, out, rows = first_bench
+    shutil.copytree(bench_dir / "data" / "a", bench_dir / "data" / "gone")
+    spec_path = bench_dir / "spec_gone.yaml"
+    spec_path.write_text(_spec_text(["a", "gone", "b"], seeds=(0,)))
+    spec = load_spec(spec_path)               # the spec check passes: the sequence is there
+    shutil.rmtree(bench_dir / "data" / "gone")  # ... and vanishes before its task runs
+    result = run_bench(spec, out, progress=False)
+    table = read_results_csv(out / "results.csv")
+    assert len(table) == 6 and result.exit_code == 1 and result.failed == 2
+    gone = [r for r in table if r["sequence"] == "gone"]
+    assert all(r["status"] == "failed" and r["exit_code"] == "1" and "gone" in r["error"] for r in gone)
+    assert all("\n" not in r["error"] and "Traceback" not in r["error"] for r in gone)
+    others = [r for r in table if r["sequence"] != "gone"]
+    assert all(r["status"] == "ok" and r["skipped"] == "True" for r in others)
+    summary = (out / "summary.md").read_text()
+    assert "gone / odo / seed 0: failed" in summary and "a / odo / seed 0" not in summary
+    # the next full spec run still has its 8 rows, all ok (the failed rows belong to the other spec)
+    assert main(["bench", str(bench_dir / "spec.yaml"), "--out", str(out), "-q"]) == 0
+    assert len(read_results_csv(out / "results.csv")) == 8
+
+
+@pytest.mark.parametrize("body,entry", [
+    ("sequences: [a, nope]\nvariants: {odo: {}}\n", "sequences[1]"),                    # unknown sequence
+    ("sequences: [a]\nvariants:\n  odo:\n    set: [tracking.no_such_key=1]\n", "variants.odo.set[0]"),  # setting
+    ("sequences: [a]\nvariants:\n  odo:\n    set: [tracking.huber_th=-1]\n", "variants.odo.set[0]"),   # range
+    ("sequences: [a]\nvariants:\n  odo: {stage: fly}\n", "variants.odo.stage"),
+    ("sequences: [a]\nvariants:\n  odo: {sett: []}\n", "variants.odo"),
+    ("sequences: [a\nvariants: {odo: {}}\n", "not valid YAML"),                          # bad YAML
+    ("sequence: [a]\n", "unknown key 'sequence'"),
+    ("sequences: [a]\nseeds: [0, 0]\n", "seeds"),
+])
+def test_spec_errors_are_one_line_naming_the_file_and_entry_before_any_task(bench_dir, tmp_path, capsys, body,
+                                                                            entry):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(f"data_root: {bench_dir / 'data'}\n" + body)
+    out = tmp_path / "never"
+    assert main(["bench", str(spec), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("mgso bench: error: ") and str(spec) in err and entry in err, err
+    assert not out.exists()                   # nothing started
+    with pytest.raises(SpecError):
+        load_spec(spec)
+
+
+def test_a_good_spec_passes_the_check(bench_dir):
+    """Negative control of the spec errors: the same layout with valid entries loads, as mappings and globs too."""
+    spec = bench_dir / "good.yaml"
+    spec.write_text("data_root: data\nrepeats: 2\nsequences:\n  - {path: a, name: first}\n  - 'b*'\nvariants:\n"
+                    "  odo:\n    set: {tracking.huber_th: 9, window.max_frames: 6}\n  full: {stage: full}\n")
+    s = load_spec(spec)
+    assert [q.name for q in s.sequences] == ["first", "b"] and s.seeds == [0, 1] and len(s.tasks) == 8
+    assert "tracking.huber_th=9" in s.tasks[0].sets and "runtime.seed=1" in s.tasks[1].sets
+    assert len({t.key for t in s.tasks}) == 8
+
+
+def test_compare_says_what_moved_beyond_the_spread(first_bench, tmp_path, capsys):
+    def rows(values: dict) -> list[dict]:
+        return [{"sequence": "s", "variant": v, "seed": str(i), "status": "ok", "ate_m": str(x)}
+                for v, xs in values.items() for i, x in enumerate(xs)]
+
+    a = rows({"v": [1.0, 1.1, 1.2], "w": [2.0, 2.1]})
+    lines, moved = compare_tables(a, rows({"v": [1.15, 1.3, 1.25], "w": [2.5, 2.6]}))
+    assert moved == 1
+    [v_line] = [ln for ln in lines if ln.startswith("s | v |")]
+    [w_line] = [ln for ln in lines if ln.startswith("s | w |")]
+    assert "within spread" in v_line and "MOVED up (worse)" in w_line     # a higher ATE is worse
+    assert compare_tables(a, a)[1] == 0                                    # negative control
+
+    # the command on two results.csv: the bench against itself moved nothing
+    _, out, _ = first_bench
+    csv_a = out / "results.csv"
+    assert main(["bench", "--compare", str(csv_a), str(csv_a)]) == 0
+    assert "0 figure(s) moved" in capsys.readouterr().out
+    assert main(["bench", "--compare", str(csv_a), str(tmp_path / "missing.csv")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "missing.csv" in err
+
+
+def test_summary_marks_the_winner_of_each_column():
+    rows = [{"sequence": "s", "variant": v, "seed": str(i), "status": "ok", "ate_m": str(x), "psnr_db": str(p)}
+            for v, xs, ps in (("v", [0.2, 0.3, 0.25], [20, 21, 22]), ("w", [0.1, 0.5, 0.12], [19, 20, 20.5]))
+            for i, (x, p) in enumerate(zip(xs, ps))]
+    rows.append({"sequence": "s", "variant": "w", "seed": "3", "status": "failed", "error": "boom", "ate_m": ""})
+    text = summary_markdown(rows, "t")
+    [v] = [ln for ln in text.splitlines() if ln.startswith("| s | v |")]
+    [w] = [ln for ln in text.splitlines() if ln.startswith("| s | w |")]
+    assert "0.2500 (0.2000-0.3000)" in v and "**0.1200** (0.1000-0.5000)" in w     # the lower median ATE wins
+    assert "**21.00** (20.00-22.00)" in v and "**" not in w.split("|")[5]           # the higher PSNR wins
+    assert "3/4 (1 not ok)" in w and "s / w / seed 3: failed: boom" in text
+
+
+def test_results_csv_has_every_metrics_figure(first_bench):
+    _, out, rows = first_bench
+    with open(out / "results.csv", newline="") as fh:
+        header = next(csv.reader(fh))
+    assert header[:3] == ["sequence", "variant", "seed"]
+    for col in ("metrics.num_gaussians", "metrics.tracking.ate_rmse_all_frames", "metrics.peak_memory_mb",
+                "metrics.frames.processed", "commit", "ray_version", "command"):
+        assert col in header, col
+    full = _row(rows, "a", "full", 0)
+    assert full["metrics.num_gaussians"] == full["gaussians"] and full["command"].startswith("mgso run ")
