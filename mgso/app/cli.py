@@ -1,4 +1,4 @@
-"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``, ``export``.
+"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``, ``export``, ``view``.
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
 Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
@@ -154,6 +154,7 @@ def cmd_run(args) -> int:
     from .stages import run_sequence
 
     cfg = _live_and_limits(args, _load_cfg(args))
+    _check_viewer(args)                 # viser missing: one line before any work
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
     writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
@@ -165,8 +166,15 @@ def cmd_run(args) -> int:
     else:
         _print(args, f"mgso {__version__}: {seq.layout} sequence {seq.name!r}, {len(seq)} frames -> {writer.out}")
     state = StopState()
-    summary = run_sequence(seq, cfg, writer, stage=args.stage, state=state,
-                           progress=lambda total, desc: _progress(args, total, desc))
+    viewer = _start_viewer(args, seq)
+    try:
+        summary = run_sequence(seq, cfg, writer, stage=args.stage, state=state,
+                               progress=lambda total, desc: _progress(args, total, desc),
+                               observers=(viewer,) if viewer is not None else ())
+    finally:
+        if viewer is not None:
+            viewer.close()
+            _print(args, f"viewer closed; open the finished run with: mgso view {writer.out}")
     _print(args, *summary.lines())
     if summary.outcome == "failed":
         # the reason on stderr too, in the one-line form of every other error
@@ -228,6 +236,7 @@ def cmd_demo(args) -> int:
 
     args.set = list(DEMO_OVERRIDES) + list(args.set or [])
     _load_cfg(args)                     # a bad --set fails before the scene is made
+    _check_viewer(args)
     _print(args, "making the built-in synthetic scene (cached after the first run) ...")
     folder = cached_sequence_folder(**_demo_scene_params(args))
     args.path, args.calib, args.groundtruth = str(folder), None, None
@@ -292,6 +301,64 @@ def cmd_export(args) -> int:
     return EXIT_OK
 
 
+def _check_viewer(args) -> None:
+    """``--viewer``: viser installed and the full stage, else one line before any work."""
+    if not getattr(args, "viewer", False):
+        return
+    from .viewer import ViewerError, require_viser
+
+    try:
+        require_viser()
+    except ViewerError as exc:
+        raise CliError(str(exc)) from None
+    if (args.stage or "full") != "full":
+        raise CliError(f"--viewer shows the full system (the Gaussian map): it cannot be used with --stage {args.stage}")
+
+
+def _start_viewer(args, seq):
+    """The live viewer of ``mgso run/demo --viewer`` (docs/viewer.md), started, or ``None``."""
+    if not getattr(args, "viewer", False):
+        return None
+    from .viewer import LiveViewer, ViewerError
+
+    _check_viewer(args)
+    try:
+        viewer = LiveViewer(args.host, args.port, groundtruth=seq.groundtruth).start()
+    except ViewerError as exc:
+        raise CliError(str(exc)) from None
+    print(f"mgso viewer: {viewer.url} (open it in a browser; docs/viewer.md)", file=sys.stderr, flush=True)
+    return viewer
+
+
+def cmd_view(args) -> int:
+    from .viewer import ViewerError, open_run
+
+    try:
+        scene = open_run(args.run_dir, args.host, args.port, device=args.device or "cpu")
+    except ViewerError as exc:
+        raise CliError(str(exc)) from None
+    print(f"mgso viewer: {scene.url} (open it in a browser; Ctrl-C to stop)", file=sys.stderr, flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        scene.close()
+
+
+def _viewer_args(p: argparse.ArgumentParser, *, flag: bool = True) -> None:
+    from .viewer import DEFAULT_HOST, DEFAULT_PORT
+
+    if flag:
+        p.add_argument("--viewer", action="store_true",
+                       help="watch the run live in a browser (needs pip install \"mgso[viewer]\"; docs/viewer.md)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"viewer port (default {DEFAULT_PORT}; the next free one when it is taken)")
+    p.add_argument("--host", default=DEFAULT_HOST,
+                   help=f"viewer address (default {DEFAULT_HOST}: this machine only; 0.0.0.0 opens the viewer, "
+                        "without any password, to everyone who can reach this machine on the network; from a remote "
+                        "machine prefer ssh -L, docs/viewer.md)")
+
+
 def _demo_scene_params(args) -> dict:
     return dict(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
 
@@ -335,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "sequence's first N selected (input.end)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="a live camera or stream: stop after S seconds of frames (input.live_duration_s)")
+    _viewer_args(p)
     _common(p)
     p.set_defaults(func=cmd_run)
 
@@ -346,6 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="scene seed")
     p.add_argument("--stage", choices=STAGES, default=None, help="as for run")
     p.add_argument("--realtime", action="store_true", help="as for run")
+    _viewer_args(p)
     _common(p)
     p.set_defaults(func=cmd_demo)
 
@@ -401,6 +470,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="every frame with a pose in trajectory.txt, not only the keyframes of keyframes.txt")
     _common(p, config=False)
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("view", help="open a finished run (its folder, or a map.ply) in the browser viewer until "
+                                    "Ctrl-C (docs/viewer.md)")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="the output folder of an mgso run, or a map.ply")
+    _viewer_args(p, flag=False)
+    p.add_argument("--device", help="where 'render from this view' runs: cpu (default), cuda, cuda:N or auto")
+    _common(p, config=False)
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("info", help="what is detected in a dataset path: layout, frames, calibration, ground truth")
     p.add_argument("path", nargs="?", help="dataset folder, image folder or video file")

@@ -357,9 +357,15 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     frame_bar = _FrameBar(bar)
     system = System(odometry, cfg, device=device,
                     observer=ObserverList([frame_bar, _FrameLogObserver(writer), *observers]))
+    frames = seq.frames(on_unreadable=bad)
+    for obs in observers:      # a watcher (the live viewer) that asks the mapper for copies, sees the frames
+        if hasattr(obs, "attach"):
+            obs.attach(system)
+        if hasattr(obs, "watch"):
+            frames = obs.watch(frames)
     try:
         with stop_signals(state):
-            result = system.run(seq.frames(on_unreadable=bad), info=seq.describe())
+            result = system.run(frames, info=seq.describe())
     except SystemRunError as exc:
         result = exc.result
         summary.error = _error_text(exc.error)
@@ -400,7 +406,8 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     return summary.conclude(state, no_pose=no_pose)
 
 
-def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState) -> None:
+def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState,
+              observers: tuple = ()) -> None:
     from mgso.odometry import Odometry
     from mgso_kernels import runtime
 
@@ -408,15 +415,17 @@ def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress
     odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
     odometry = Odometry.for_camera(seq.calibration.output, cfg, device=odo_device, emit_messages=True)
     run_system(seq, cfg, writer, odometry, odometry_name="DSO (mgso.odometry)", progress=progress, summary=summary,
-               device=device, state=state)
+               device=device, state=state, observers=observers)
 
 
 # ------------------------------------------------------------------------------------------------ entry
 def run_sequence(seq, cfg: Config, writer: RunWriter, *, stage: str | None = None,
                  progress: Callable[[int, str], object] | None = None,
-                 state: StopState | None = None) -> RunSummary:
+                 state: StopState | None = None, observers: tuple = ()) -> RunSummary:
     """Run ``stage`` on ``seq`` and write through ``writer`` (see the module doc). Returns the summary, whose
-    ``exit_code`` is the command's."""
+    ``exit_code`` is the command's. ``observers``: more observers of the full stage's system (the live viewer);
+    one with ``attach(system)`` gets the :class:`~mgso.system.System` before the run, one with ``watch(frames)``
+    wraps the frames (to see each input frame)."""
     stage = stage or DEFAULT_STAGE
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; available: {', '.join(STAGES)}")
@@ -437,7 +446,7 @@ def run_sequence(seq, cfg: Config, writer: RunWriter, *, stage: str | None = Non
     elif stage == "odometry":
         _run_tracking(seq, cfg, writer, summary, progress, state)
     else:
-        _run_full(seq, cfg, writer, summary, progress, state)
+        _run_full(seq, cfg, writer, summary, progress, state, observers)
     if getattr(seq, "live", False):     # why a live source ended (docs/live.md)
         summary.messages.insert(0, seq.end_message())
     writer.close()
