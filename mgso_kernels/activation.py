@@ -151,9 +151,11 @@ def point_depth_residuals(params: DepthParams, key_target: np.ndarray, key_R: np
         a = np.ascontiguousarray(a, dtype=np.float32)
         if a.shape[1:] != shape_tail or a.shape[0] != n:
             raise ValueError(f"expected [{n}, {', '.join(map(str, shape_tail))}], got {a.shape}")
-        return wp.array(a, dtype=dt, device=device)
+        return wp.array(a, dtype=dt, device=device, copy=not is_cpu)
 
-    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    # the launch only reads these: views of the NumPy arrays on the CPU (no copies), copies on a GPU
+    is_cpu = wp.get_device(device).is_cpu
+    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device, copy=not is_cpu)  # noqa: E731
     out_ok = wp.zeros(M, dtype=wp.int32, device=device)
     out_e = wp.zeros(M, dtype=float, device=device)
     out_h = wp.zeros(M, dtype=float, device=device)

@@ -180,13 +180,15 @@ def select_map(dxy0: np.ndarray, grad_sq, thresholds: np.ndarray, pot: int, dir2
     p.dw1 = float(np.float32(downweight))
     p.dw2 = float(np.float32(downweight * downweight))
     p.use_directions = 1 if use_directions else 0
-    f = lambda a, dt: wp.array(np.ascontiguousarray(a, dtype=dt), device=device)  # noqa: E731
+    # the launch only reads these: views of the NumPy arrays on the CPU (no copies of the images), copies on a GPU
+    copy = not wp.get_device(device).is_cpu
+    f = lambda a, dt: wp.array(np.ascontiguousarray(a, dtype=dt), device=device, copy=copy)  # noqa: E731
     out = wp.zeros((h, w), dtype=wp.int8, device=device)
     c4 = 4 * pot
     cells = (-(-h // c4)) * (-(-w // c4))
     runtime.launch_split(select_cells, cells,
-                         [wp.array(g0, dtype=wp.float32, device=device),
-                          wp.array(dxy, dtype=wp.vec2, device=device),
+                         [wp.array(g0, dtype=wp.float32, device=device, copy=copy),
+                          wp.array(dxy, dtype=wp.vec2, device=device, copy=copy),
                           f(grad_sq[1], np.float32), f(grad_sq[2], np.float32), f(thresholds, np.float32),
                           f(dir2, np.int32), f(dir3, np.int32), f(dir4, np.int32),
                           wp.array(DIRECTIONS.astype(np.float32), dtype=wp.vec2, device=device), p, out],

@@ -395,6 +395,12 @@ def _arr(a, dtype, shape, name):
     return a
 
 
+def _read_view(a, dtype, device: str) -> wp.array:
+    """A ``wp.array`` of NumPy ``a`` that one launch only reads: a view of the NumPy memory on the CPU (no allocation,
+    no copy: 5 us against 18-105 us for the window's arrays), a copy on a GPU."""
+    return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
+
+
 def _blocks_by_key(pair_key: np.ndarray, pair_target: np.ndarray, pairs_per_block: int):
     """Pairs sorted by (target, key) (a thread's pairs read one image); blocks of at most ``pairs_per_block`` pairs
     that never straddle a key. Returns ``order, block_start, block_end, block_key``."""
@@ -470,7 +476,7 @@ def linearize_window(params: WindowParams, keys: WindowKeys, pair_point: np.ndar
     idp = _arr(idepth, np.float32, (n,), "idepth")
     col = _arr(color, np.float32, (n, 8), "color")
     wgt = _arr(weight, np.float32, (n, 8), "weight")
-    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    f = lambda a, dt: _read_view(a, dt, device)  # noqa: E731
     if cache is None or "order" not in cache:
         pair_target = keys.target[pk] if M else np.zeros(0, np.int32)
         stack = _image_stack(target_images, np.unique(pair_target).astype(np.int64), params, device)
@@ -530,7 +536,7 @@ def schur_points(lin: PairLinearization, keys: WindowKeys, pair_key: np.ndarray,
     nf = 8 * num_slots
     eh = np.zeros(n) if extra_h is None else _arr(extra_h, np.float64, (n,), "extra_h")
     eb = np.zeros(n) if extra_b is None else _arr(extra_b, np.float64, (n,), "extra_b")
-    f = lambda a, dt: wp.array(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    f = lambda a, dt: _read_view(a, dt, device)  # noqa: E731
     hdd = wp.zeros(n, dtype=wp.float64, device=device)
     bd = wp.zeros(n, dtype=wp.float64, device=device)
     w = wp.zeros((n, nf), dtype=wp.float64, device=device)
