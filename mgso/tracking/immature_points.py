@@ -365,11 +365,13 @@ class PointActivator:
             v = np.where(fin, np.floor(np.where(fin, vf, 0)), -1).astype(np.int64)
             frac = p[:, 0] - np.floor(p[:, 0])  # DSO's jitter: the fractional part of the homogeneous x
             typ = im.type[idx]
-            for j in range(len(idx)):
+            inside = (u > 0) & (u < w1) & (v > 0) & (v < h1)
+            delete[idx[~inside]] = True
+            # the distance map only shrinks while points are taken (np.minimum below): a point that fails against
+            # the map as it is now fails at its turn too, so only the others are visited, in order
+            maybe = inside & (dmap[np.where(inside, v, 0), np.where(inside, u, 0)] + frac >= dist_th * typ)
+            for j in np.flatnonzero(maybe).tolist():
                 uj, vj = u[j], v[j]
-                if not (0 < uj < w1 and 0 < vj < h1):
-                    delete[idx[j]] = True
-                    continue
                 if dmap[vj, uj] + frac[j] >= dist_th * typ[j]:
                     cand.append(idx[j])
                     y0, y1 = max(vj - radius, 0), min(vj + radius + 1, h1)
