@@ -347,8 +347,9 @@ class Odometry:
                                                                  self.geometry.input_height):
             raise ValueError(f"frame {getattr(frame, 'index', '?')}: gray image is {gray.shape}, the odometry was set "
                              f"up for {self.geometry.input_width}x{self.geometry.input_height}")
-        img = self.geometry.adjust(gray)
-        img = np.where(np.isfinite(img), img, 0.0).astype(np.float32)
+        img = np.array(self.geometry.adjust(gray), dtype=np.float32)  # an own copy (adjust may return a view)
+        if not np.isfinite(img.sum()):  # rare: NaN / inf pixels become 0 (one reduction instead of a mask each frame)
+            img[~np.isfinite(img)] = 0.0
         exposure = float(getattr(frame, "exposure_ms", None) or 0.0)
         valid = getattr(frame, "valid", None)
         if valid is not self._valid_src:  # pixels without a source (undistortion): left out of the map's loss
