@@ -323,20 +323,23 @@ def _check_2d(name: str, a, dtype, shape=None) -> None:
         raise ValueError(f"{name}: expected shape {tuple(shape)}, got {tuple(a.shape)}")
 
 
-def downsample(src: wp.array, dst: wp.array, device: str | None = None, split: bool = True) -> None:
-    """``dst [H, W] = 2x2 mean of src [2H, 2W]`` (float32)."""
+def downsample(src: wp.array, dst: wp.array, device: str | None = None, split: bool = True,
+               recorded: dict | None = None) -> None:
+    """``dst [H, W] = 2x2 mean of src [2H, 2W]`` (float32). ``recorded``: a dict kept with the arrays for
+    :func:`~mgso_kernels.runtime.launch_split`'s recorded launches (an :class:`ImagePyramid`'s)."""
     _check_2d("src", src, wp.float32)
     _check_2d("dst", dst, wp.float32, (src.shape[0] // 2, src.shape[1] // 2))
     if dst.shape[0] < 1 or dst.shape[1] < 1:
         raise ValueError(f"src {src.shape} is too small to halve")
     device = device or str(src.device)
     runtime.launch_split(downsample_image, span_threads(*dst.shape), [src, dst], device, min_chunk=256,
-                         threads=None if split else 1)
+                         threads=None if split else 1, recorded=recorded)
 
 
 def gradients(img: wp.array, dI: wp.array, grad_sq: wp.array, device: str | None = None,
-              split: bool = True) -> None:
-    """Central-difference gradients of ``img [H, W]`` into ``dI [H, W] vec3`` and ``grad_sq [H, W]``."""
+              split: bool = True, recorded: dict | None = None) -> None:
+    """Central-difference gradients of ``img [H, W]`` into ``dI [H, W] vec3`` and ``grad_sq [H, W]``
+    (``recorded``: as :func:`downsample`)."""
     _check_2d("img", img, wp.float32)
     if img.shape[0] < 2 or img.shape[1] < 2:
         raise ValueError(f"image {img.shape} too small for gradients")
@@ -344,7 +347,7 @@ def gradients(img: wp.array, dI: wp.array, grad_sq: wp.array, device: str | None
     _check_2d("grad_sq", grad_sq, wp.float32, img.shape)
     device = device or str(img.device)
     runtime.launch_split(compute_gradients, span_threads(*img.shape), [img, dI, grad_sq], device, min_chunk=256,
-                         threads=None if split else 1)
+                         threads=None if split else 1, recorded=recorded)
 
 
 class ImagePyramid:
@@ -365,6 +368,9 @@ class ImagePyramid:
             self.intensity.append(wp.zeros((h, w), dtype=wp.float32, device=self.device))
             self.dI.append(wp.zeros((h, w), dtype=wp.vec3, device=self.device))
             self.grad_sq.append(wp.zeros((h, w), dtype=wp.float32, device=self.device))
+        # build()'s launches, recorded once for these buffers (runtime.launch_split ``recorded``): a frame's pyramid
+        # is 2 launches a level, each ~50 us of Python less when replayed
+        self.launches: dict = {}
 
     @property
     def levels(self) -> int:
@@ -397,8 +403,9 @@ def build_pyramid(image, pyramid: ImagePyramid, split: bool = True) -> ImagePyra
         pyramid.intensity[0].assign(np.ascontiguousarray(img, dtype=np.float32))
     for lvl in range(g.levels):
         if lvl > 0:
-            downsample(pyramid.intensity[lvl - 1], pyramid.intensity[lvl], pyramid.device, split)
-        gradients(pyramid.intensity[lvl], pyramid.dI[lvl], pyramid.grad_sq[lvl], pyramid.device, split)
+            downsample(pyramid.intensity[lvl - 1], pyramid.intensity[lvl], pyramid.device, split, pyramid.launches)
+        gradients(pyramid.intensity[lvl], pyramid.dI[lvl], pyramid.grad_sq[lvl], pyramid.device, split,
+                  pyramid.launches)
     return pyramid
 
 
