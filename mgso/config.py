@@ -779,11 +779,23 @@ class SystemConfig:
 
     mode: Literal["deterministic", "realtime"] = opt(
         "deterministic", "deterministic: frames in order, a fixed number of mapping steps per keyframe, the same "
-                         "result on every CPU run (tests, evaluation); realtime: the mapper trains in its own thread "
-                         "while the odometry runs, a recorded sequence plays at its frame rate and frames that arrive "
-                         "while the odometry is busy are dropped (as a live camera's)")
+                         "result on every CPU run (tests, evaluation); realtime: the mapper trains in a process of its "
+                         "own (system.mapper_process) while the odometry runs, a recorded sequence plays at its frame "
+                         "rate and frames that arrive while the odometry is busy are dropped (as a live camera's)")
     playback_speed: float = opt(1.0, "realtime mode: a recorded sequence plays at this multiple of its frame rate "
                                      "(0 = as fast as the odometry takes frames, nothing dropped)")
+    mapper_process: bool = opt(True, "realtime mode: the mapper runs in a spawned process of its own (its own "
+                                     "interpreter lock, Warp context and CUDA stream; keyframe images through shared "
+                                     "memory); false: a thread of the odometry's process")
+    odometry_threads: int = opt(0, "realtime mode with mapper_process: CPU threads of the odometry's kernel launches; "
+                                   "0 = the cores the mapper does not take (at least 1)")
+    mapper_threads: int = opt(0, "realtime mode with mapper_process: CPU threads of the mapper's kernel launches; "
+                                 "0 = half the cores (at least 1)")
+    mapper_nice: int = opt(5, "realtime mode with mapper_process (POSIX): the mapper process's niceness increment, "
+                              "so that when the cores are short the odometry's frames come first and the map trains "
+                              "in what is left; 0 = same priority")
+    image_slots: int = opt(8, "realtime mode with mapper_process: keyframe images in flight to the mapper process "
+                              "(a shared-memory ring; when all wait, the odometry waits: counted as a queue wait)")
     eval_monogs: bool = opt(True, "PSNR / SSIM at the tracked poses on every 5th frame, keyframes excluded (MonoGS "
                                   "protocol), when the run ends")
     eval_photo_slam: bool = opt(True, "PSNR / SSIM at the tracked poses on every tracked frame (Photo-SLAM protocol); "
@@ -798,6 +810,9 @@ class SystemConfig:
         c = _Checks("system", self)
         c.one_of(("deterministic", "realtime"), "mode")
         c.ge(0, "playback_speed")
+        c.ge(0, "odometry_threads", "mapper_threads")
+        c.within(0, 19, "mapper_nice")
+        c.ge(1, "image_slots")
         c.done()
 
 

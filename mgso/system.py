@@ -53,8 +53,10 @@ from typing import Any, Iterable, Iterator, Protocol, Sequence as TSequence
 import numpy as np
 
 from mgso.config import Config
+from mgso_kernels import runtime
 from mgso.io.trajectory import Trajectory
 from mgso.mapping.mapper import Mapper, MapperStats
+from mgso.mapping.process import MapperProcess, split_threads
 from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
 from mgso.observers import Observer, ObserverList
 
@@ -175,6 +177,18 @@ class SystemResult:
     finish_seconds: float               # odometry.finish + the mapper's last messages and final refinement
     frames_lost: int = 0                # frames processed that have no pose in the final trajectory
     keyframe_frames: list = field(default_factory=list)   # frame index of every keyframe sent to the map
+    mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic), "thread" or "process"
+    cpu_seconds: float = 0.0            # CPU time of this process over the run (all its threads)
+
+    @property
+    def mapper_cpu_share(self) -> float | None:
+        """The mapper's share of the CPU time of the run (real time): its process's over both processes', or its
+        thread's over the process's; ``None`` in the deterministic mode."""
+        m = self.mapper.cpu_seconds
+        if self.mapper_in == "caller" or m is None:
+            return None
+        total = self.cpu_seconds + m if self.mapper_in == "process" else self.cpu_seconds
+        return m / total if total > 0 else None
 
     @property
     def tracking_fps(self) -> float:
@@ -299,8 +313,16 @@ class System:
         self.odometry = odometry
         self.config = config
         self.observer = observer if observer is not None else ObserverList()
-        self.mapper = Mapper(config, device=device, observer=self.observer)
         self.realtime = config.system.mode == "realtime"
+        sc = config.system
+        self.odometry_threads: int | None = None
+        if self.realtime and sc.mapper_process:
+            self.odometry_threads, mapper_threads = split_threads(sc.odometry_threads, sc.mapper_threads)
+            self.mapper: Mapper | MapperProcess = MapperProcess(
+                config, device=device, observer=self.observer, threads=mapper_threads, nice=sc.mapper_nice,
+                image_slots=sc.image_slots)
+        else:
+            self.mapper = Mapper(config, device=device, observer=self.observer)
         self.cloud = MarginalizedCloud()
         self.frame_log = FrameLog()
         self._keyframes = 0
@@ -332,13 +354,28 @@ class System:
         Returns a :class:`SystemResult` (:mod:`mgso.app.full` writes the files); raises :class:`SystemRunError` on an
         error, with the result of what was done."""
         self.observer.on_sequence_start(info)
+        self._cpu0 = time.process_time()
         player = None
+        threads_before = None
         if self.realtime:
             player = Player(frames, self.config.system.playback_speed)
             source: Iterable = player
+            if self.odometry_threads is not None:      # the cores split with the mapper's process
+                threads_before = runtime.cpu_threads_setting()
+                runtime.set_cpu_threads(self.odometry_threads)
             self.mapper.start()
         else:
             source = frames
+        try:
+            return self._run(source, player)
+        finally:
+            if threads_before is not None:
+                runtime.set_cpu_threads(threads_before)
+            close = getattr(self.mapper, "close", None)
+            if close is not None:               # a mapper process left by an unexpected exit: no orphan
+                close()
+
+    def _run(self, source: Iterable, player: "Player | None") -> SystemResult:
         interrupted = False
         error: Exception | None = None
         processed, read, odo_s = 0, 0, 0.0
@@ -400,7 +437,9 @@ class System:
             trajectory=traj,
             keyframe_trajectory=self.odometry.keyframe_trajectory().at_times(done), frame_log=self.frame_log,
             cloud=self.cloud, mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,
-            finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames))
+            finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames),
+            mapper_in=("process" if isinstance(self.mapper, MapperProcess) else "thread") if self.realtime
+            else "caller", cpu_seconds=time.process_time() - self._cpu0)
         self.observer.on_sequence_end(result)
         if error is not None:
             raise SystemRunError(result, error) from error

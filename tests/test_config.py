@@ -171,6 +171,8 @@ BAD = {
     "mapping.mapper.refine_every": [-1],
     "output.trajectory_format": ["euroc"],
     "system.mode": ["fast"], "system.playback_speed": [-0.1],
+    "system.odometry_threads": [-1], "system.mapper_threads": [-1], "system.mapper_nice": [-1, 20],
+    "system.image_slots": [0],
 }
 FREE = {"input.camera"}  # names a camera of the dataset's layout: checked when the sequence is opened
 

@@ -39,7 +39,8 @@ METRICS_KEYS = (
     "ate", "rpe", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db",
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
-    "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "sequence", "protocols",
+    "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
+    "protocols",
 )
 
 
@@ -295,6 +296,14 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
                      "final_refinement": st.final_seconds, "seeding": st.seed_seconds,
                      "outputs_and_evaluation": None},
         "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"},
+        "realtime": None if result.mode != "realtime" else {
+            "mapper_in": result.mapper_in,
+            "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
+                                        else None),
+            "mapping_steps_running": st.steps - st.final_steps, "mapping_steps_final": st.final_steps,
+            "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
+            "mapper_cpu_share": result.mapper_cpu_share,
+            "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds},
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
         "protocols": {

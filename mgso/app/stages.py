@@ -392,6 +392,15 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s, mapping {metrics['mapping_iterations_per_s']:.2f} "
              f"it/s ({result.mapper.steps} steps), end to end {metrics['end_to_end_fps']:.2f} frames/s "
              f"({cfg.system.mode})")
+    rt = metrics.get("realtime")
+    if rt:
+        share = rt["mapper_cpu_share"]
+        m.append(f"real time: {result.frames_processed} of {result.frames_read} frames tracked "
+                 f"({result.frames_dropped} dropped); mapper in a {rt['mapper_in']}: {rt['mapping_steps_running']} "
+                 f"steps while the camera ran, {rt['mapping_steps_final']} after"
+                 + (f", {100 * share:.0f}% of the CPU" if share is not None else "")
+                 + (f"; the odometry waited for the map {rt['queue_waits']} times ({rt['queue_wait_seconds']:.1f} s)"
+                    if rt["queue_waits"] else ""))
     no_pose = metrics["frames"]["in_trajectory"] == 0 and result.frames_processed > 0
     if no_pose:
         m.append("no frame got a pose: the odometry never initialised (a monocular start needs the camera to "

@@ -54,12 +54,13 @@ from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.mapping.messages import KeyframeMessage, MapperMessage, PointsMessage, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
                                   plan_seeds, seed_keyframe, seed_scales)
+from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
 from mgso.mapping.trainer import StepResult, Trainer, TrainStep
 from mgso.mapping.views import LeastUsedSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
-__all__ = ["Mapper", "MapperStats", "MapperError", "MapUpdate"]
+__all__ = ["Mapper", "MapperStats", "MapperError", "MapUpdate", "MapState"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,7 @@ class MapperStats:
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_seconds: float = 0.0
     seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
+    cpu_seconds: float | None = None        # CPU time of the mapper in real time (its process's, or its thread's)
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
     queue_wait_seconds: float = 0.0
     max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
@@ -121,6 +123,25 @@ class MapUpdate:
     steps: int                              # training steps so far
     seed: SeedResult | None
     last_step: StepResult | None
+
+
+@dataclass
+class MapState:
+    """What a mapper hands back when it ends in another process (:mod:`mgso.mapping.process`): the map's
+    parameters, each view's pose, exposure and camera (not its image), the odometry's poses and exposures it
+    followed, the trainer's step count and the stats. :meth:`Mapper.restored` builds a stopped mapper from it that
+    renders, refines trajectories and writes the map like the one that trained."""
+
+    gaussians: GaussianArrays
+    scene_extent: float
+    views: list                 # (view_id, camera, world_to_cam, exposure (a, b), timestamp, name, fixed_pose, uses)
+    odo_c2w: dict
+    dso_exposure: dict
+    exposure_ms: dict
+    reference_exposure_ms: float | None
+    latest_kid: int | None
+    step_count: int
+    stats: MapperStats
 
 
 def _as_seed_input(view: TrainView, uv: np.ndarray, idepth: np.ndarray, colors: np.ndarray | None,
@@ -173,6 +194,13 @@ class Mapper:
         self._done = threading.Event()      # set by the mapping thread as it ends (see stop)
         self._error: BaseException | None = None
         self._stopped = False
+        # Watchers' requests for copies and renders of the map, served at safe points (mgso.mapping.snapshot).
+        self.board = SnapshotBoard()
+        # Called at every safe point by the thread that owns the map (the mapper's process polls its pipes here).
+        self.safe_point_hook = None
+        # After an interrupt, keep applying messages until Stop arrives instead of ending when the queue looks empty
+        # (the mapper's process: messages may still be in the pipe when the interrupt arrives).
+        self.drain_until_stop = False
 
     # ------------------------------------------------------------------------------------------ queue
     @property
@@ -230,6 +258,7 @@ class Mapper:
             try:
                 msg = self.queue.get_nowait()
             except queue.Empty:
+                self.safe_point()
                 return done
             done += 1
             if isinstance(msg, Stop):
@@ -248,15 +277,17 @@ class Mapper:
         self._thread.start()
 
     def _run(self) -> None:
+        cpu0 = time.thread_time()
         try:
             while True:
+                self.safe_point()
                 try:
                     msg = self.queue.get_nowait()
                 except queue.Empty:
-                    if self._interrupt.is_set():
+                    if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
                         return
-                    if self.can_train():
+                    if self.can_train() and not self._interrupt.is_set():
                         self._step()
                         continue
                     try:
@@ -271,6 +302,7 @@ class Mapper:
             log.exception("the mapping thread failed")
             self._error = exc
         finally:
+            self.stats.cpu_seconds = time.thread_time() - cpu0
             self._done.set()
 
     def stop(self, refine: bool = True, timeout: float | None = None) -> MapperStats:
@@ -521,6 +553,7 @@ class Mapper:
         """Run up to ``iterations`` training steps now (fewer when nothing can be trained yet). Returns the steps."""
         done = 0
         for _ in range(int(iterations)):
+            self.safe_point()
             if not self.can_train() or self._interrupt.is_set():   # stop(refine=False) ends a refinement too
                 break
             self._step()
@@ -535,7 +568,81 @@ class Mapper:
         self.stats.final_seconds += time.perf_counter() - t0
         return done
 
+    # ------------------------------------------------------------------------------------------ watchers
+    def safe_point(self) -> None:
+        """Between two steps or messages, in the thread that owns the map: the hook, then the watchers' open
+        requests (:mod:`mgso.mapping.snapshot`)."""
+        if self.safe_point_hook is not None:
+            self.safe_point_hook()
+        if not self.board.pending:
+            return
+        want, cap, render = self.board.take_requests()
+        if want:
+            self.board.publish_snapshot(snapshot_of(self.gmap, self.views, self.stats.steps, cap))
+        if render is not None:
+            try:
+                img = self.render(render.camera, render.world_to_cam, exposure=render.exposure)
+            except Exception as exc:  # noqa: BLE001 - a watcher's bad request must not stop the mapper
+                log.warning("render request %d failed: %s: %s", render.ticket, type(exc).__name__, exc)
+            else:
+                self.board.publish_render(render.ticket, img)
+
+    def request_snapshot(self, max_gaussians: int | None = None) -> None:
+        """Ask for a :class:`~mgso.mapping.snapshot.MapSnapshot` at the next safe point (never waits; a stopped
+        mapper answers at once). ``max_gaussians`` keeps the most opaque ones."""
+        self.board.request_snapshot(max_gaussians)
+        if self._stopped:
+            self.safe_point()
+
+    def latest_snapshot(self) -> MapSnapshot | None:
+        """The newest snapshot published (``None`` before the first)."""
+        return self.board.latest_snapshot()
+
+    def request_render(self, camera, world_to_cam, exposure=None) -> int:
+        """Ask for a render of the map at the next safe point (never waits); returns its ticket."""
+        ticket = self.board.request_render(camera, world_to_cam, exposure)
+        if self._stopped:
+            self.safe_point()
+        return ticket
+
+    def latest_render(self) -> tuple[int, np.ndarray] | None:
+        """``(ticket, (H, W, 3) float32 image)`` of the newest render published."""
+        return self.board.latest_render()
+
     # ------------------------------------------------------------------------------------------ results
+    def export_state(self) -> MapState:
+        """The map, the views' poses and the stats as a :class:`MapState` (read after the mapper stopped)."""
+        views = [(v.view_id, v.camera, v.world_to_cam.copy(), (float(v.exposure[0]), float(v.exposure[1])),
+                  v.timestamp, v.name, bool(v.fixed_pose), int(v.uses)) for v in self.views]
+        return MapState(self.gmap.to_numpy(), float(self.gmap.scene_extent), views, dict(self._odo_c2w),
+                        dict(self._dso_exposure), dict(self._exposure_ms), self.reference_exposure_ms,
+                        self._latest_kid, int(self.trainer.step_count), self.stats)
+
+    @classmethod
+    def restored(cls, config: Config, state: MapState, *, device: str | None = None,
+                 observer: Observer | None = None) -> "Mapper":
+        """A stopped mapper holding ``state`` (from :meth:`export_state` of a mapper that ran elsewhere): it renders,
+        writes its map and refines trajectories like that one; its views have no images, so it trains no more."""
+        n = int(state.gaussians.n)
+        small = dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, capacity=max(1, n)))
+        m = cls(small, device=device, observer=observer)
+        m.config = config
+        if n:
+            m.gmap.load(state.gaussians)
+        m.gmap.scene_extent = float(state.scene_extent)
+        for vid, cam, w2c, exposure, ts, name, fixed, uses in state.views:
+            m.views.add(TrainView.pose_only(vid, cam, w2c, exposure=exposure, timestamp=ts, name=name,
+                                            fixed_pose=fixed, uses=uses))
+        m._odo_c2w = dict(state.odo_c2w)
+        m._dso_exposure = dict(state.dso_exposure)
+        m._exposure_ms = dict(state.exposure_ms)
+        m.reference_exposure_ms = state.reference_exposure_ms
+        m._latest_kid = state.latest_kid
+        m.trainer.step_count = int(state.step_count)
+        m.stats = state.stats
+        m._stopped = True
+        return m
+
     @property
     def keyframe_ids(self) -> list[int]:
         return self.views.ids()

@@ -204,6 +204,10 @@ class PoseUpdate:
         object.__setattr__(self, "cam_to_world", MappingProxyType(poses))
         object.__setattr__(self, "affine", MappingProxyType(aff))
 
+    def __reduce__(self):
+        # read-only mappings do not pickle; the message crosses to the mapper's process (mgso.mapping.process)
+        return (PoseUpdate, (dict(self.cam_to_world), dict(self.affine)))
+
     @property
     def keyframe_ids(self) -> list[int]:
         return sorted(set(self.cam_to_world) | set(self.affine))

@@ -130,6 +130,31 @@ class TrainView:
             0: (self.image, camera, mask)}
         self._device_arrays: dict[tuple[int, str], tuple[wp.array, wp.array | None]] = {}
 
+    @classmethod
+    def pose_only(cls, view_id: int, camera: PinholeCamera, world_to_cam: np.ndarray, *,
+                  exposure: tuple[float, float] = (0.0, 0.0), timestamp: float | None = None, name: str = "",
+                  fixed_pose: bool = False, uses: int = 0) -> "TrainView":
+        """A view without its image: the pose, exposure and camera of a keyframe whose image stayed with the mapper
+        that trained on it (a map brought back from the mapper's process, :mod:`mgso.mapping.process`). It can be
+        rendered from and moved, not trained on (:meth:`level` raises)."""
+        v = cls.__new__(cls)
+        v.view_id = int(view_id)
+        v.name = name or f"view {view_id}"
+        v.timestamp = timestamp
+        v.image = None
+        v.camera = camera
+        v.mask = None
+        v.world_to_cam = _check_pose(world_to_cam, v.name)
+        v.exposure = np.array([float(exposure[0]), float(exposure[1])], dtype=np.float64)
+        v.exposure_adam = AdamState.zeros(2)
+        v.pose_adam = AdamState.zeros(6)
+        v.fixed_pose = bool(fixed_pose)
+        v.uses = int(uses)
+        v.depth_uv = v.depth_z = None
+        v._levels = {}
+        v._device_arrays = {}
+        return v
+
     @property
     def cam_to_world(self) -> np.ndarray:
         return se3_inverse(self.world_to_cam)
@@ -148,6 +173,8 @@ class TrainView:
         level = int(level)
         if level < 0:
             raise ValueError(f"pyramid level must be >= 0, got {level}")
+        if self.image is None:
+            raise ValueError(f"{self.name}: a view without its image (TrainView.pose_only) cannot be trained on")
         if level not in self._levels:
             img, cam, mask = self.level(level - 1)
             if cam.width < 2 or cam.height < 2:

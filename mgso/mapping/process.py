@@ -1,0 +1,541 @@
+"""The mapper in a process of its own: real time without sharing the interpreter lock with the odometry.
+
+In real time the odometry has to keep the camera's frame rate while the map trains as fast as it can. As two
+threads of one process they fight over the interpreter lock, the cores and (on CUDA) one stream. A
+:class:`MapperProcess` runs the same :class:`~mgso.mapping.mapper.Mapper` in a spawned process (the same on Linux,
+macOS and Windows) with its own interpreter, its own Warp context (and CUDA stream) and its own share of the cores:
+
+::
+
+    main process                                         mapper process (spawned)
+    odometry -> MapperProcess.submit(msg) --messages-->  Mapper._run: apply messages, train, repeat
+                 keyframe images -> shared-memory ring --> copied out, the slot handed back
+                 request_snapshot / request_render ----->  served between two steps
+    receiver thread <--- MapUpdate, snapshots, renders --  (Observer.on_map_updated from that thread)
+                    <--- the final MapState -------------  after Stop (or the interrupt)
+    MapperProcess.stop() -> Mapper.restored(state): renders, PLY, refined trajectory, as in one process
+
+**Never waiting on the map.** Messages go over a bounded queue (``mapping.mapper.queue_size``); images over a ring
+of ``system.image_slots`` shared-memory slots, not as pickled copies. Only a full queue or a full ring makes the
+odometry wait, and each wait is counted (``MapperStats.queue_waits``, ``queue_wait_seconds``) as in one process.
+
+**Stops.** The mapper process ignores Ctrl-C, SIGTERM and SIGHUP: a terminal's Ctrl-C reaches the whole process
+group, and the main process decides how the run ends. :meth:`MapperProcess.stop` sends ``Stop``; with
+``refine=False`` (an interrupt) it also sets a shared event that ends training at the next step, so the process
+applies what is queued and hands its map back at once. A second interrupt while the main process waits for the final
+refinement propagates to the caller, which calls ``stop(refine=False)`` again (as :mod:`mgso.system` does). An error
+in the mapper process is sent back with the map of what was done; a mapper process that dies (killed) is an error
+naming its exit code. A mapper process whose parent is gone (killed with SIGKILL) notices within half a second and
+exits: no orphan keeps a core busy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+import traceback
+import types
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+
+import numpy as np
+
+from mgso.config import Config
+from mgso.mapping.mapper import MapperError, MapperStats, MapState
+from mgso.mapping.messages import KeyframeMessage, MapperMessage, PointsMessage, PoseUpdate, Stop
+from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard
+from mgso.observers import Observer
+
+__all__ = ["MapperProcess", "split_threads"]
+
+log = logging.getLogger(__name__)
+
+_PARENT_CHECK_S = 0.5       # how often the mapper process looks whether its parent is still there
+
+
+def split_threads(odometry_threads: int, mapper_threads: int, cores: int | None = None) -> tuple[int, int]:
+    """The CPU threads of the odometry's and the mapper's kernel launches when they run side by side: a setting of 0
+    means automatic (the mapper half the cores, the odometry the rest, each at least one)."""
+    cores = int(cores if cores is not None else (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                                                 else (os.cpu_count() or 1)))
+    m = int(mapper_threads) if mapper_threads > 0 else max(1, cores // 2)
+    o = int(odometry_threads) if odometry_threads > 0 else max(1, cores - m)
+    return o, m
+
+
+# -------------------------------------------------------------------------------------- shared-memory images
+@dataclass(frozen=True)
+class _WireKeyframe:
+    """A :class:`KeyframeMessage` on its way: its image and mask in slot ``slot`` of the ring ``ring``, the rest
+    of its fields as they are."""
+
+    ring: str
+    slot: int
+    slot_bytes: int
+    image_shape: tuple
+    mask_shape: tuple | None
+    fields: dict
+
+
+class _ImageRing:
+    """The main process's side of the keyframe images' ring: ``slots`` slots of ``slot_bytes`` in one shared-memory
+    block; a slot is free again when the mapper process sends its number back."""
+
+    def __init__(self, slots: int, slot_bytes: int):
+        self.slots = int(slots)
+        self.slot_bytes = int(slot_bytes)
+        self.shm = shared_memory.SharedMemory(create=True, size=self.slots * self.slot_bytes)
+        self.free = list(range(self.slots))
+
+    def fits(self, msg: KeyframeMessage) -> bool:
+        need = msg.image.size * 4 + (0 if msg.mask is None else msg.mask.size * 4)
+        return need <= self.slot_bytes
+
+    def write(self, slot: int, msg: KeyframeMessage) -> _WireKeyframe:
+        base = slot * self.slot_bytes
+        img = np.ndarray(msg.image.shape, np.float32, buffer=self.shm.buf, offset=base)
+        img[...] = msg.image
+        mask_shape = None
+        if msg.mask is not None:
+            m = np.ndarray(msg.mask.shape, np.float32, buffer=self.shm.buf, offset=base + msg.image.size * 4)
+            m[...] = msg.mask
+            mask_shape = tuple(msg.mask.shape)
+            del m
+        del img
+        fields = {f.name: getattr(msg, f.name) for f in dataclasses.fields(msg) if f.name not in ("image", "mask")}
+        return _WireKeyframe(self.shm.name, slot, self.slot_bytes, tuple(msg.image.shape), mask_shape, fields)
+
+    def close(self) -> None:
+        try:
+            self.shm.close()
+            self.shm.unlink()
+        except (FileNotFoundError, OSError):
+            pass
+
+
+class _WireQueue:
+    """The mapper process's view of the message queue: ``get`` / ``get_nowait`` as :class:`queue.Queue`, with
+    keyframe images copied out of the ring (the slot then goes back to the main process)."""
+
+    def __init__(self, messages, released):
+        self._q = messages
+        self._released = released
+        self._rings: dict[str, shared_memory.SharedMemory] = {}
+
+    def _decode(self, item):
+        if not isinstance(item, _WireKeyframe):
+            return item
+        shm = self._rings.get(item.ring)
+        if shm is None:
+            shm = self._rings[item.ring] = shared_memory.SharedMemory(name=item.ring)
+        base = item.slot * item.slot_bytes
+        n_img = int(np.prod(item.image_shape))
+        image = np.ndarray(item.image_shape, np.float32, buffer=shm.buf, offset=base).copy()
+        mask = None
+        if item.mask_shape is not None:
+            mask = np.ndarray(item.mask_shape, np.float32, buffer=shm.buf, offset=base + n_img * 4).copy()
+        self._released.put(item.slot)
+        return KeyframeMessage(image=image, mask=mask, **item.fields)
+
+    def get_nowait(self):
+        return self._decode(self._q.get_nowait())
+
+    def get(self, block: bool = True, timeout: float | None = None):
+        return self._decode(self._q.get(block, timeout))
+
+    def qsize(self) -> int:
+        try:
+            return self._q.qsize()
+        except NotImplementedError:      # macOS
+            return 0
+
+    def close(self) -> None:
+        for shm in self._rings.values():
+            try:
+                shm.close()
+            except (BufferError, OSError):
+                pass
+        self._rings.clear()
+
+
+# ------------------------------------------------------------------------------------- the mapper process
+class _ForwardingBoard(SnapshotBoard):
+    """The mapper process's board: what it publishes goes to the main process."""
+
+    def __init__(self, events):
+        super().__init__()
+        self._events = events
+        self.render_ticket = 0          # the main process's ticket of the render asked last
+
+    def publish_snapshot(self, snap: MapSnapshot) -> None:
+        self._events.put(("snapshot", snap))
+
+    def publish_render(self, ticket: int, image: np.ndarray) -> None:
+        self._events.put(("render", self.render_ticket, image))
+
+
+class _EventObserver(Observer):
+    def __init__(self, events):
+        self._events = events
+
+    def on_map_updated(self, stats) -> None:
+        self._events.put(("update", stats))
+
+
+def _mapper_main(config: Config, device: str, threads: int, nice: int, messages, released, requests, events,
+                 interrupt) -> None:
+    """The mapper process (spawned): a :class:`Mapper` draining ``messages``, then its :class:`MapState` back."""
+    for sig in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            signal.signal(sig, signal.SIG_IGN)      # the main process decides how the run ends
+    if nice and hasattr(os, "nice"):
+        try:
+            os.nice(int(nice))
+        except OSError:
+            pass
+    from mgso.mapping.mapper import Mapper
+    from mgso_kernels import runtime
+
+    mapper = None
+    wire = _WireQueue(messages, released)
+    try:
+        dev = runtime.init(device, threads=threads, blas_threads=1)
+        mapper = Mapper(config, device=dev, observer=_EventObserver(events))
+        board = mapper.board = _ForwardingBoard(events)
+        mapper.queue = wire
+        parent = mp.parent_process()
+        last_check = [time.monotonic()]
+
+        def hook() -> None:
+            while True:
+                try:
+                    req = requests.get_nowait()
+                except queue.Empty:
+                    break
+                if req[0] == "snapshot":
+                    SnapshotBoard.request_snapshot(board, req[1])
+                elif req[0] == "render":
+                    board.render_ticket = req[1]
+                    SnapshotBoard.request_render(board, req[2], req[3], req[4])
+            if interrupt.is_set():
+                mapper._interrupt.set()
+            now = time.monotonic()
+            if now - last_check[0] > _PARENT_CHECK_S:
+                last_check[0] = now
+                if parent is not None and not parent.is_alive():
+                    os._exit(3)                       # the run is gone: nobody would read the map
+
+        mapper.safe_point_hook = hook
+        mapper.drain_until_stop = True
+        mapper._thread = threading.current_thread()   # Mapper's real-time loop, run here in the main thread
+        cpu0 = time.process_time()
+        mapper._run()
+        mapper.stats.cpu_seconds = time.process_time() - cpu0    # all its threads (split kernel launches)
+        if mapper._error is not None:
+            err = mapper._error
+            events.put(("error", f"{type(err).__name__}: {err}",
+                        "".join(traceback.format_exception(type(err), err, err.__traceback__))))
+        events.put(("final", mapper.export_state()))
+    except BaseException as exc:  # noqa: BLE001 - everything goes back to the main process
+        events.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+        if mapper is not None:
+            try:
+                events.put(("final", mapper.export_state()))
+            except Exception:  # noqa: BLE001 - the error above is what counts
+                pass
+    finally:
+        wire.close()
+        events.close()
+        events.join_thread()
+        released.close()
+        released.join_thread()
+
+
+# ------------------------------------------------------------------------------------------ the main side
+class MapperProcess:
+    """A :class:`~mgso.mapping.mapper.Mapper` in a spawned process, with the mapper's interface (see the module
+    doc): :meth:`start`, :meth:`submit`, :meth:`stop`, ``stats``, the watchers' requests, and after :meth:`stop`
+    everything a finished mapper offers (``gmap``, ``views``, ``render``, ``refined_trajectory``, ...), from
+    :meth:`Mapper.restored`.
+
+    ``threads``: CPU threads of the mapper's kernel launches; ``nice``: its niceness increment (POSIX);
+    ``image_slots``: slots of the keyframe images' ring; ``start_timeout``: seconds to wait for the process."""
+
+    def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
+                 threads: int = 1, nice: int = 0, image_slots: int = 8):
+        self.config = config
+        self.device = device or "cpu"
+        self.observer = observer or Observer()
+        self.threads = int(threads)
+        self.nice = int(nice)
+        self.image_slots = max(1, int(image_slots))
+        self.stats = MapperStats()
+        self.board = SnapshotBoard()
+        self._ctx = mp.get_context("spawn")
+        self._proc = None
+        self._ring: _ImageRing | None = None
+        self._done = threading.Event()
+        self._error: str | None = None
+        self._error_trace = ""
+        self._state: MapState | None = None
+        self._local = None
+        self._stop_sent = False
+        self._stopped = False
+        self._receiver: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------------------------ lifetime
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and not self._done.is_set()
+
+    def start(self) -> None:
+        """Spawn the mapper process (it imports mgso and starts Warp there: about a second, or the kernel
+        compilation on a first run; messages submitted meanwhile wait in the queue)."""
+        if self._proc is not None:
+            raise RuntimeError("MapperProcess.start: already started")
+        ctx = self._ctx
+        self._messages = ctx.Queue(maxsize=self.config.mapping.mapper.queue_size)
+        self._released = ctx.Queue()
+        self._requests = ctx.Queue()
+        self._events = ctx.Queue()
+        self._interrupt = ctx.Event()
+        self._proc = ctx.Process(
+            target=_mapper_main, name="mgso-mapper",
+            args=(self.config, self.device, self.threads, self.nice, self._messages, self._released,
+                  self._requests, self._events, self._interrupt),
+            daemon=True)
+        # The child needs nothing of the caller's main module (the target and its arguments are mgso's): do not let
+        # spawn run it again there, which would rerun a user's script that has no `if __name__ == "__main__"` guard
+        # (and cost its imports on every start).
+        main = sys.modules.get("__main__")
+        sys.modules["__main__"] = types.ModuleType("__main__")
+        try:
+            self._proc.start()
+        finally:
+            if main is not None:
+                sys.modules["__main__"] = main
+        self._receiver = threading.Thread(target=self._receive, name="mgso-mapper-events", daemon=True)
+        self._receiver.start()
+
+    def _receive(self) -> None:
+        """The main process's receiver: the mapper process's events, until its final state (or its death)."""
+        try:
+            while True:
+                try:
+                    kind, *rest = self._events.get(timeout=0.2)
+                except queue.Empty:
+                    if not self._proc.is_alive():
+                        # its last events may still be in the pipe
+                        try:
+                            kind, *rest = self._events.get(timeout=1.0)
+                        except queue.Empty:
+                            if self._error is None:
+                                self._error = (f"the mapper process ended without its map (exit code "
+                                               f"{self._proc.exitcode})")
+                            return
+                    else:
+                        continue
+                if kind == "update":
+                    try:
+                        self.observer.on_map_updated(rest[0])
+                    except Exception:  # noqa: BLE001 - an observer must not stop the run
+                        log.exception("an observer failed in on_map_updated")
+                elif kind == "snapshot":
+                    self.board.publish_snapshot(rest[0])
+                elif kind == "render":
+                    self.board.publish_render(rest[0], rest[1])
+                elif kind == "error":
+                    self._error, self._error_trace = rest[0], rest[1]
+                    log.error("the mapper process failed: %s\n%s", rest[0], rest[1])
+                elif kind == "final":
+                    self._state = rest[0]
+                    return
+        finally:
+            self._done.set()
+
+    # ------------------------------------------------------------------------------------------ messages
+    def submit(self, msg: MapperMessage) -> None:
+        """Put ``msg`` on the queue (a keyframe's image into the ring). A full queue or ring makes the caller wait
+        (counted); raises :class:`MapperError` if the mapper process has failed or ended."""
+        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, Stop)):
+            raise TypeError(f"MapperProcess.submit: expected a mapper message, got {type(msg).__name__}")
+        if self._proc is None:
+            raise RuntimeError("MapperProcess.submit: call start() first")
+        self._raise_if_failed()
+        item = msg
+        waited = 0.0
+        if isinstance(msg, KeyframeMessage):
+            item, waited = self._to_wire(msg)
+        try:
+            depth = self._messages.qsize()
+        except NotImplementedError:      # macOS
+            depth = 0
+        self.stats.max_queue_depth = max(self.stats.max_queue_depth, depth + 1)
+        try:
+            self._messages.put_nowait(item)
+        except queue.Full:
+            t0 = time.perf_counter()
+            log.warning("mapper queue full (%d messages): the odometry waits for the map",
+                        self.config.mapping.mapper.queue_size)
+            while True:
+                try:
+                    self._messages.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    self._check_alive("waited for queue room")
+            waited += time.perf_counter() - t0
+        if waited > 0:
+            self.stats.queue_waits += 1
+            self.stats.queue_wait_seconds += waited
+
+    def _to_wire(self, msg: KeyframeMessage):
+        if self._ring is None:
+            need = msg.image.size * 4 + (msg.image.shape[0] * msg.image.shape[1] * 4)
+            self._ring = _ImageRing(self.image_slots, need)
+        ring = self._ring
+        if not ring.fits(msg):
+            log.debug("keyframe %d does not fit the image ring: sent pickled", msg.keyframe_id)
+            return msg, 0.0
+        self._collect_slots(block=False)
+        waited = 0.0
+        if not ring.free:
+            t0 = time.perf_counter()
+            log.warning("all %d image slots are waiting for the mapper: the odometry waits for the map", ring.slots)
+            while not ring.free:
+                self._collect_slots(block=True)
+                if not ring.free:
+                    self._check_alive("waited for an image slot")
+            waited = time.perf_counter() - t0
+        return ring.write(ring.free.pop(0), msg), waited
+
+    def _collect_slots(self, block: bool) -> None:
+        try:
+            slot = self._released.get(timeout=0.1) if block else self._released.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            self._ring.free.append(int(slot))
+            try:
+                slot = self._released.get_nowait()
+            except queue.Empty:
+                return
+
+    def _check_alive(self, what: str) -> None:
+        if self._done.is_set() or not self._proc.is_alive():
+            self._raise_if_failed()
+            raise MapperError(f"the mapper process stopped while the odometry {what}")
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None and not self._stopped:
+            raise MapperError(f"the mapper process failed: {self._error}")
+
+    # ------------------------------------------------------------------------------------------ stopping
+    def stop(self, refine: bool = True, timeout: float | None = None) -> MapperStats:
+        """End the stream: ``Stop`` (``refine``: the final refinement), wait for the map, restore it here (see the
+        class doc). Idempotent; an interrupt while waiting propagates (call ``stop(refine=False)`` again to end the
+        refinement). Raises :class:`MapperError` when the mapper process failed."""
+        if self._stopped:
+            if self._error is not None:
+                raise MapperError(f"the mapper process failed: {self._error}")
+            return self.stats
+        if self._proc is None:
+            raise RuntimeError("MapperProcess.stop: the process was never started")
+        if not refine:
+            self._interrupt.set()
+        if not self._stop_sent and not self._done.is_set():
+            self._stop_sent = True
+            try:
+                self.submit(Stop(refine))
+            except MapperError:
+                pass                    # it is gone; its error is below
+        t0 = time.perf_counter()
+        while not self._done.wait(0.05):
+            if timeout is not None and time.perf_counter() - t0 > timeout:
+                self._kill()
+                self._finish_stop()
+                raise MapperError(f"the mapper process did not stop within {timeout} s (killed)")
+        self._finish_stop()
+        if self._error is not None:
+            raise MapperError(f"the mapper process failed: {self._error}")
+        return self.stats
+
+    def _finish_stop(self) -> None:
+        self._proc.join(5.0)
+        if self._proc.is_alive():
+            self._kill()
+        if self._ring is not None:
+            self._ring.close()
+        for q in (self._messages, self._released, self._requests):
+            q.cancel_join_thread()
+            q.close()
+        if self._state is not None:
+            from mgso.mapping.mapper import Mapper
+
+            local_stats = self.stats
+            self._local = Mapper.restored(self.config, self._state, device=self.device)
+            st = self._local.stats
+            st.queue_waits = local_stats.queue_waits
+            st.queue_wait_seconds = local_stats.queue_wait_seconds
+            st.max_queue_depth = local_stats.max_queue_depth
+            self.stats = st
+        self._stopped = True
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(5.0)
+
+    def close(self) -> None:
+        """Kill the process (if alive) and free the ring; for cleanup after an error."""
+        if self._proc is not None and not self._stopped:
+            self._interrupt.set()
+            self._kill()
+            self._done.wait(2.0)
+            self._finish_stop()
+
+    # ------------------------------------------------------------------------------------------ watchers
+    def request_snapshot(self, max_gaussians: int | None = None) -> None:
+        """Ask the mapper process for a :class:`MapSnapshot` (never waits; see :mod:`mgso.mapping.snapshot`)."""
+        if self._local is not None:
+            self._local.request_snapshot(max_gaussians)
+            self.board.publish_snapshot(self._local.latest_snapshot())
+            return
+        if max_gaussians is not None and int(max_gaussians) < 1:
+            raise ValueError(f"request_snapshot: max_gaussians must be >= 1 or None, got {max_gaussians}")
+        if self.running:
+            self._requests.put(("snapshot", None if max_gaussians is None else int(max_gaussians)))
+
+    def latest_snapshot(self) -> MapSnapshot | None:
+        return self.board.latest_snapshot()
+
+    def request_render(self, camera, world_to_cam, exposure=None) -> int:
+        """Ask for a render of the map (never waits); returns its ticket (:meth:`latest_render`)."""
+        ticket = self.board.request_render(camera, world_to_cam, exposure)
+        self.board.take_requests()        # this side only numbers the tickets
+        if self._local is not None:
+            self.board.publish_render(ticket, self._local.render(camera, np.asarray(world_to_cam, np.float64),
+                                                                 exposure=exposure))
+        elif self.running:
+            self._requests.put(("render", ticket, camera, np.asarray(world_to_cam, np.float64), exposure))
+        return ticket
+
+    def latest_render(self) -> tuple[int, np.ndarray] | None:
+        return self.board.latest_render()
+
+    # ------------------------------------------------------------------------------------------ the result
+    def __getattr__(self, name: str):
+        # everything else a finished mapper offers (gmap, views, render, refined_trajectory, exposure_for, ...)
+        if name.startswith("_"):
+            raise AttributeError(name)
+        local = self.__dict__.get("_local")
+        if local is None:
+            raise AttributeError(f"MapperProcess.{name}: the map is in the mapper process until stop() brings it "
+                                 "back")
+        return getattr(local, name)

@@ -1,0 +1,360 @@
+"""The mapper in a process of its own (mgso.mapping.process, issue 13): messages and images cross to it and lose
+nothing, its map comes back whole, watchers get copies and renders without changing a run, the odometry waits only
+on a full queue or ring (counted), and every way a run can end leaves no process behind."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mgso import synthetic
+from mgso.config import load_config
+from mgso.io import open_sequence
+from mgso.mapping.mapper import Mapper, MapperError
+from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate, Stop
+from mgso.mapping.process import MapperProcess, split_threads
+from mgso.observers import Observer
+from mgso.oracle import OracleOdometry
+from mgso.system import System, SystemRunError
+
+BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
+        "system.eval_photo_slam=false"]
+ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.02, pose_noise_m=0.01, pose_noise_rad=0.005)
+CLI = "import sys; from mgso.app.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+@pytest.fixture(scope="module")
+def room():
+    """24 frames of the synthetic room at 96x72 (6 keyframes with the oracle's keyframe_every=4)."""
+    return synthetic.cached_sequence_folder(num_frames=24, width=96, height=72, seed=0)
+
+
+def _system(room, *over, observer=None, wrapper=None):
+    cfg = load_config(None, [*BASE, *over])
+    seq = open_sequence(str(room), config=cfg.input)
+    odo = OracleOdometry.from_sequence(seq, **ORACLE)
+    return System(wrapper(odo) if wrapper else odo, cfg, observer=observer), seq, odo
+
+
+class _Slow:
+    def __init__(self, odo, seconds):
+        self.odo, self.seconds = odo, seconds
+
+    def process(self, frame):
+        time.sleep(self.seconds)
+        return self.odo.process(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)
+
+
+# ------------------------------------------------------------------------------------------------ the wire
+def test_every_message_crosses_a_pickle_intact(room):
+    """The messages travel to the mapper's process pickled (a keyframe's image through shared memory): each kind
+    comes back equal. PoseUpdate's read-only mappings did not pickle before it had a __reduce__."""
+    _, seq, odo = _system(room)
+    msgs = []
+    for frame in seq.frames():
+        msgs += odo.process(frame).messages
+    msgs += odo.finish()
+    kinds = {type(m) for m in msgs}
+    assert {KeyframeMessage, PoseUpdate, PointsMessage} <= kinds
+    for m in [*msgs, Stop(True)]:
+        back = pickle.loads(pickle.dumps(m))
+        assert type(back) is type(m)
+        if isinstance(m, PoseUpdate):
+            assert back.keyframe_ids == m.keyframe_ids
+            for k in m.cam_to_world:
+                np.testing.assert_array_equal(back.cam_to_world[k], m.cam_to_world[k])
+        elif isinstance(m, KeyframeMessage):
+            np.testing.assert_array_equal(back.image, m.image)
+            np.testing.assert_array_equal(back.points_uv, m.points_uv)
+
+
+def test_split_threads_gives_each_side_a_share_of_the_cores():
+    assert split_threads(0, 0, cores=2) == (1, 1)
+    assert split_threads(0, 0, cores=16) == (8, 8)
+    assert split_threads(0, 0, cores=1) == (1, 1)
+    assert split_threads(3, 0, cores=16) == (3, 8)
+    assert split_threads(0, 2, cores=16) == (14, 2)
+
+
+# ---------------------------------------------------------------------------------------- the map comes back
+def test_a_restored_mapper_renders_writes_and_refines_like_the_one_that_trained(room):
+    """Mapper.restored(export_state()) is what the main process gets back from the mapper's process: the same
+    Gaussians, the same renders (bitwise), the same refined trajectory and exposures; its views have no images."""
+    system, seq, odo = _system(room, "mapping.train.refine_poses=true")
+    result = system.run(seq.frames())
+    m = system.mapper
+    back = Mapper.restored(system.config, pickle.loads(pickle.dumps(m.export_state())))
+    a, b = m.gmap.to_numpy(), back.gmap.to_numpy()
+    for f in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    assert back.gmap.capacity == m.gmap.n          # not the full preallocated capacity
+    cam = seq.calibration.output
+    for kid in m.keyframe_ids:
+        w2c = m.views[kid].world_to_cam
+        np.testing.assert_array_equal(back.render(cam, w2c, exposure=back.view_exposure(kid)),
+                                      m.render(cam, w2c, exposure=m.view_exposure(kid)))
+    np.testing.assert_array_equal(back.refined_trajectory(result.trajectory).cam_to_world,
+                                  m.refined_trajectory(result.trajectory).cam_to_world)
+    assert back.stats.steps == m.stats.steps and len(back.views) == len(m.views)
+    with pytest.raises(ValueError, match="without its image"):
+        back.views[0].level(0)
+
+
+# ------------------------------------------------------------------------------------------- real-time runs
+@pytest.mark.parametrize("in_process", [True, False])
+def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
+    system, seq, odo = _system(room, "system.mode=realtime", "system.playback_speed=0",
+                               f"system.mapper_process={str(in_process).lower()}")
+    result = system.run(seq.frames())
+    st = result.mapper
+    assert result.mapper_in == ("process" if in_process else "thread")
+    assert isinstance(system.mapper, MapperProcess) is in_process
+    assert result.frames_processed == 24 and st.keyframes == result.keyframes == 6
+    assert system.mapper.keyframe_ids == list(range(6)) and st.poses_unknown == 0
+    for kid, T in enumerate(odo.keyframe_trajectory().cam_to_world):
+        np.testing.assert_allclose(system.mapper.views[kid].cam_to_world, T, atol=1e-9)
+    assert st.final_steps == 60 and st.stopped_by == "stop" and st.queue_waits == 0
+    assert st.cpu_seconds > 0 and 0 < result.mapper_cpu_share < 1
+    assert not system.mapper.running
+    if in_process:
+        assert not system.mapper._proc.is_alive()
+    # the map that came back renders the room (a keyframe's own view, after 60 refinement steps)
+    cam = seq.calibration.output
+    img = system.mapper.render(cam, system.mapper.views[3].world_to_cam, exposure=system.mapper.view_exposure(3))
+    truth = np.asarray(seq[12].rgb, np.float32)
+    psnr = -10 * np.log10(np.mean((np.clip(img, 0, 1) - truth) ** 2))
+    assert psnr > 20.0
+
+
+def test_a_full_ring_and_queue_make_the_odometry_wait_and_lose_nothing(room):
+    """One image slot and a queue of two: while the mapper's process starts (a second or more), the odometry must
+    wait for it (counted), and every keyframe still reaches the map. The default ring (8 slots, 6 keyframes) and
+    queue never wait: the negative control."""
+    tight, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0", "system.image_slots=1",
+                            "mapping.mapper.queue_size=2", "mapping.mapper.final_iterations=0")
+    r = tight.run(seq.frames())
+    assert r.mapper.queue_waits >= 1 and r.mapper.queue_wait_seconds > 0
+    assert r.mapper.keyframes == 6 and tight.mapper.keyframe_ids == list(range(6))
+    roomy, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0",
+                            "mapping.mapper.final_iterations=0")
+    r2 = roomy.run(seq.frames())
+    assert r2.mapper.queue_waits == 0 and r2.mapper.keyframes == 6
+
+
+class _Watcher(Observer):
+    """Asks the mapper for a snapshot and a render on every frame (what the live viewer does, faster)."""
+
+    def __init__(self):
+        self.system = None
+        self.camera = None
+        self.asked = 0
+
+    def on_frame(self, r):
+        if r.cam_to_world is None:
+            return
+        m = self.system.mapper
+        m.request_snapshot(max_gaussians=500)
+        m.request_render(self.camera, np.linalg.inv(r.cam_to_world))
+        self.asked += 1
+
+
+@pytest.mark.parametrize("mode", ["realtime", "deterministic"])
+def test_watchers_get_snapshots_and_renders_while_the_map_trains(room, mode):
+    w = _Watcher()
+    system, seq, _ = _system(room, f"system.mode={mode}", "system.playback_speed=0", observer=w,
+                             wrapper=lambda o: _Slow(o, 0.05))
+    w.system, w.camera = system, seq.calibration.output
+    system.run(seq.frames())
+    m = system.mapper
+    snap = m.latest_snapshot()
+    assert snap is not None and 0 < len(snap) <= 500 and snap.num_gaussians >= len(snap)
+    assert snap.means.shape == (len(snap), 3) and snap.covariances().shape == (len(snap), 3, 3)
+    assert np.all((snap.opacities >= 0) & (snap.opacities <= 1)) and len(snap.keyframe_poses) >= 1
+    ticket, img = m.latest_render()
+    assert 1 <= ticket <= w.asked and img.shape == (72, 96, 3) and float(img.std()) > 0.01
+    # after the run the map that came back answers at once
+    m.request_snapshot()
+    assert m.latest_snapshot().num_gaussians == len(m.latest_snapshot()) == m.gmap.n
+
+
+def test_watchers_do_not_change_a_deterministic_run(room):
+    """Requests are served between training steps and read only: the map is bitwise the one of a run without
+    them (the deterministic mode's promise)."""
+    w = _Watcher()
+    watched, seq, _ = _system(room, observer=w)
+    w.system, w.camera = watched, seq.calibration.output
+    watched.run(seq.frames())
+    plain, seq2, _ = _system(room)
+    plain.run(seq2.frames())
+    assert watched.mapper.board.snapshots_published > 0 and watched.mapper.board.renders_published > 0
+    a, b = watched.mapper.gmap.to_numpy(), plain.mapper.gmap.to_numpy()
+    for f in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
+# ------------------------------------------------------------------------------------------------ failures
+def test_a_mapper_process_that_fails_stops_the_run_with_its_reason(room):
+    """The mapper's process cannot start its device: the odometry's next submit raises MapperError with the
+    reason, the run ends with SystemRunError carrying what was done, and the process is gone."""
+    cfg = load_config(None, [*BASE, "system.mode=realtime", "system.playback_speed=0"])
+    seq = open_sequence(str(room), config=cfg.input)
+    system = System(_Slow(OracleOdometry.from_sequence(seq, **ORACLE), 0.1), cfg, device="cuda:7")
+    with pytest.raises(SystemRunError) as info:
+        system.run(seq.frames())
+    assert isinstance(info.value.error, MapperError) and "cuda:7" in str(info.value.error)
+    assert 0 < info.value.result.frames_processed < 24
+    assert not system.mapper._proc.is_alive()
+
+
+def test_a_message_that_is_not_one_is_refused(room):
+    cfg = load_config(None, BASE)
+    mp_ = MapperProcess(cfg)
+    with pytest.raises(TypeError, match="expected a mapper message"):
+        mp_.submit("keyframe")
+    with pytest.raises(AttributeError, match="until stop"):
+        mp_.gmap
+
+
+# ------------------------------------------------------------------------------------ stops from outside
+def _children(pid: int) -> list[int]:
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                fields = (p / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(p.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _wait_gone(pids, timeout=10.0) -> list[int]:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        left = [p for p in pids if _alive(p)]
+        if not left:
+            return []
+        time.sleep(0.1)
+    return [p for p in pids if _alive(p)]
+
+
+def _wait_for_mapper_child(proc, timeout=60.0) -> int:
+    """The pid of the spawned mapper process (a python child that is not the resource tracker)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended early: {proc.communicate()[1][-2000:]}")
+        for c in _children(proc.pid):
+            try:
+                cmd = Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            if "spawn_main" in cmd:
+                return c
+        time.sleep(0.05)
+    pytest.fail("no mapper process appeared")
+
+
+linux_only = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc to find processes")
+
+
+@linux_only
+@pytest.mark.parametrize("sig,code,moment", [(signal.SIGTERM, 143, "tracking"), (signal.SIGINT, 130, "tracking"),
+                                             (signal.SIGTERM, 143, "refinement")])
+def test_a_signal_stops_both_processes_and_writes_everything(tmp_path, sig, code, moment):
+    """`mgso run --realtime` (DSO and the mapper's process) stopped by a signal while it tracks or during the final
+    refinement: every output, the exit code of the signal, no traceback, the mapper's process gone."""
+    room = synthetic.cached_sequence_folder(num_frames=40, width=128, height=96, seed=0)
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # played at a quarter of its rate: 40 frames take 5 s; a refinement too long to finish
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "run", str(room), "--out", str(out), "--realtime", "-q",
+                             "--set", "system.playback_speed=0.25", "--set", "mapping.mapper.final_iterations=100000",
+                             "--set", "system.eval_photo_slam=false", "--set", "output.plot=false"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        child = _wait_for_mapper_child(proc)
+        rows = out / "frames.csv"
+        want = 24 if moment == "tracking" else 40
+        t0 = time.monotonic()
+        while not (rows.is_file() and len(rows.read_text().splitlines()) > want) and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+        if moment == "refinement":
+            time.sleep(1.5)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    assert "Traceback" not in err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["interrupted"] is True and m["realtime"]["mapper_in"] == "process"
+    assert m["mapper"]["stopped_by"] == "interrupt" and m["keyframes"]["in_map"] >= 2
+    for f in ("trajectory.txt", "keyframes.txt", "map.ply", "points.ply", "frames.csv"):
+        assert (out / f).is_file(), f
+    if moment == "refinement":
+        assert m["frames"]["processed"] == 40 and 0 < m["mapper"]["final_steps"] < 100000
+    else:
+        assert m["frames"]["processed"] < 40
+    assert _wait_gone([child]) == []
+
+
+ORPHAN_SCRIPT = textwrap.dedent("""
+    import sys, time
+    from mgso.config import load_config
+    from mgso.io import open_sequence
+    from mgso.oracle import OracleOdometry
+    from mgso.system import System
+
+    class Slow:
+        def __init__(self, odo): self.odo = odo
+        def process(self, frame):
+            time.sleep(0.5)
+            return self.odo.process(frame)
+        def __getattr__(self, name): return getattr(self.odo, name)
+
+    cfg = load_config(None, ["system.mode=realtime", "system.playback_speed=0"])
+    seq = open_sequence(sys.argv[1], config=cfg.input)
+    System(Slow(OracleOdometry.from_sequence(seq, keyframe_every=4, points=250)), cfg).run(seq.frames())
+""")
+
+
+@linux_only
+def test_a_killed_run_leaves_no_mapper_process(room):
+    """SIGKILL gives the main process no chance to stop anything: the mapper's process notices that its parent is
+    gone and exits by itself (no orphan keeps a core busy)."""
+    proc = subprocess.Popen([sys.executable, "-c", ORPHAN_SCRIPT, str(room)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        child = _wait_for_mapper_child(proc)
+        time.sleep(2.0)                 # it has started and trains
+        assert _alive(child)
+        proc.kill()
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert _wait_gone([child], timeout=15.0) == []
