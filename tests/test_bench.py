@@ -52,6 +52,48 @@ def ray_session():
         ray.shutdown()
 
 
+def test_ctrl_c_cancels_the_tasks_keeps_what_finished_and_exits_130(bench_dir, tmp_path):
+    """A real `mgso bench` process with its own local Ray (before the module's Ray session starts): SIGINT while a
+    long task runs. The finished task stays in the table, the running one gets SIGINT, writes what it did and is
+    recorded interrupted (exit 130 of its run), and the bench exits 130 without a traceback."""
+    import os
+    import signal
+    import time
+
+    spec = tmp_path / "slow.yaml"
+    spec.write_text(f"data_root: {bench_dir / 'data'}\nstage: full\nsequences: [a]\nvariants:\n"
+                    "  quick: {stage: odometry}\n  slow:\n    set: [mapping.mapper.iterations_per_keyframe=2, "
+                    "mapping.mapper.final_iterations=1000000, output.plot=false]\n")
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "mgso.app.cli", "bench", str(spec), "--out", str(out),
+                             "--num-cpus", "2", "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 120:
+            assert proc.poll() is None, proc.communicate()[1][-2000:]
+            rows = read_results_csv(out / "results.csv") if (out / "results.csv").is_file() else []
+            slow = [r for r in rows if r["variant"] == "slow"]
+            started = slow and (Path(slow[0]["run_dir"]) / "frames.csv").is_file()
+            if any(r["status"] == "ok" for r in rows) and started:
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail("the quick task did not finish in time")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "interrupted (SIGINT)" in err
+    rows = {r["variant"]: r for r in read_results_csv(out / "results.csv")}
+    assert rows["quick"]["status"] == "ok"
+    assert rows["slow"]["status"] == "interrupted" and rows["slow"]["exit_code"] == "130"
+    assert (Path(rows["slow"]["run_dir"]) / "trajectory.txt").is_file()      # the run wrote what it did
+
+
 @pytest.fixture(scope="module")
 def first_bench(bench_dir, ray_session):
     """The first invocation: every task runs."""

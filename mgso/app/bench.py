@@ -85,6 +85,26 @@ def _error_line(log_text: str, rc: int) -> str:
     return lines[-1] if lines else f"exit code {rc}"
 
 
+def _stop_with_parent() -> None:
+    """In the run's child process, before it starts: the stop signals as a plain process has them (a Ray worker
+    blocks or ignores some, and a child inherits both: its run would not hear the SIGINT of a cancel), and (Linux)
+    SIGTERM when the worker that started it dies (a task cancelled by force, a node going away), so that the run
+    writes what it did and ends instead of living on."""
+    stops = [signal.SIGINT, signal.SIGTERM] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])
+    for s in stops:
+        signal.signal(s, signal.SIG_DFL)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, stops)
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def run_task(task: dict, run_dir: str) -> dict:
     """Run one task (a :meth:`Task.as_dict`) as ``mgso run`` in a child process writing ``run_dir``; returns its
     record (also written as ``run_dir/bench.json``). Runs inside a Ray worker, or anywhere. A KeyboardInterrupt (how
@@ -105,9 +125,15 @@ def run_task(task: dict, run_dir: str) -> dict:
     interrupted = False
     with open(out / "bench.log", "w", encoding="utf-8") as logf:
         # its own session: a Ctrl-C at the terminal reaches the bench, which cancels the tasks; not every run directly
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                preexec_fn=_stop_with_parent)
         try:
-            rc = proc.wait()
+            while True:     # short waits: Ray's cancel arrives between bytecodes, never inside one long waitpid
+                try:
+                    rc = proc.wait(timeout=0.25)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
         except KeyboardInterrupt:
             interrupted = True
             proc.send_signal(signal.SIGINT)
