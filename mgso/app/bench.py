@@ -369,11 +369,12 @@ def cmd_bench(args) -> int:
     """``mgso bench SPEC [--out DIR] [--address auto|ray://...] [--num-cpus N]`` and ``mgso bench --compare A B``."""
     from .bench_report import compare_tables, read_results_csv
     from .bench_spec import SpecError, load_spec
-    from .cli import CliError
+
+    CliError = SpecError    # one line on stderr, exit 1 (a ConfigError: caught by the CLI however it was started)
 
     if args.compare:
         if args.spec:
-            raise CliError("bench: give a SPEC or --compare A.csv B.csv, not both")
+            raise CliError("give a SPEC or --compare A.csv B.csv, not both")
         a, b = args.compare
         try:
             lines, _ = compare_tables(read_results_csv(a), read_results_csv(b), Path(a).name, Path(b).name)
@@ -382,15 +383,12 @@ def cmd_bench(args) -> int:
         print("\n".join(lines))
         return 0
     if not args.spec:
-        raise CliError("bench: give a SPEC (a YAML file or a built-in name) or --compare A.csv B.csv")
-    try:
-        spec = load_spec(args.spec)
-    except SpecError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError("give a SPEC (a YAML file or a built-in name) or --compare A.csv B.csv")
+    spec = load_spec(args.spec)
     import importlib.util
 
     if importlib.util.find_spec("ray") is None:
-        raise CliError('bench needs Ray: pip install "mgso[bench]" (or pip install "ray>=2.9,<3")')
+        raise CliError('mgso bench needs Ray: pip install "mgso[bench]" (or pip install "ray>=2.9,<3")')
     out = Path(args.out or Path("bench") / spec.name)
     if not args.quiet:
         print(f"mgso bench {spec.name}: {len(spec.sequences)} sequences x {len(spec.variants)} variants x "

@@ -32,8 +32,10 @@ VARIANT_KEYS = ("config", "set", "stage", "resources", "description")
 RESOURCE_KEYS = ("num_cpus", "num_gpus")
 
 
-class SpecError(Exception):
-    """A benchmark spec that cannot be run; the message (one line) names the file and the entry."""
+class SpecError(ConfigError):
+    """A benchmark spec that cannot be run; the message (one line) names the file and the entry. A
+    :class:`~mgso.config.ConfigError`, so that the CLI prints it as one line however it was started (``python -m
+    mgso.app.cli`` has its own ``CliError`` class)."""
 
 
 @dataclass(frozen=True)
