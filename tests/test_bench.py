@@ -221,6 +221,18 @@ def test_spec_errors_are_one_line_naming_the_file_and_entry_before_any_task(benc
         load_spec(spec)
 
 
+def test_spec_error_is_one_line_from_the_command_line_too(bench_dir, tmp_path):
+    """The same through ``python -m mgso.app.cli`` (whose __main__ module has a CliError class of its own)."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(f"data_root: {bench_dir / 'data'}\nsequences: [a, nope]\n")
+    p = subprocess.run([sys.executable, "-m", "mgso.app.cli", "bench", str(spec), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert p.returncode == 1 and p.stderr.strip().splitlines() == [
+        f"mgso bench: error: {spec}: sequences[1]: 'nope': unknown sequence: no such file or folder "
+        f"({bench_dir / 'data' / 'nope'})"], p.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_good_spec_passes_the_check(bench_dir):
     """Negative control of the spec errors: the same layout with valid entries loads, as mappings and globs too."""
     spec = bench_dir / "good.yaml"
