@@ -290,3 +290,29 @@ def test_results_csv_has_every_metrics_figure(first_bench):
         assert col in header, col
     full = _row(rows, "a", "full", 0)
     assert full["metrics.num_gaussians"] == full["gaussians"] and full["command"].startswith("mgso run ")
+
+
+def test_the_reference_dso_row(bench_dir, tmp_path):
+    """``reference_dso``: a row per sequence and seed that runs profiles/dso_reference.py with the binary (a stand-in
+    here: a script that exits with the code given, writing no result.txt); its figures go into the row, a crash of
+    the binary fails the row. A binary that is not executable is a spec error (one line)."""
+    from mgso.app.bench import run_task
+
+    fake = tmp_path / "dso_dataset"
+    spec = tmp_path / "spec.yaml"
+    for code, status in ((0, "ok"), (3, "failed")):
+        fake.write_text(f"#!/bin/sh\nexit {code}\n")
+        fake.chmod(0o755)
+        spec.write_text(f"data_root: {bench_dir / 'data'}\nstage: odometry\nseeds: [0, 1]\nsequences: [a, b]\n"
+                        f"variants: {{odo: {{}}}}\nreference_dso: {{binary: {fake}}}\n")
+        s = load_spec(spec)
+        assert [(t.sequence, t.variant) for t in s.tasks].count(("a", "dso-reference")) == 2 and len(s.tasks) == 8
+        [t] = [t for t in s.tasks if (t.sequence, t.variant, t.seed) == ("a", "dso-reference", 0)]
+        rec = run_task(t.as_dict(), str(tmp_path / f"run{code}"))
+        assert rec["status"] == status, rec
+        assert rec["metrics"]["dso"]["frames"] == 24 and rec["metrics"]["dso"]["returncode"] == code
+        if code:
+            assert rec["error"] == "dso_dataset exited with 3"
+    fake.chmod(0o644)
+    with pytest.raises(SpecError, match=r"reference_dso\.binary: .*not an executable file"):
+        load_spec(spec)

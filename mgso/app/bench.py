@@ -35,7 +35,7 @@ from pathlib import Path
 
 from .bench_report import (atomic_write_text, flatten_metrics, headline, summary_markdown, write_plots,
                            write_results_csv)
-from .bench_spec import BenchSpec, Task
+from .bench_spec import DSO_STAGE, BenchSpec, Task
 
 __all__ = ["BenchResult", "run_bench", "run_task", "task_record"]
 
@@ -118,14 +118,17 @@ def run_task(task: dict, run_dir: str) -> dict:
     rec = {"status": "running", "host": socket.gethostname(), "commit": _commit(), **_versions(),
            "command": t.command(out), "started": time.time()}
     atomic_write_text(out / "bench.json", json.dumps(rec, indent=1))
-    cmd = [sys.executable, "-m", "mgso.app.cli", *t.run_args(out), "-q"]
+    dso = t.stage == DSO_STAGE
+    cmd = [sys.executable, *t.dso_args()] if dso else [sys.executable, "-m", "mgso.app.cli", *t.run_args(out), "-q"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     interrupted = False
-    with open(out / "bench.log", "w", encoding="utf-8") as logf:
+    with open(out / "bench.log", "w", encoding="utf-8") as logf, \
+            open(out / ("dso.json" if dso else "bench.stdout"), "w", encoding="utf-8") as outf:
         # its own session: a Ctrl-C at the terminal reaches the bench, which cancels the tasks; not every run directly
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+        proc = subprocess.Popen(cmd, stdout=outf if dso else logf, stderr=subprocess.STDOUT if not dso else logf,
+                                env=env, start_new_session=True,
                                 preexec_fn=_stop_with_parent)
         try:
             while True:     # short waits: Ray's cancel arrives between bytecodes, never inside one long waitpid
@@ -148,14 +151,41 @@ def run_task(task: dict, run_dir: str) -> dict:
     status = "ok" if rc == 0 else ("interrupted" if interrupted or rc >= 128 else "failed")
     rec.update(status=status, exit_code=rc, error=None if rc == 0 else _error_line(text, rc), wall_s=wall,
                cpu_s=(ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime), finished=time.time())
+    if dso and rc == 0:
+        rec["metrics"] = _dso_metrics(out, t)
+        if rec["metrics"] is None:
+            rec.update(status="failed", error="the reference DSO printed no result (see bench.log)")
+        elif rec["metrics"]["dso"].get("returncode") != 0:
+            rec.update(status="failed", exit_code=rec["metrics"]["dso"].get("returncode"),
+                       error=f"dso_dataset exited with {rec['metrics']['dso'].get('returncode')}")
     try:
-        rec["metrics"] = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+        if not dso:
+            rec["metrics"] = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         rec["metrics"] = None
     atomic_write_text(out / "bench.json", json.dumps(rec, indent=1, default=str))
     if interrupted:
         raise KeyboardInterrupt
     return rec
+
+
+def _dso_metrics(out: Path, t: Task) -> dict | None:
+    """The reference DSO's figures (profiles/dso_reference.py's JSON line) as this row's metrics, also written as
+    ``metrics.json``: its wall time, DSO's own CPU ms a frame and the ATE of the keyframes DSO marginalised
+    (``dso.ate_marginalized_keyframes_m``: not the all-frames ATE of mgso's rows); ``dso.fps`` is frames / wall."""
+    try:
+        lines = [ln for ln in (out / "dso.json").read_text(encoding="utf-8").splitlines() if ln.startswith("{")]
+        res = json.loads(lines[-1])
+    except (OSError, ValueError, IndexError):
+        return None
+    one = res.get(Path(t.path).name)
+    if not isinstance(one, dict):
+        return None
+    if one.get("wall_s"):
+        one["fps"] = one.get("frames", 0) / one["wall_s"]
+    metrics = {"dso": one, "load_avg_1min": res.get("load_avg_1min"), "load_avg_1min_end": res.get("load_avg_1min_end")}
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))
+    return metrics
 
 
 def task_record(run_dir: Path) -> dict | None:

@@ -34,7 +34,7 @@ FIGURES = {
     "ssim": ("SSIM MonoGS", ("ssim_monogs",), "higher"),
     "gaussians": ("Gaussians", ("num_gaussians",), "lower"),
     "map_mb": ("map [MB]", ("map_size_mb",), "lower"),
-    "fps": ("frames/s end to end", ("end_to_end_fps", "tracking.fps"), "higher"),
+    "fps": ("frames/s end to end", ("end_to_end_fps", "tracking.fps", "dso.fps"), "higher"),
 }
 
 

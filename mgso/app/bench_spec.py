@@ -26,7 +26,12 @@ __all__ = ["SpecError", "SequenceEntry", "Variant", "Task", "BenchSpec", "load_s
 
 BUILTIN_DIR = Path(__file__).resolve().parents[1] / "configs" / "bench"
 
-TOP_KEYS = ("name", "description", "data_root", "stage", "seeds", "repeats", "resources", "sequences", "variants")
+TOP_KEYS = ("name", "description", "data_root", "stage", "seeds", "repeats", "resources", "sequences", "variants",
+            "reference_dso")
+DSO_KEYS = ("binary", "nomt", "name", "resources")
+#: The reference DSO's script (profiles/dso_reference.py of an mgso checkout: not installed with the package).
+DSO_SCRIPT = Path(__file__).resolve().parents[2] / "profiles" / "dso_reference.py"
+DSO_STAGE = "dso"
 SEQ_KEYS = ("path", "glob", "name", "calib", "groundtruth")
 VARIANT_KEYS = ("config", "set", "stage", "resources", "description")
 RESOURCE_KEYS = ("num_cpus", "num_gpus")
@@ -73,6 +78,13 @@ class Task:
     num_cpus: float
     num_gpus: float
     key: str
+    dso_binary: str | None = None     # the reference DSO row (stage "dso"): profiles/dso_reference.py runs it
+    dso_nomt: bool = False
+
+    def dso_args(self) -> list[str]:
+        """The reference DSO row's command (after ``python``)."""
+        return [str(DSO_SCRIPT), "--dso", str(self.dso_binary), "--path", self.path] + (
+            ["--nomt"] if self.dso_nomt else [])
 
     def run_args(self, out: str | os.PathLike) -> list[str]:
         """The arguments of the ``mgso run`` this task is (after ``mgso``)."""
@@ -91,6 +103,8 @@ class Task:
         """The same run as one shell command line (the ``command`` column of results.csv)."""
         import shlex
 
+        if self.stage == DSO_STAGE:
+            return "python " + " ".join(shlex.quote(a) for a in self.dso_args())
         return "mgso " + " ".join(shlex.quote(a) for a in self.run_args(out))
 
     def as_dict(self) -> dict:
@@ -291,6 +305,27 @@ def _seeds(spec_path: Path, data: dict) -> list[int]:
     return s
 
 
+def _reference_dso(spec_path: Path, raw: Any, res: tuple[float, float]) -> tuple[str, str, bool, float] | None:
+    """``reference_dso: {binary: PATH, nomt: false, name: dso-reference}``: the reference DSO as another row."""
+    where = f"{spec_path}: reference_dso"
+    if raw is None:
+        return None
+    if not isinstance(raw, dict) or "binary" not in raw:
+        raise SpecError(f"{where}: expected a mapping with binary: the path of DSO's dso_dataset")
+    _check_keys(where, raw, DSO_KEYS)
+    b = Path(os.path.expandvars(str(raw["binary"]))).expanduser()
+    b = b if b.is_absolute() else spec_path.parent / b
+    if not (b.is_file() and os.access(b, os.X_OK)):
+        raise SpecError(f"{where}.binary: {raw['binary']!r}: not an executable file ({b})")
+    if not DSO_SCRIPT.is_file():
+        raise SpecError(f"{where}: needs {DSO_SCRIPT.name} from the profiles/ folder of an mgso checkout (it is not "
+                        "installed with the package)")
+    if not isinstance(raw.get("nomt", False), bool):
+        raise SpecError(f"{where}.nomt: expected true/false, got {raw['nomt']!r}")
+    cpus, _ = _resources(f"{where}.resources", raw.get("resources"), res)
+    return str(raw.get("name") or "dso-reference"), str(b.resolve()), bool(raw.get("nomt", False)), cpus
+
+
 def task_key(path: str, calib: str | None, groundtruth: str | None, stage: str, config: dict) -> str:
     blob = json.dumps({"path": path, "calib": calib, "groundtruth": groundtruth, "stage": stage, "config": config},
                       sort_keys=True, default=str)
@@ -322,6 +357,9 @@ def load_spec(name_or_path: str | os.PathLike) -> BenchSpec:
     seeds = _seeds(path, data)
     res = _resources(f"{path}: resources", data.get("resources"), (1.0, 0.0))
     variants = _variants(path, data.get("variants"), stage, res, seeds[0])
+    dso = _reference_dso(path, data.get("reference_dso"), res)
+    if dso is not None and any(v.name == dso[0] for v in variants):
+        raise SpecError(f"{path}: reference_dso.name: {dso[0]!r} is also a variant's name")
     root = _data_root(path, data.get("data_root"))
     seqs = _sequences(path, data.get("sequences"), root)
     spec = BenchSpec(path=path, name=str(data.get("name") or path.stem), sequences=seqs, variants=variants,
@@ -336,4 +374,9 @@ def load_spec(name_or_path: str | os.PathLike) -> BenchSpec:
                 key = task_key(str(s.path), s.calib, s.groundtruth, v.stage, config_to_dict(cfg))
                 spec.tasks.append(Task(s.name, v.name, seed, v.stage, str(s.path), s.calib, s.groundtruth, v.config,
                                        tuple(sets), v.num_cpus, v.num_gpus, key))
+        for seed in (seeds if dso is not None else ()):   # the reference DSO on the same frames: one run a seed
+            name, binary, nomt, cpus = dso                   # of the spec (its runs differ by its threads' timing)
+            key = task_key(str(s.path), None, None, DSO_STAGE, {"binary": binary, "nomt": nomt, "run": seed})
+            spec.tasks.append(Task(s.name, name, seed, DSO_STAGE, str(s.path), None, None, None, (), cpus, 0.0, key,
+                                   binary, nomt))
     return spec
