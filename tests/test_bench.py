@@ -316,3 +316,17 @@ def test_the_reference_dso_row(bench_dir, tmp_path):
     fake.chmod(0o644)
     with pytest.raises(SpecError, match=r"reference_dso\.binary: .*not an executable file"):
         load_spec(spec)
+
+
+def test_one_bench_at_a_time_in_a_folder(tmp_path):
+    """A second bench in the same folder would empty the run folders of the first one's running tasks: refused in one
+    line; once the first is done the folder is free again (negative control)."""
+    from mgso.app.bench import _bench_lock
+    from mgso.app.writer import OutputError
+
+    with _bench_lock(tmp_path):
+        with pytest.raises(OutputError, match="another mgso bench is running in this folder"):
+            with _bench_lock(tmp_path):
+                pass
+    with _bench_lock(tmp_path):
+        pass

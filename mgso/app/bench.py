@@ -30,6 +30,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -263,6 +264,30 @@ def run_bench(spec: BenchSpec, out_dir: str | os.PathLike, *, address: str | Non
     from .writer import prepare_out_dir
 
     out = prepare_out_dir(out_dir)
+    with _bench_lock(out):
+        return _run_bench(spec, out, address=address, num_cpus=num_cpus, progress=progress)
+
+
+@contextmanager
+def _bench_lock(out: Path):
+    """One bench at a time in a folder: a second would empty the run folders of the first one's running tasks."""
+    import fcntl
+
+    from .writer import OutputError
+
+    fh = open(out / ".bench.lock", "w")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise OutputError(f"{out}: another mgso bench is running in this folder (wait for it, or give another "
+                              "--out)") from None
+        yield
+    finally:
+        fh.close()
+
+
+def _run_bench(spec: BenchSpec, out: Path, *, address, num_cpus, progress: bool) -> BenchResult:
     runs = out / "runs"
     runs.mkdir(exist_ok=True)
     atomic_write_text(out / "spec.yaml", spec.text)
