@@ -3,7 +3,7 @@
 back end asked for (``bundle``: the sliding-window bundle adjustment, ``fixed``: the stand-in).
 
     python profiles/odometry.py [--device cpu] [--backends bundle,fixed] [--path P ...] [--frames N]
-                                [--set window.X=Y ...]
+                                [--set window.X=Y ...] [--threads N]
 
 Defaults: ``kitti00_0-159`` and ``7scenes_redkitchen_0-499`` from the shared data folder (``MGSO_DATA``). The CPU
 runs are deterministic (bitwise), so one run per sequence and back end is the figure; DSO's reference numbers (issue
@@ -53,12 +53,16 @@ def run_one(path: Path, cfg: Config, device: str, frames: int | None) -> dict:
     n = 0
     map_ms = []
     kf_ms = []
+    per_wall, per_cpu = [], []  # odo.process alone, a frame (decoding excluded)
     st0, c0 = _cpu_steal(), time.process_time()
     t0 = time.perf_counter()
     for f in seq.frames():
         if frames is not None and n >= frames:
             break
+        w0, p0 = time.perf_counter(), time.process_time()
         r = odo.process(f)
+        per_wall.append(time.perf_counter() - w0)
+        per_cpu.append(time.process_time() - p0)
         if r.status == FrameStatus.TRACKED:
             map_ms.append(r.time_map_s * 1000)
             if r.keyframe_reason:
@@ -73,7 +77,11 @@ def run_one(path: Path, cfg: Config, device: str, frames: int | None) -> dict:
            "wall_s": round(wall, 1), "fps": round(n / wall, 3), "ms_per_frame": round(1000 * wall / max(n, 1), 1),
            "cpu_ms_per_frame": round(1000 * cpu / max(n, 1), 1),  # all threads of the process
            "steal_pct": (round(100 * (st1[0] - st0[0]) / max(st1[1] - st0[1], 1), 1) if st0 and st1 else None),
-           "keyframe_map_ms_median": round(float(np.median(kf_ms)), 1) if kf_ms else None}
+           "keyframe_map_ms_median": round(float(np.median(kf_ms)), 1) if kf_ms else None,
+           # odo.process alone (decoding excluded): median and total over the frames, wall and process CPU time
+           "process_wall_ms_median": round(1000 * float(np.median(per_wall)), 1) if per_wall else None,
+           "process_cpu_ms_median": round(1000 * float(np.median(per_cpu)), 1) if per_cpu else None,
+           "process_wall_s": round(float(np.sum(per_wall)), 2), "process_cpu_s": round(float(np.sum(per_cpu)), 2)}
     gt = seq.groundtruth
     if gt is not None and len(traj) >= 3:
         out["ate_all_frames_m"] = round(compute_ate(traj, gt, align="sim3").rmse, 4)
@@ -101,8 +109,12 @@ def main() -> None:
     ap.add_argument("--path", action="append", default=None)
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--threads", type=int, default=None,
+                    help="threads of the split kernel launches (runtime.set_cpu_threads; default: all cores)")
     args = ap.parse_args()
     device = runtime.init(args.device)
+    if args.threads is not None:
+        runtime.set_cpu_threads(args.threads)
     base = apply_overrides(Config(), args.set)
     paths = [Path(p) for p in args.path] if args.path else [shared_data_dir() / d for d in DEFAULT]
     out = {"profile": "odometry", "device": device, "cpu_threads": runtime.cpu_threads(),
