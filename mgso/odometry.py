@@ -16,8 +16,15 @@ tracking and mapping threads, with typed messages between the halves:
   coarse_tracker.TrackingReference` is handed to the tracking side whole (:meth:`_offer_reference`; the tracker
   swaps it in at the start of its next frame, DSO's ``coarseTracker_forNewKF``).
 
-:meth:`Odometry.process` runs both in order (deterministic and single-threaded, for tests and evaluation); a
-real-time system can run :meth:`map` on its own thread with a queue of :class:`TrackedFrame` between them.
+:meth:`Odometry.process` runs both in order (deterministic and single-threaded, for tests and evaluation). With
+``map_thread=True`` (DSO's split, for real time; off by default) :meth:`process` tracks the frame and returns, and
+:meth:`map` runs on a thread of the odometry's own, fed by a queue of :class:`TrackedFrame`: a keyframe's window
+optimisation no longer delays the frames behind it, the tracker keeps tracking against the latest reference until
+the new one is handed over, and when frames wait the older ones are mapped as non-keyframes (traced only) and only
+the newest keeps its keyframe request (DSO ``needToKetchupMapping``). The initialiser's frames and a tracking loss
+are mapped in order on the calling thread (the queue is emptied first); the mapper's messages are returned by the
+next :meth:`process` calls and :meth:`finish`; the observer's keyframe, window and point events come from the
+mapping thread. Results are then no longer bit-identical run to run.
 
 **Poses.** Every frame keeps (DSO ``FrameShell``) its ``cam_to_tracking_ref`` and the keyframe it was tracked
 against; its ``cam_to_world`` is the reference keyframe's pose times ``cam_to_tracking_ref``, refreshed when the frame
@@ -39,7 +46,9 @@ world. Every frame carries its segment number.
 
 from __future__ import annotations
 
+import collections
 import logging
+import queue
 import threading
 import time
 from dataclasses import dataclass
@@ -271,9 +280,16 @@ class Odometry:
 
     def __init__(self, geometry: PyramidGeometry, config: Config | None = None, *, device: str | None = None,
                  observer: Observer | None = None, back_end: WindowBackEnd | None = None,
-                 emit_messages: bool = False):
+                 emit_messages: bool = False, map_thread: bool = False):
         self.config = config or Config()
         self.emit_messages = bool(emit_messages)
+        # DSO's split (module text): the mapping half on a thread of its own, fed by a queue
+        self.map_thread = bool(map_thread)
+        self._map_queue: queue.Queue | None = None
+        self._map_worker: threading.Thread | None = None
+        self._map_error: BaseException | None = None
+        self._ready: collections.deque = collections.deque()  # messages the mapping thread has made, in order
+        self.num_keyframe_requests_merged = 0  # keyframe requests mapped as non-keyframes by the catch-up
         self._outbox: list = []  # mapper messages of the frame being processed (emit_messages)
         self._valid_src: np.ndarray | None = None  # the frames' validity mask (Frame.valid: the same array for all)
         self._valid_weights: np.ndarray | None = None  # ... in the odometry's geometry, as loss weights
@@ -327,6 +343,8 @@ class Odometry:
     def process(self, frame) -> FrameResult:
         """Track and map one frame (deterministic order). ``frame``: :class:`mgso.io.Frame`-like (``index``,
         ``timestamp``, ``gray [H, W]`` 0-255, ``rgb``, ``exposure_ms``)."""
+        if self.map_thread:
+            return self._process_split(frame)
         tracked = self.track(frame)
         t0 = time.perf_counter()
         self.map(tracked)
@@ -338,6 +356,91 @@ class Odometry:
         if self.emit_messages:
             r.messages = tuple(self._drain())
         return r
+
+    # ------------------------------------------------------------------------------- the mapping thread
+    def _process_split(self, frame) -> FrameResult:
+        """:meth:`process` with ``map_thread``: track here, map on the mapping thread (initialiser frames and a loss:
+        here, in order). ``time_map_s`` is the time spent mapping on this thread; ``keyframe_id`` is -1 for a
+        keyframe mapped on the thread (not known yet); ``messages`` are those the mapping thread has finished."""
+        self._raise_map_error()
+        tracked = self.track(frame)
+        r = tracked.result
+        t0 = time.perf_counter()
+        if tracked.pyramid is not None:
+            if tracked.record.status == FrameStatus.TRACKED and tracked.initialize is None:
+                self._start_map_thread()
+                self._map_queue.put(tracked)
+            else:
+                self._wait_mapped()
+                self.map(tracked)
+                if self.emit_messages:
+                    self._ready.extend(self._drain())
+        r.time_map_s = time.perf_counter() - t0
+        r.affine = tuple(float(v) for v in tracked.record.affine)
+        r.keyframe_id = int(tracked.record.keyframe_id)
+        r.exposure_ms = getattr(frame, "exposure_ms", None)
+        if self.emit_messages:
+            r.messages = tuple(self._take_ready())
+        return r
+
+    def _start_map_thread(self) -> None:
+        if self._map_worker is None or not self._map_worker.is_alive():
+            self._map_queue = queue.Queue()
+            self._map_worker = threading.Thread(target=self._map_loop, name="mgso-odometry-map", daemon=True)
+            self._map_worker.start()
+
+    def _map_loop(self) -> None:
+        q = self._map_queue
+        while True:
+            batch = [q.get()]
+            while True:
+                try:
+                    batch.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            for i, tracked in enumerate(batch):
+                try:
+                    if tracked is None:
+                        return
+                    if self._map_error is not None:  # after an error: only give the pyramids back
+                        if tracked.pyramid is not None:
+                            self._pool.release(tracked.pyramid)
+                        continue
+                    if tracked.need_keyframe and any(t is not None for t in batch[i + 1:]):
+                        tracked.need_keyframe = False  # a newer frame waits: it takes the keyframe request
+                        self.num_keyframe_requests_merged += 1
+                    self.map(tracked)
+                    if self.emit_messages:
+                        self._ready.extend(self._drain())
+                except BaseException as e:  # handed to the tracking thread (process / finish raise it)
+                    self._map_error = e
+                finally:
+                    q.task_done()
+
+    def _wait_mapped(self) -> None:
+        """Wait until the mapping thread has mapped every queued frame (then raise its error, if any)."""
+        if self._map_queue is not None:
+            self._map_queue.join()
+        self._raise_map_error()
+
+    def _raise_map_error(self) -> None:
+        if self._map_error is not None:
+            raise self._map_error
+
+    def _stop_map_thread(self) -> None:
+        if self._map_worker is not None and self._map_worker.is_alive():
+            self._map_queue.put(None)
+            self._map_worker.join()
+        self._map_worker = None
+        self._raise_map_error()
+
+    def _take_ready(self) -> list:
+        out = []
+        while True:
+            try:
+                out.append(self._ready.popleft())
+            except IndexError:
+                return out
 
     def track(self, frame) -> TrackedFrame:
         """The tracking half: returns the message for :meth:`map`."""
@@ -399,6 +502,8 @@ class Odometry:
         its reference keyframe's final pose (DSO prints the trajectory this way). With ``emit_messages``, returns the
         last messages for the mapper: what is still in the outbox, the final pose of every keyframe and the points
         still active (as :class:`~mgso.mapping.messages.PointsMessage`); otherwise ``[]``."""
+        if self.map_thread:
+            self._stop_map_thread()  # every queued frame mapped first
         w = self.window
         for s in w.order:
             kid = int(w.keyframe_id_[s])
@@ -409,7 +514,7 @@ class Odometry:
             return []
         from .mapping.messages import PointsMessage, PoseUpdate
 
-        out = self._drain()
+        out = self._take_ready() + self._drain()
         kt = self.keyframe_trajectory()
         ids = sorted(self.keyframes)
         if ids:
@@ -791,6 +896,8 @@ class Odometry:
 
     def _end_segment(self) -> None:
         """Close the window: keyframes keep their last poses, active points go to the point cloud."""
+        if self.map_thread:
+            self._wait_mapped()  # the mapping thread finishes the frames before the loss first
         w = self.window
         ref = self.tracker.reference
         if ref is not None:

@@ -165,3 +165,44 @@ def test_bad_input_is_a_reported_loss_with_recovery(wp_device, seq160, seq_jump,
         gt = seq160.trajectory
         ate = compute_ate(odo.trajectory(), gt)
         assert ate.rmse < 0.05, ate.summary()
+
+
+def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
+    """``map_thread=True`` (DSO's split, issue 13): keyframes after the initialisation are made on the odometry's
+    mapping thread while the caller tracks on; every frame still gets a pose, the map's messages all arrive (one
+    KeyframeMessage per keyframe, in order) and ``finish`` ends the thread. Negative control: the default maps every
+    keyframe on the caller's thread."""
+    import threading
+
+    from mgso.mapping.messages import KeyframeMessage
+
+    class Threads(Recorder):
+        def __init__(self):
+            super().__init__()
+            self.kf_threads = set()
+
+        def on_keyframe(self, k):
+            super().on_keyframe(k)
+            self.kf_threads.add(threading.get_ident())
+
+    k = seq160.intrinsics
+    cfg = Config()
+    path = np.sum(np.linalg.norm(np.diff(seq160.cam_to_world[:, :3, 3], axis=0), axis=1))
+    main = threading.get_ident()
+    for split in (False, True):
+        rec = Threads()
+        odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, observer=rec,
+                       emit_messages=True, map_thread=split)
+        results = [odo.process(f) for f in frames_of(seq160)]
+        messages = [m for r in results for m in r.messages] + odo.finish()
+        first_tracked = [r.status for r in results].index(FrameStatus.INITIALIZED)
+        assert not rec.lost
+        assert len(odo.trajectory()) == len(results) - first_tracked + 1
+        assert compute_ate(odo.trajectory(), seq160.trajectory).rmse < 0.02 * path
+        kf_ids = [m.keyframe_id for m in messages if isinstance(m, KeyframeMessage)]
+        assert kf_ids == sorted(odo.keyframes) and len(kf_ids) >= 4
+        if split:
+            assert rec.kf_threads - {main}, "no keyframe was made on the mapping thread"
+            assert not any(t.name == "mgso-odometry-map" for t in threading.enumerate())
+        else:
+            assert rec.kf_threads == {main}
