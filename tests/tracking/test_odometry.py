@@ -206,3 +206,32 @@ def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
             assert not any(t.name == "mgso-odometry-map" for t in threading.enumerate())
         else:
             assert rec.kf_threads == {main}
+
+
+def test_map_thread_error_reaches_the_caller(wp_device, seq160):
+    """An error on the mapping thread is raised on the caller's thread (by a later ``process`` or by ``finish``), not
+    lost with the thread, and ``finish`` still ends the thread."""
+    import threading
+
+    from mgso.window.depth_refine import FixedWindowBackEnd
+
+    class Boom(FixedWindowBackEnd):
+        calls = 0
+
+        def optimize(self, window):
+            self.calls += 1
+            if self.calls > 3:  # after the initialisation's keyframes, on the mapping thread
+                raise RuntimeError("boom in the window")
+            return super().optimize(window)
+
+    k = seq160.intrinsics
+    cfg = Config()
+    odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg,
+                   back_end=Boom(cfg.window, cfg.tracking), map_thread=True)
+    with pytest.raises(RuntimeError, match="boom in the window"):
+        for f in frames_of(seq160):
+            odo.process(f)
+        odo.finish()
+    with pytest.raises(RuntimeError, match="boom in the window"):
+        odo.finish()  # what a runner does after the error: the thread is ended, the error said again
+    assert not any(t.name == "mgso-odometry-map" for t in threading.enumerate())
