@@ -794,8 +794,9 @@ class SystemConfig:
     mapper_nice: int = opt(5, "realtime mode with mapper_process (POSIX): the mapper process's niceness increment, "
                               "so that when the cores are short the odometry's frames come first and the map trains "
                               "in what is left; 0 = same priority")
-    image_slots: int = opt(8, "realtime mode with mapper_process: keyframe images in flight to the mapper process "
-                              "(a shared-memory ring; when all wait, the odometry waits: counted as a queue wait)")
+    image_slots: int = opt(8, "realtime mode with mapper_process: keyframe images a block of the shared-memory ring "
+                              "to the mapper process holds; when every slot waits for the mapper the ring grows by a "
+                              "block (up to mapping.mapper.queue_size slots; beyond that the odometry waits, counted)")
     eval_monogs: bool = opt(True, "PSNR / SSIM at the tracked poses on every 5th frame, keyframes excluded (MonoGS "
                                   "protocol), when the run ends")
     eval_photo_slam: bool = opt(True, "PSNR / SSIM at the tracked poses on every tracked frame (Photo-SLAM protocol); "

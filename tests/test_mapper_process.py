@@ -116,17 +116,20 @@ def test_a_restored_mapper_renders_writes_and_refines_like_the_one_that_trained(
 # ------------------------------------------------------------------------------------------- real-time runs
 @pytest.mark.parametrize("in_process", [True, False])
 def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
-    system, seq, odo = _system(room, "system.mode=realtime", "system.playback_speed=0",
+    """Played at half its rate (15 frames/s, 67 ms a frame for an odometry that needs a few): every frame tracked,
+    every keyframe and pose in the map, the map trained while the camera ran and after, and it renders the room."""
+    system, seq, odo = _system(room, "system.mode=realtime", "system.playback_speed=0.5",
                                f"system.mapper_process={str(in_process).lower()}")
     result = system.run(seq.frames())
     st = result.mapper
     assert result.mapper_in == ("process" if in_process else "thread")
     assert isinstance(system.mapper, MapperProcess) is in_process
-    assert result.frames_processed == 24 and st.keyframes == result.keyframes == 6
+    assert result.frames_read == result.frames_processed == 24 and result.frames_dropped == 0
+    assert st.keyframes == result.keyframes == 6
     assert system.mapper.keyframe_ids == list(range(6)) and st.poses_unknown == 0
     for kid, T in enumerate(odo.keyframe_trajectory().cam_to_world):
         np.testing.assert_allclose(system.mapper.views[kid].cam_to_world, T, atol=1e-9)
-    assert st.final_steps == 60 and st.stopped_by == "stop" and st.queue_waits == 0
+    assert st.final_steps == 60 and st.steps > 60 and st.stopped_by == "stop" and st.queue_waits == 0
     assert st.cpu_seconds > 0 and 0 < result.mapper_cpu_share < 1
     assert not system.mapper.running
     if in_process:
@@ -140,18 +143,28 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
 
 
 def test_a_full_ring_and_queue_make_the_odometry_wait_and_lose_nothing(room):
-    """One image slot and a queue of two: while the mapper's process starts (a second or more), the odometry must
-    wait for it (counted), and every keyframe still reaches the map. The default ring (8 slots, 6 keyframes) and
-    queue never wait: the negative control."""
+    """Blocks of one image slot and a queue of two: while the mapper's process starts (a second or more), the ring
+    grows to two slots and the odometry then waits (counted); every keyframe still reaches the map. The default ring
+    (8 slots a block, 6 keyframes) and queue never wait nor grow: the negative control."""
     tight, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0", "system.image_slots=1",
                             "mapping.mapper.queue_size=2", "mapping.mapper.final_iterations=0")
     r = tight.run(seq.frames())
-    assert r.mapper.queue_waits >= 1 and r.mapper.queue_wait_seconds > 0
+    assert r.mapper.queue_waits >= 1 and r.mapper.queue_wait_seconds > 0 and r.mapper.image_blocks == 2
     assert r.mapper.keyframes == 6 and tight.mapper.keyframe_ids == list(range(6))
     roomy, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0",
                             "mapping.mapper.final_iterations=0")
     r2 = roomy.run(seq.frames())
-    assert r2.mapper.queue_waits == 0 and r2.mapper.keyframes == 6
+    assert r2.mapper.queue_waits == 0 and r2.mapper.keyframes == 6 and r2.mapper.image_blocks == 1
+
+
+def test_the_ring_grows_instead_of_making_the_odometry_wait(room):
+    """Blocks of one slot and the default queue: the mapper's process takes a second or more to start while the
+    oracle odometry sends six keyframes at once, so the ring must grow beyond one block; the odometry never
+    waits."""
+    system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0", "system.image_slots=1",
+                             "mapping.mapper.final_iterations=0")
+    r = system.run(seq.frames())
+    assert r.mapper.queue_waits == 0 and r.mapper.image_blocks >= 2 and r.mapper.keyframes == 6
 
 
 class _Watcher(Observer):

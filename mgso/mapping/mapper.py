@@ -90,6 +90,7 @@ class MapperStats:
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
     queue_wait_seconds: float = 0.0
     max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
+    image_blocks: int = 0                   # mapper's process: shared-memory blocks of keyframe images it took
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
                                                    "skipped_capacity": 0, "opacity_resets": 0,
                                                    "clamped_aspect": 0})

@@ -16,8 +16,9 @@ macOS and Windows) with its own interpreter, its own Warp context (and CUDA stre
     MapperProcess.stop() -> Mapper.restored(state): renders, PLY, refined trajectory, as in one process
 
 **Never waiting on the map.** Messages go over a bounded queue (``mapping.mapper.queue_size``); images over a ring
-of ``system.image_slots`` shared-memory slots, not as pickled copies. Only a full queue or a full ring makes the
-odometry wait, and each wait is counted (``MapperStats.queue_waits``, ``queue_wait_seconds``) as in one process.
+of shared-memory slots (blocks of ``system.image_slots``; the ring grows by a block when every slot waits for the
+mapper, up to as many slots as the queue holds), not as pickled copies. Only a full queue or ring makes the odometry
+wait, and each wait is counted (``MapperStats.queue_waits``, ``queue_wait_seconds``) as in one process.
 
 **Stops.** The mapper process ignores Ctrl-C, SIGTERM and SIGHUP: a terminal's Ctrl-C reaches the whole process
 group, and the main process decides how the run ends. :meth:`MapperProcess.stop` sends ``Stop``; with
@@ -141,7 +142,7 @@ class _WireQueue:
         mask = None
         if item.mask_shape is not None:
             mask = np.ndarray(item.mask_shape, np.float32, buffer=shm.buf, offset=base + n_img * 4).copy()
-        self._released.put(item.slot)
+        self._released.put((item.ring, item.slot))
         return KeyframeMessage(image=image, mask=mask, **item.fields)
 
     def get_nowait(self):
@@ -280,7 +281,8 @@ class MapperProcess:
         self.board = SnapshotBoard()
         self._ctx = mp.get_context("spawn")
         self._proc = None
-        self._ring: _ImageRing | None = None
+        self._blocks: dict[str, _ImageRing] = {}       # the ring: blocks of image_slots slots, by name
+        self._free: list[tuple[str, int]] = []
         self._done = threading.Event()
         self._error: str | None = None
         self._error_trace = ""
@@ -396,34 +398,45 @@ class MapperProcess:
             self.stats.queue_wait_seconds += waited
 
     def _to_wire(self, msg: KeyframeMessage):
-        if self._ring is None:
-            need = msg.image.size * 4 + (msg.image.shape[0] * msg.image.shape[1] * 4)
-            self._ring = _ImageRing(self.image_slots, need)
-        ring = self._ring
-        if not ring.fits(msg):
+        """The keyframe into a free slot of the ring. When every slot waits for the mapper, the ring grows by a
+        block (the odometry does not wait), up to as many slots as the queue holds messages; beyond that the
+        odometry waits for a slot (counted as a queue wait)."""
+        need = msg.image.size * 4 + msg.image.shape[0] * msg.image.shape[1] * 4
+        if self._blocks and not next(iter(self._blocks.values())).fits(msg):
             log.debug("keyframe %d does not fit the image ring: sent pickled", msg.keyframe_id)
             return msg, 0.0
         self._collect_slots(block=False)
         waited = 0.0
-        if not ring.free:
-            t0 = time.perf_counter()
-            log.warning("all %d image slots are waiting for the mapper: the odometry waits for the map", ring.slots)
-            while not ring.free:
-                self._collect_slots(block=True)
-                if not ring.free:
-                    self._check_alive("waited for an image slot")
-            waited = time.perf_counter() - t0
-        return ring.write(ring.free.pop(0), msg), waited
+        if not self._free:
+            slots = sum(b.slots for b in self._blocks.values())
+            if slots < max(self.image_slots, self.config.mapping.mapper.queue_size):
+                block = _ImageRing(self.image_slots, need)
+                self._blocks[block.shm.name] = block
+                self._free += [(block.shm.name, k) for k in range(block.slots)]
+                self.stats.image_blocks = len(self._blocks)
+                if len(self._blocks) > 1:
+                    log.debug("the mapper is %d keyframe images behind: the image ring grows to %d slots", slots,
+                              slots + block.slots)
+            else:
+                t0 = time.perf_counter()
+                log.warning("all %d image slots are waiting for the mapper: the odometry waits for the map", slots)
+                while not self._free:
+                    self._collect_slots(block=True)
+                    if not self._free:
+                        self._check_alive("waited for an image slot")
+                waited = time.perf_counter() - t0
+        name, slot = self._free.pop(0)
+        return self._blocks[name].write(slot, msg), waited
 
     def _collect_slots(self, block: bool) -> None:
         try:
-            slot = self._released.get(timeout=0.1) if block else self._released.get_nowait()
+            item = self._released.get(timeout=0.1) if block else self._released.get_nowait()
         except queue.Empty:
             return
         while True:
-            self._ring.free.append(int(slot))
+            self._free.append((item[0], int(item[1])))
             try:
-                slot = self._released.get_nowait()
+                item = self._released.get_nowait()
             except queue.Empty:
                 return
 
@@ -470,8 +483,8 @@ class MapperProcess:
         self._proc.join(5.0)
         if self._proc.is_alive():
             self._kill()
-        if self._ring is not None:
-            self._ring.close()
+        for block in self._blocks.values():
+            block.close()
         for q in (self._messages, self._released, self._requests):
             q.cancel_join_thread()
             q.close()
@@ -484,6 +497,7 @@ class MapperProcess:
             st.queue_waits = local_stats.queue_waits
             st.queue_wait_seconds = local_stats.queue_wait_seconds
             st.max_queue_depth = local_stats.max_queue_depth
+            st.image_blocks = local_stats.image_blocks
             self.stats = st
         self._stopped = True
 
