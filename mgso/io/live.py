@@ -3,9 +3,9 @@ network schemes OpenCV's FFmpeg capture opens (docs/live.md).
 
 A live source has no length and no end of its own:
 
-- a capture thread reads frames as fast as the device or stream gives them; the newest frame waits in a one-frame
-  slot, and a frame that was not taken before the next one came is dropped (counted in :attr:`LiveSource.dropped`),
-  never queued;
+- a capture thread (started at the first frame asked for) reads frames as fast as the device or stream gives them;
+  the newest frame waits in a one-frame slot, and a frame that was not taken before the next one came is dropped
+  (counted in :attr:`LiveSource.dropped`), never queued;
 - timestamps come from the capture's clock (``CAP_PROP_POS_MSEC``: a V4L2 buffer's time, an RTSP/UDP stream's
   presentation time) while it is meaningful (increasing, and after 1 s running at the rate of the local clock within
   10 %, never more than 1 s apart from it), else from ``time.monotonic()`` at the grab (always for ``http(s)://``:
@@ -282,14 +282,20 @@ class LiveSource:
         it returns true, else the error is raised."""
         if self._cap is None:
             raise DatasetError(f"{self.what}: the live source was closed")
-        if self._iterating:
+        if self._iterating or (self._thread is not None and self._thread.is_alive()):
             raise DatasetError(f"{self.what}: a live source can be iterated once at a time")
         self._iterating = True
+        return _LiveFrames(self, on_unreadable)
+
+    def _start_capture(self) -> None:
+        """At the first frame asked for (not when :meth:`frames` is called: what the device gives while the run is
+        still starting, its mapper's process spawning, would only be dropped)."""
         self._first_ts = 0.0
+        self._stop.clear()
+        self._slot, self._ended, self._error, self.end_reason = None, "", None, ""
         self._last_capture = time.monotonic()
         self._thread = threading.Thread(target=self._capture, name=f"mgso-capture-{self.name}", daemon=True)
         self._thread.start()
-        return _LiveFrames(self, on_unreadable)
 
     def _next_raw(self, closed: threading.Event):
         """The next captured frame ``(index, timestamp, raw)``, or ``None`` at the end (see the module doc)."""
@@ -438,12 +444,16 @@ class _LiveFrames:
         self._on_unreadable = on_unreadable
         self._closed = threading.Event()
         self._done = False
+        self._started = False
 
     def __iter__(self) -> "_LiveFrames":
         return self
 
     def __next__(self) -> Frame:
         src = self._src
+        if not self._started and not self._done:
+            self._started = True
+            src._start_capture()
         while not self._done:
             try:
                 item = src._next_raw(self._closed)
