@@ -160,6 +160,8 @@ class ViewerScene:
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *, title: str = "mgso",
                  live: bool = True, renderer: Callable | None = None):
         viser = require_viser()
+        # a browser tab that closes mid-handshake is logged by websockets with a traceback: not the user's problem
+        logging.getLogger("websockets").setLevel(logging.CRITICAL)
         with contextlib.redirect_stdout(io.StringIO()):       # viser prints a banner; we print one line ourselves
             try:
                 self.server = viser.ViserServer(host=host, port=int(port), label=title, verbose=False)
@@ -424,7 +426,7 @@ class LiveViewer(Observer):
 
     def pause_run(self, paused: bool = True) -> None:
         """What the panel's "Pause the run too" does: hold the odometry before its next frame (or let it go on)."""
-        if self.scene is not None:
+        if self.scene is not None and not self._closed.is_set():
             self.scene.pause_run.value = bool(paused)     # on_update follows, as from a browser
         self._set_run_paused(paused)
 
@@ -676,7 +678,7 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
 
         def read(name):
             f = run / name
-            if not f.is_file():
+            if not p.is_dir() or not f.is_file():     # a map.ply given alone is shown alone
                 return None
             try:
                 return read_tum(f)

@@ -1,0 +1,260 @@
+"""The browser viewer (issue 15, docs/viewer.md): a live run watched by a real headless chromium, the same trajectory
+and map with and without it, ``mgso view`` of a finished run, and the one-line errors.
+
+The browser test needs Debian's ``chromium`` (``.ci/run`` installs it) and skips, saying so, when none is found.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mgso import synthetic
+from mgso.app.cli import main
+
+viser = pytest.importorskip("viser", reason='the viewer tests need viser: pip install "mgso[viewer]" (or "[test]")')
+
+from mgso.app import viewer as V  # noqa: E402  (after the skip: it imports viser lazily, but its tests need it)
+
+CLI = "import sys; from mgso.app.cli import main; sys.exit(main(sys.argv[1:]))"
+SMALL_MAP = ["--set", "mapping.mapper.iterations_per_keyframe=3", "--set", "mapping.mapper.final_iterations=10",
+             "--set", "system.eval_photo_slam=false", "--set", "output.plot=false", "--set", "system.mode=deterministic"]
+ARTIFACTS = Path(__file__).parent / "artifacts"
+WAIT_S = 60.0          # generous bounds on waits for the browser (never asserted as timings)
+
+
+def _chromium() -> str | None:
+    for name in (os.environ.get("MGSO_CHROMIUM", ""), "chromium", "chromium-browser", "google-chrome"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _launch_chromium(exe: str, url: str, profile: Path) -> subprocess.Popen:
+    # headless WebGL on the CPU: ANGLE over SwiftShader
+    return subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
+                             "--enable-unsafe-swiftshader", "--disable-gpu-sandbox", "--window-size=800,600",
+                             "--no-first-run", f"--user-data-dir={profile}", url],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """40 frames of the synthetic room at 128x96 (TUM RGB-D layout, ground truth)."""
+    return synthetic.write_tum_rgbd(tmp_path_factory.mktemp("syn") / "room", seed=0, num_frames=40, width=128,
+                                    height=96)
+
+
+@pytest.fixture(scope="module")
+def plain_run(room, tmp_path_factory) -> Path:
+    """The full system on the room without the viewer (deterministic)."""
+    out = tmp_path_factory.mktemp("plain") / "run"
+    assert main(["run", str(room), "--out", str(out), "-q", *SMALL_MAP]) == 0
+    return out
+
+
+def _until(cond, what: str, timeout: float = WAIT_S, step: float = 0.05):
+    t0 = time.monotonic()
+    while not cond():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"gave up waiting for {what}")
+        time.sleep(step)
+
+
+def _render(client, T: np.ndarray) -> np.ndarray:
+    """What the browser draws from camera pose ``T`` (cam_to_world): viser asks the page for a frame (RGBA)."""
+    return client.get_render(240, 320, wxyz=V._quat_wxyz(T[:3, :3]), position=T[:3, 3], fov=1.0,
+                             transport_format="png", timeout=WAIT_S)
+
+
+def test_live_viewer_in_chromium_shows_the_map_and_leaves_the_run_unchanged(room, plain_run, tmp_path,
+                                                                               monkeypatch):
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no chromium found (apt-get install chromium, or MGSO_CHROMIUM=/path): the browser test of the "
+                    "viewer cannot run")
+    made: list[V.LiveViewer] = []
+    start = V.LiveViewer.start
+
+    def recording_start(self):          # the test's handle on the viewer the CLI makes
+        made.append(self)
+        return start(self)
+
+    monkeypatch.setattr(V.LiveViewer, "start", recording_start)
+    seen: dict = {}
+    errors: list[BaseException] = []
+
+    def browser():
+        proc = None
+        try:
+            _until(lambda: made, "the viewer")
+            v = made[0]
+            proc = _launch_chromium(exe, v.url, tmp_path / "chromium-profile")
+            _until(lambda: v.keyframes >= 4, "four keyframes")
+            v.pause_run(True)                                  # the panel's "Pause the run too"
+            t_pause = time.monotonic()
+            seen["paused_at"] = v.frames
+            _until(lambda: v.scene.clients() > 0, "chromium to connect")
+            # a map copy made after the pause (served between frames while the run waits) reached the page
+            _until(lambda: v._snap is not None and v._snap.time > t_pause and v.scene.pushed["splats"] > 0,
+                   "the map's splats to reach the page")
+            seen["frames_while_paused"] = v.frames
+            client = next(iter(v.scene.server.get_clients().values()))
+            # the first keyframe's orientation, moved back until the map's middle half is in view
+            R = v._kf_poses[min(v._kf_poses)][:3, :3]
+            m = v._snap.means
+            centre = np.median(m, axis=0)
+            spread = np.percentile(np.linalg.norm(m - centre, axis=1), 50)
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = centre - R[:, 2] * 3.0 * spread
+            _render(client, T)          # the page may capture its first frame before it has moved its camera
+            seen["all"] = _render(client, T)                  # every layer (the artifact)
+            for name, box in v.scene.layers.items():          # the panel's layer boxes: the splats alone
+                box.value = name == "gaussians"
+            time.sleep(0.5)
+            seen["map"] = _render(client, T)
+            seen["splats"] = len(v._snap)
+            v.scene.layers["gaussians"].value = False         # negative control: every layer hidden
+            time.sleep(0.5)
+            seen["empty"] = _render(client, T)
+            seen["frames_after"] = v.frames
+        except BaseException as exc:  # noqa: BLE001 - reported by the test below
+            errors.append(exc)
+        finally:
+            if made:
+                made[0].pause_run(False)
+            if proc is not None:
+                proc.terminate()
+                proc.wait(timeout=30)
+
+    th = threading.Thread(target=browser, daemon=True)
+    th.start()
+    out = tmp_path / "viewed"
+    rc = main(["run", str(room), "--out", str(out), "-q", "--viewer", "--port", "0", *SMALL_MAP])
+    th.join(timeout=WAIT_S)
+    assert not errors, errors
+    assert rc == 0
+    # the run really waited while paused, and the paused view still got the map (served between frames)
+    assert seen["frames_while_paused"] == seen["paused_at"] == seen["frames_after"]
+    assert seen["splats"] > 100
+
+    img, empty = seen["map"].astype(np.float64), seen["empty"].astype(np.float64)
+    ARTIFACTS.mkdir(exist_ok=True)
+    import cv2
+
+    shot = ARTIFACTS / "viewer_live.png"
+    cv2.imwrite(str(shot), cv2.cvtColor(np.hstack([seen["all"], seen["map"], seen["empty"]]),
+                                        cv2.COLOR_RGBA2BGRA))
+    print(f"viewer screenshot (every layer | the splats alone | every layer hidden): {shot}")
+    drawn = img[..., 3] > 8                                    # the page's canvas is transparent where nothing is
+    assert drawn.mean() > 0.05, f"the map covers {100 * drawn.mean():.1f}% of the view"
+    assert (empty[..., 3] > 8).mean() < 0.005                  # negative control: nothing drawn without the layers
+    assert np.abs(img - empty).mean() > 3.0
+
+    # the viewer (a browser connected, map copies served, a pause) changed nothing: bit-identical outputs
+    for name in ("trajectory.txt", "keyframes.txt", "map.ply"):
+        assert (out / name).read_bytes() == (plain_run / name).read_bytes(), name
+
+
+def test_view_serves_a_finished_run(plain_run):
+    from mgso.io.ply import read_gaussians_ply
+
+    scene = V.open_run(plain_run, port=0)
+    try:
+        for node in ("/gaussians/map", "/points/dso", "/trajectory/path", "/groundtruth/path", "/keyframes/kf0"):
+            assert scene.has_node(node), node
+        assert not scene.has_node("/current/camera")           # a finished run has no current camera
+        # the splats sent are the map's: one 32-byte record per Gaussian of map.ply
+        n = read_gaussians_ply(plain_run / "map.ply").n
+        splats = scene.server.scene._handle_from_node_name["/gaussians/map"]
+        assert splats._impl.props.buffer.shape == (n, 8)
+        # "render from this view" with mgso's rasteriser, from the first keyframe
+        from mgso.io.trajectory import read_tum
+
+        T = read_tum(plain_run / "keyframes.txt").cam_to_world[0]
+        cam, w2c = V.camera_for_view(V._quat_wxyz(T[:3, :3]), T[:3, 3], 1.0, 4 / 3, width=128)
+        ticket = scene.renderer(cam, w2c)
+        got = scene.renderer.latest_render()
+        assert got[0] == ticket and got[1].shape == (96, 128, 3)
+        assert got[1].std() > 0.02                              # the room, not the flat background
+    finally:
+        scene.close()
+    # a map.ply alone opens too; a folder with nothing of a run is refused in one line
+    scene = V.open_run(plain_run / "map.ply", port=0)
+    try:
+        assert scene.has_node("/gaussians/map") and not scene.has_node("/trajectory/path")
+    finally:
+        scene.close()
+
+
+def test_view_command_serves_until_ctrl_c(plain_run, tmp_path):
+    p = subprocess.Popen([sys.executable, "-c", CLI, "view", str(plain_run), "--port", "0"],
+                         stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        line = ""
+        t0 = time.monotonic()
+        while "mgso viewer: http://127.0.0.1:" not in line:
+            line = p.stderr.readline()
+            assert line or p.poll() is None, "mgso view ended before serving"
+            assert time.monotonic() - t0 < WAIT_S
+        assert p.poll() is None                                   # it blocks, serving
+        p.send_signal(signal.SIGINT)
+        rest = p.communicate(timeout=WAIT_S)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, rest
+    assert "Traceback" not in rest
+
+
+def test_viewer_errors_are_one_line(room, plain_run, tmp_path, capsys, monkeypatch):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["view", str(empty), "--port", "0"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a run folder" in err[0]
+    assert main(["view", str(tmp_path / "missing"), "--port", "0"]) == 1
+    assert "no such run folder" in capsys.readouterr().err
+    assert main(["run", str(room), "--viewer", "--stage", "tracking", "--out", str(tmp_path / "t")]) == 1
+    assert "--stage tracking" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
+    # viser missing: the install hint, before any work (no output folder)
+    monkeypatch.setitem(sys.modules, "viser", None)
+    out = tmp_path / "no-viser"
+    assert main(["run", str(room), "--viewer", "--out", str(out), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'pip install "mgso[viewer]"' in err[0]
+    assert not out.exists()
+    assert main(["view", str(plain_run), "--port", "0"]) == 1
+    assert 'pip install "mgso[viewer]"' in capsys.readouterr().err
+
+
+def test_callbacks_keep_references_not_copies():
+    """The observer's side costs O(1): the newest values are the messages' own arrays (no copies, no pushes)."""
+    from mgso.mapping.messages import PointsMessage, PoseUpdate
+    from mgso.system import OdometryFrame
+
+    v = V.LiveViewer(port=0)              # not started: no server, no thread; the callbacks alone
+    T = np.eye(4)
+    r = OdometryFrame(index=3, timestamp=0.1, cam_to_world=T, status="tracked")
+    v.on_frame(r)
+    assert v._last is r and v._poses[-1][1] is T
+    up = PoseUpdate({7: np.eye(4)})
+    v.on_window_optimized(up)
+    assert v._kf_poses[7] is up.cam_to_world[7]
+    pm = PointsMessage(np.zeros((5, 3)), np.zeros((5, 3)))
+    v.on_points_marginalized(pm)
+    assert v._points[-1] is pm and v._cloud_p == []          # merged later, by the viewer thread
+    v.on_frame(OdometryFrame(index=4, timestamp=0.2, cam_to_world=None, status="lost"))
+    v.on_frame(OdometryFrame(index=5, timestamp=0.3, cam_to_world=None, status="lost"))
+    assert v.losses == 1 and v.frames == 3                    # a loss counted once, not per lost frame
