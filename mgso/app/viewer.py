@@ -194,6 +194,7 @@ class ViewerScene:
             box.on_update(lambda _e, n=name: self._set_visible(n))
         self.render_button.on_click(self._on_render_click)
         self._render_ticket: int | None = None
+        self.closed = threading.Event()
         self.url = f"http://{'localhost' if host == '0.0.0.0' else host}:{self.port}"
 
     # ------------------------------------------------------------------ layers
@@ -315,6 +316,7 @@ class ViewerScene:
         return len(self.server.get_clients())
 
     def close(self) -> None:
+        self.closed.set()
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
 
@@ -726,8 +728,7 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
 
 def _poll_renders(sc: ViewerScene, renderer: _MapRenderer) -> None:
     shown = None
-    while True:
-        time.sleep(0.2)
+    while not sc.closed.wait(0.2):
         r = renderer.latest_render()
         if r is not None and r is not shown:
             shown = r
