@@ -46,7 +46,7 @@ def bench_dir(tmp_path_factory):
 def ray_session():
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
     yield ray
     if started:
         ray.shutdown()
@@ -65,7 +65,9 @@ def test_ctrl_c_cancels_the_tasks_keeps_what_finished_and_exits_130(bench_dir, t
                     "  quick: {stage: odometry}\n  slow:\n    set: [mapping.mapper.iterations_per_keyframe=2, "
                     "mapping.mapper.final_iterations=1000000, output.plot=false]\n")
     out = tmp_path / "out"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # a cluster address nobody answers (a `ray start` that has ended leaves such a file behind): the default is a Ray
+    # of the bench's own all the same (it failed with "When connecting to an existing cluster, num_cpus ...")
+    env = dict(os.environ, PYTHONUNBUFFERED="1", RAY_ADDRESS="127.0.0.1:9")
     proc = subprocess.Popen([sys.executable, "-m", "mgso.app.cli", "bench", str(spec), "--out", str(out),
                              "--num-cpus", "2", "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)

@@ -244,7 +244,9 @@ def _init_ray(address: str | None, num_cpus: int | None):
     import ray
     if ray.is_initialized():
         return ray, False
-    quiet = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+    # quiet: no dashboard, no worker logs on this terminal (each run's log is its bench.log), only Ray's errors (its
+    # warnings about a local single-user cluster, such as token authentication, are not the user's concern here)
+    quiet = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
                  configure_logging=True)
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     if address:
@@ -254,7 +256,9 @@ def _init_ray(address: str | None, num_cpus: int | None):
         src = str(Path(__file__).resolve().parents[2])
         pp = os.environ.get("PYTHONPATH", "")
         env = {"env_vars": {"PYTHONPATH": src + (os.pathsep + pp if pp else "")}}
-        ray.init(num_cpus=num_cpus or os.cpu_count() or 1, runtime_env=env, **quiet)
+        # address "local": a new Ray of our own even when a cluster was started on this machine (`ray start`,
+        # which ray.init() would otherwise join, with num_cpus refused), or one that left its address file behind
+        ray.init(address="local", num_cpus=num_cpus or os.cpu_count() or 1, runtime_env=env, **quiet)
     return ray, True
 
 
