@@ -258,6 +258,13 @@ def test_compare_says_what_moved_beyond_the_spread(first_bench, tmp_path, capsys
     [w_line] = [ln for ln in lines if ln.startswith("s | w |")]
     assert "within spread" in v_line and "MOVED up (worse)" in w_line     # a higher ATE is worse
     assert compare_tables(a, a)[1] == 0                                    # negative control
+    assert not any("settings differ" in ln for ln in lines)
+    b = [dict(r, command=f"mgso run s --out /x/{i} --set runtime.seed={r['seed']}" + (" --set a.b=1" if r["variant"]
+                                                                                     == "w" else ""))
+         for i, r in enumerate(a)]
+    flagged = [ln for ln in compare_tables([dict(r, command=f"mgso run s --out /y --set runtime.seed={r['seed']}")
+                                            for r in a], b)[0] if "settings differ" in ln]
+    assert [ln.split(" | ")[1].split(":")[0] for ln in flagged] == ["w"]    # the seed and --out do not count
 
     # the command on two results.csv: the bench against itself moved nothing
     _, out, _ = first_bench

@@ -436,7 +436,7 @@ def cmd_bench(args) -> int:
             raise CliError("give a SPEC or --compare A.csv B.csv, not both")
         a, b = args.compare
         try:
-            lines, _ = compare_tables(read_results_csv(a), read_results_csv(b), Path(a).name, Path(b).name)
+            lines, _ = compare_tables(read_results_csv(a), read_results_csv(b), a, b)
         except ValueError as exc:
             raise CliError(str(exc)) from None
         print("\n".join(lines))

@@ -252,6 +252,18 @@ def write_plots(rows: list[dict], out_dir: Path) -> list[Path]:
     return written
 
 
+def _settings(rows: list[dict]) -> dict:
+    """(sequence, variant) -> the set of its runs' commands without --out and the seed (what the runs were asked to
+    do)."""
+    import re
+
+    out: dict = {}
+    for r in rows:
+        cmd = re.sub(r" --out \S+| --set runtime\.seed=\d+", "", r.get("command") or "")
+        out.setdefault((r["sequence"], r["variant"]), set()).add(cmd)
+    return out
+
+
 def compare_tables(a_rows: list[dict], b_rows: list[dict], a_name: str = "A", b_name: str = "B") -> tuple[list[str], int]:
     """Which headline figures moved from A to B beyond the run-to-run spread. Rule (docs/bench.md): for each
     sequence, variant and figure with finished runs on both sides, the figure **moved** when the two ranges
@@ -259,11 +271,15 @@ def compare_tables(a_rows: list[dict], b_rows: list[dict], a_name: str = "A", b_
     medians is larger than the runs' own spread; with one run on a side its range is the single value. Returns the
     report's lines and the number of figures that moved."""
     ga, gb = group_figures(a_rows), group_figures(b_rows)
-    lines = [f"{a_name} -> {b_name}: a figure moved when the runs' ranges [min, max] do not overlap",
+    ca, cb = _settings(a_rows), _settings(b_rows)
+    lines = [f"A = {a_name}, B = {b_name}: a figure moved when the runs' ranges [min, max] do not overlap",
              "sequence | variant | figure | A median (min-max, runs) | B median (min-max, runs) | change | verdict"]
     moved = 0
     common = [k for k in ga if k in gb]
     for k in common:
+        if ca.get(k) != cb.get(k):
+            lines.append(f"{k[0]} | {k[1]}: the runs' settings differ between A and B (the command column, --out "
+                         "and the seed aside)")
         for c, (label, _, better) in FIGURES.items():
             xa, xb = ga[k][c], gb[k][c]
             if not xa or not xb:
