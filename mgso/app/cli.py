@@ -1,4 +1,4 @@
-"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``, ``export``, ``view``.
+"""The ``mgso`` command line: ``run``, ``demo``, ``fit``, ``eval``, ``info``, ``export``, ``view``, ``bench``.
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
 Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
