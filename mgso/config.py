@@ -784,6 +784,11 @@ class SystemConfig:
                          "rate and frames that arrive while the odometry is busy are dropped (as a live camera's)")
     playback_speed: float = opt(1.0, "realtime mode: a recorded sequence plays at this multiple of its frame rate "
                                      "(0 = as fast as the odometry takes frames, nothing dropped)")
+    odometry_map_thread: bool = opt(True, "realtime mode: the odometry's mapping half (window optimisation, "
+                                          "marginalisation, new points) on a thread of its own beside the tracking, "
+                                          "as DSO's mapping thread, so that a keyframe does not stall the frames "
+                                          "behind it (docs/tracking.md); the deterministic mode runs the halves in "
+                                          "order")
     mapper_process: bool = opt(True, "realtime mode: the mapper runs in a spawned process of its own (its own "
                                      "interpreter lock, Warp context and CUDA stream; keyframe images through shared "
                                      "memory); false: a thread of the odometry's process")

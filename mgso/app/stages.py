@@ -422,7 +422,10 @@ def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress
 
     device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads, blas_threads=cfg.runtime.blas_threads)
     odo_device = runtime.resolve_device(cfg.runtime.odometry_device) if cfg.runtime.odometry_device else device
-    odometry = Odometry.for_camera(seq.calibration.output, cfg, device=odo_device, emit_messages=True)
+    # real time: DSO's split, the window optimisation beside the tracking (a keyframe does not stall the frames behind)
+    split = cfg.system.mode == "realtime" and cfg.system.odometry_map_thread
+    odometry = Odometry.for_camera(seq.calibration.output, cfg, device=odo_device, emit_messages=True,
+                                   map_thread=split)
     run_system(seq, cfg, writer, odometry, odometry_name="DSO (mgso.odometry)", progress=progress, summary=summary,
                device=device, state=state, observers=observers)
 
