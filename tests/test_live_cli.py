@@ -111,13 +111,16 @@ def _finish(proc, timeout: float = 300.0):
             proc.communicate()
 
 
-def _check_outputs(out: Path) -> dict:
+def _check_outputs(out: Path, interrupted: bool = False) -> dict:
     for name in OUTPUTS:
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
     fr = metrics["frames"]
     assert metrics["mode"] == "realtime"
-    assert fr["read"] == fr["processed"] + fr["dropped"]
+    # every frame captured was processed or dropped; a signal may leave the frame being processed and the one
+    # waiting in the player's slot in neither
+    extra = fr["read"] - fr["processed"] - fr["dropped"]
+    assert (0 <= extra <= 2) if interrupted else extra == 0, fr
     assert fr["processed"] == _rows(out / "frames.csv")
     assert metrics["render"] == [] and metrics["ate"] == []          # no ground truth, nothing read back
     seq = json.loads((out / "sequence.json").read_text())
@@ -144,7 +147,7 @@ def test_sigterm_ends_a_live_run_with_every_output_and_exit_143(room, tmp_path):
         server.close()
     assert proc.returncode == 143, err
     assert "Traceback" not in err and "mgso run: SIGTERM: stopped after" in err
-    metrics = _check_outputs(out)
+    metrics = _check_outputs(out, interrupted=True)
     assert metrics["interrupted"] is True and metrics["frames"]["processed"] >= 15
     cfg = (out / "config.yaml").read_text()
     assert "mode: realtime" in cfg and "live_timeout_s" in cfg
