@@ -114,15 +114,17 @@ def camera_for_view(wxyz, position, fov: float, aspect: float, width: int = REND
     return cam, T
 
 
-def _small_image(img: np.ndarray, width: int = PANEL_IMAGE_WIDTH) -> np.ndarray:
-    """uint8 RGB no wider than ``width`` (by striding: the copy is of the small image only)."""
+def _small_image(img: np.ndarray, width: int = PANEL_IMAGE_WIDTH, hi: float | None = None) -> np.ndarray:
+    """uint8 RGB no wider than ``width`` (by striding: the copy is of the small image only); a float image's white is
+    ``hi`` (default: 1 when its values are in [0, 1], else 255)."""
     a = np.asarray(img)
     step = max(1, int(math.ceil(a.shape[1] / width)))
     a = a[::step, ::step]
     if a.ndim == 2:
         a = np.repeat(a[:, :, None], 3, axis=2)
     if np.issubdtype(a.dtype, np.floating):
-        hi = 1.0 if a.max(initial=0.0) <= 1.0 + 1e-6 else 255.0
+        if hi is None:
+            hi = 1.0 if a.max(initial=0.0) <= 1.0 + 1e-6 else 255.0
         a = np.clip(a * (255.0 / hi), 0, 255).astype(np.uint8)
     return np.ascontiguousarray(a[:, :, :3].astype(np.uint8))
 
@@ -221,7 +223,9 @@ class ViewerScene:
         if n == 0:
             return
         h = self.server.scene.add_gaussian_splats(
-            "/gaussians/map", centers=np.asarray(means, np.float32), covariances=np.asarray(covariances, np.float32),
+            "/gaussians/map", centers=np.asarray(means, np.float32),
+            # viser sends covariances as float16: a huge Gaussian (a far-away floater) would overflow to inf
+            covariances=np.clip(np.asarray(covariances, np.float32), -6.0e4, 6.0e4),
             rgbs=np.clip(np.asarray(colors, np.float32), 0, 1),
             opacities=np.asarray(opacities, np.float32).reshape(n, 1), visible=self._visible("/gaussians"))
         self._put("/gaussians/map", h)
@@ -233,7 +237,7 @@ class ViewerScene:
         h = self.server.scene.add_point_cloud(
             "/points/dso", points=np.asarray(points, np.float32),
             colors=(np.clip(np.asarray(colors, np.float32), 0, 1) * 255).astype(np.uint8),
-            point_size=0.004 * max(self.scale / 0.1, 1e-3), point_shape="circle",
+            point_size=0.01 * self.scale, point_shape="circle", point_shading="flat",
             visible=self._visible("/points"))
         self._put("/points/dso", h)
         self.pushed["points"] += 1
@@ -269,8 +273,8 @@ class ViewerScene:
     def set_stats(self, lines: list[str]) -> None:
         self.stats.content = "\n\n".join(lines)
 
-    def set_frame_image(self, img: np.ndarray, label: str) -> None:
-        self.frame_image.image = _small_image(img)
+    def set_frame_image(self, img: np.ndarray, label: str, hi: float | None = None) -> None:
+        self.frame_image.image = _small_image(img, hi=hi)
         self.frame_image.label = label
         self.frame_image.visible = True
 
@@ -346,7 +350,7 @@ class LiveViewer(Observer):
         self._run_gate.set()
         self._thread: threading.Thread | None = None
         # the newest values (written by the callbacks, read by the viewer thread; plain references)
-        self._frame_obj = None                    # the newest input frame (mgso.io.Frame)
+        self._recent: deque = deque(maxlen=4)     # the newest input frames (mgso.io.Frame; real time reads ahead)
         self._last = None                         # the newest OdometryFrame
         self._poses: list = []                    # (timestamp, cam_to_world) of every frame with a pose
         self._kf_poses: dict[int, np.ndarray] = {}
@@ -357,6 +361,7 @@ class LiveViewer(Observer):
         self.frames = 0
         self.keyframes = 0
         self.losses = 0
+        self.paused_seconds = 0.0                 # how long "Pause the run too" held the odometry
         self.num_gaussians = 0
         self._lost = False
         self.ended = False
@@ -401,7 +406,7 @@ class LiveViewer(Observer):
         it = iter(frames)
         try:
             for f in it:
-                self._frame_obj = f
+                self._recent.append(f)
                 yield f
         finally:
             close = getattr(it, "close", None)
@@ -451,7 +456,9 @@ class LiveViewer(Observer):
 
     def on_frame(self, r) -> None:
         if not self._run_gate.is_set():
+            t0 = time.perf_counter()
             self._wait_gate()
+            self.paused_seconds += time.perf_counter() - t0
         self._times.append(time.perf_counter())
         self.frames += 1
         self._last = r
@@ -546,14 +553,10 @@ class LiveViewer(Observer):
         sc.set_path("trajectory", pos)
         cam = self._camera
         fov, aspect = (2 * math.atan(0.5 * cam.height / cam.fy), cam.width / cam.height) if cam else (1.0, 4 / 3)
-        f = self._frame_obj
         status = str(getattr(r.status, "value", r.status))
-        if f is not None and getattr(f, "index", None) == r.index:
-            try:
-                img = f.rgb
-            except Exception:  # noqa: BLE001 - a frame without colour shows its gray image
-                img = f.gray
-            sc.set_frame_image(img, f"frame {r.index}: {status}")
+        f = next((f for f in list(self._recent) if getattr(f, "index", None) == r.index), None)
+        if f is not None:     # the image the odometry tracked (gray: its colour may not have been made)
+            sc.set_frame_image(f.gray, f"frame {r.index}: {status}", hi=255.0)
         if r.cam_to_world is not None:
             color = _COLORS["current"] if status != "lost" else (120, 120, 120)
             sc.set_frustum("/current/camera", r.cam_to_world, fov, aspect, color, scale=1.5 * sc.scale)
