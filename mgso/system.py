@@ -382,6 +382,12 @@ class System:
         t_loop = time.perf_counter()
         it = iter(source)
         try:
+            wait_ready = getattr(self.mapper, "wait_ready", None)
+            if wait_ready is not None:
+                # the mapper's process starts (imports, Warp) before the camera plays: its start-up would take the
+                # odometry's core while the first frames arrive
+                wait_ready()
+                t_loop = time.perf_counter()
             for frame in it:
                 read += 1
                 t0 = time.perf_counter()

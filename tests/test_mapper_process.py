@@ -132,8 +132,8 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     assert st.final_steps == 60 and st.steps > 60 and st.stopped_by == "stop" and st.queue_waits == 0
     assert st.cpu_seconds > 0 and 0 < result.mapper_cpu_share < 1
     assert not system.mapper.running
-    if in_process:
-        assert not system.mapper._proc.is_alive()
+    if in_process:      # the camera played once the process had started
+        assert system.mapper._ready.is_set() and not system.mapper._proc.is_alive()
     # the map that came back renders the room (a keyframe's own view, after 60 refinement steps)
     cam = seq.calibration.output
     img = system.mapper.render(cam, system.mapper.views[3].world_to_cam, exposure=system.mapper.view_exposure(3))

@@ -235,6 +235,7 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, messages,
 
         mapper.safe_point_hook = hook
         mapper.drain_until_stop = True
+        events.put(("ready",))
         mapper._thread = threading.current_thread()   # Mapper's real-time loop, run here in the main thread
         cpu0 = time.process_time()
         mapper._run()
@@ -284,6 +285,7 @@ class MapperProcess:
         self._blocks: dict[str, _ImageRing] = {}       # the ring: blocks of image_slots slots, by name
         self._free: list[tuple[str, int]] = []
         self._done = threading.Event()
+        self._ready = threading.Event()
         self._error: str | None = None
         self._error_trace = ""
         self._state: MapState | None = None
@@ -326,6 +328,16 @@ class MapperProcess:
         self._receiver = threading.Thread(target=self._receive, name="mgso-mapper-events", daemon=True)
         self._receiver.start()
 
+    def wait_ready(self, timeout: float = 120.0) -> bool:
+        """Wait until the mapper's process has started (imported mgso, started Warp, made its mapper), it has
+        failed, or ``timeout`` seconds passed; whether it is ready. Messages submitted before wait in the queue, so
+        this is only to keep the start-up off the odometry's first frames."""
+        t0 = time.perf_counter()
+        while not self._ready.wait(0.05):
+            if self._done.is_set() or time.perf_counter() - t0 > timeout:
+                return False
+        return True
+
     def _receive(self) -> None:
         """The main process's receiver: the mapper process's events, until its final state (or its death)."""
         try:
@@ -344,7 +356,9 @@ class MapperProcess:
                             return
                     else:
                         continue
-                if kind == "update":
+                if kind == "ready":
+                    self._ready.set()
+                elif kind == "update":
                     try:
                         self.observer.on_map_updated(rest[0])
                     except Exception:  # noqa: BLE001 - an observer must not stop the run
