@@ -173,6 +173,7 @@ BAD = {
     "system.mode": ["fast"], "system.playback_speed": [-0.1],
     "system.odometry_threads": [-1], "system.mapper_threads": [-1], "system.mapper_nice": [-1, 20],
     "system.image_slots": [0],
+    "input.live_timeout_s": [0, 3601], "input.live_max_frames": [-1], "input.live_duration_s": [-0.1],
 }
 FREE = {"input.camera"}  # names a camera of the dataset's layout: checked when the sequence is opened
 

@@ -125,6 +125,7 @@ def _check_outputs(out: Path, interrupted: bool = False) -> dict:
     assert metrics["render"] == [] and metrics["ate"] == []          # no ground truth, nothing read back
     seq = json.loads((out / "sequence.json").read_text())
     assert seq["layout"] == "live" and seq["frames"] is None and seq["groundtruth"]["present"] is False
+    assert seq["path_absolute"] == seq["path"] and "://" in seq["path"]     # a URL, not a resolved file path
     return metrics
 
 

@@ -169,7 +169,8 @@ class RunWriter:
 
         info = dict(seq.describe())
         # where relative paths in it start from, so that the input is found from anywhere (mgso export)
-        info["path_absolute"] = str(Path(seq.path).resolve())
+        # (a live source's path is a device or a URL: kept as it is)
+        info["path_absolute"] = str(seq.path) if info.get("live") else str(Path(seq.path).resolve())
         info["run_cwd"] = os.getcwd()
         self.write_json("sequence.json", info)
         if seq.groundtruth is not None:
