@@ -267,3 +267,39 @@ def test_callbacks_keep_references_not_copies():
     v.on_frame(OdometryFrame(index=4, timestamp=0.2, cam_to_world=None, status="lost"))
     v.on_frame(OdometryFrame(index=5, timestamp=0.3, cam_to_world=None, status="lost"))
     assert v.losses == 1 and v.frames == 3                    # a loss counted once, not per lost frame
+
+
+def test_the_watched_frames_of_a_live_source_still_read_as_live_to_the_player():
+    """The viewer sees every frame on its way (watch); a live source seen so must still be unpaced and have its
+    own drops counted by the real-time player (a plain generator wrapper hid them: the negative control)."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from mgso.app.viewer import _Watched
+    from mgso.system import Player
+
+    class Live:
+        live = True
+        dropped = 2
+
+        def __init__(self):
+            self.closed = 0
+
+        def __iter__(self):
+            for k in range(5):
+                yield SimpleNamespace(index=k, timestamp=1000.0 + 100.0 * k)   # 100 s apart: paced, it would hang
+
+        def close(self):
+            self.closed += 1
+
+    recent = deque(maxlen=4)
+    src = Live()
+    player = Player(_Watched(src, recent), speed=1.0)
+    got = [f.index for f in player]
+    # unpaced (100 s between timestamps would hang a paced player), the newest kept, the source's drops counted
+    assert player.live and got[-1] == 4 and player.read == 5 + 2 and player.dropped == 5 - len(got) + 2
+    assert [f.index for f in recent] == [1, 2, 3, 4] and src.closed >= 1
+
+    def plain(frames):
+        yield from frames
+    assert not Player(plain(Live()), speed=1.0).live

@@ -57,6 +57,31 @@ _LAYER_LABELS = {"gaussians": "Gaussian map", "points": "DSO points", "trajector
                  "keyframes": "Keyframes", "groundtruth": "Ground truth", "current": "Current camera"}
 
 
+
+class _Watched:
+    """The frames of a run seen by the viewer on their way (:meth:`LiveViewer.watch`); any other attribute is the
+    source's."""
+
+    def __init__(self, frames: Iterable, recent):
+        self._frames = frames
+        self._recent = recent
+
+    def __iter__(self) -> Iterator:
+        it = iter(self._frames)
+        try:
+            for f in it:
+                self._recent.append(f)
+                yield f
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    def __getattr__(self, name: str):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.__dict__["_frames"], name)
+
 class ViewerError(Exception):
     """A one-line user-facing error of the viewer (viser missing, a run folder without what it needs)."""
 
@@ -401,17 +426,11 @@ class LiveViewer(Observer):
         # reached from here so that the paused view still gets its map copies and renders
         self._serve_while_paused = (not getattr(system, "realtime", True)) and hasattr(self._mapper, "safe_point")
 
-    def watch(self, frames: Iterable) -> Iterator:
-        """Pass ``frames`` through, keeping a reference to the newest (its image is the panel's current frame)."""
-        it = iter(frames)
-        try:
-            for f in it:
-                self._recent.append(f)
-                yield f
-        finally:
-            close = getattr(it, "close", None)
-            if close is not None:
-                close()
+    def watch(self, frames: Iterable) -> "_Watched":
+        """Pass ``frames`` through, keeping a reference to the newest (its image is the panel's current frame). The
+        wrapper answers for the source (a live source's ``live``, ``dropped`` and thread-safe ``close``, which the
+        real-time player asks for)."""
+        return _Watched(frames, self._recent)
 
     def close(self) -> None:
         self._closed.set()
