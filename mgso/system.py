@@ -20,8 +20,10 @@ stand-in for tests and profiles.
 - ``deterministic``: frames in order; after each frame the mapper applies the messages and trains
   ``mapping.mapper.iterations_per_keyframe`` steps after each keyframe, in this thread. The same result on every
   CPU run (bitwise-identical PLY).
-- ``realtime``: the mapper trains in its own thread while the odometry runs; the odometry never waits for it except
-  on a full queue (counted). A recorded sequence is played at its frame rate times ``system.playback_speed``: a
+- ``realtime``: the mapper trains in a spawned process of its own (:class:`mgso.mapping.process.MapperProcess`;
+  ``system.mapper_process: false``: a thread) while the odometry runs, the cores split between them
+  (``system.odometry_threads`` / ``mapper_threads``); the odometry never waits for it except on a full queue
+  (counted). A recorded sequence is played at its frame rate times ``system.playback_speed``: a
   player thread releases each frame at its time, and a frame that arrives while the odometry is still busy with an
   earlier one replaces it (the earlier one is dropped, as a live camera's would be; counted).
 
@@ -53,12 +55,12 @@ from typing import Any, Iterable, Iterator, Protocol, Sequence as TSequence
 import numpy as np
 
 from mgso.config import Config
-from mgso_kernels import runtime
 from mgso.io.trajectory import Trajectory
 from mgso.mapping.mapper import Mapper, MapperStats
-from mgso.mapping.process import MapperProcess, split_threads
 from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
+from mgso.mapping.process import MapperProcess, split_threads
 from mgso.observers import Observer, ObserverList
+from mgso_kernels import runtime
 
 __all__ = ["OdometrySource", "OdometryFrame", "System", "SystemResult", "SystemRunError", "FrameLog",
            "MarginalizedCloud", "Player", "peak_memory_mb"]

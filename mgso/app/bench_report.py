@@ -17,6 +17,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterable
 
+from .writer import atomic_path
+
 __all__ = ["HEAD_COLUMNS", "FIGURES", "flatten_metrics", "headline", "write_results_csv", "read_results_csv",
            "summary_markdown", "write_plots", "compare_tables", "atomic_write_text"]
 
@@ -39,18 +41,9 @@ FIGURES = {
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    """``text`` to ``path`` atomically (:func:`mgso.app.writer.atomic_path`)."""
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_text(text, encoding="utf-8", newline="")
 
 
 def flatten_metrics(metrics: dict | None, prefix: str = "") -> dict:

@@ -29,6 +29,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
+from mgso.geometry import matrix_to_quat_wxyz
 from mgso.observers import Observer
 
 __all__ = ["ViewerError", "ViewerScene", "LiveViewer", "open_run", "require_viser", "INSTALL_HINT", "FRAME_HZ",
@@ -97,23 +98,8 @@ def require_viser():
 
 # ------------------------------------------------------------------------------------------------ geometry
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix."""
-    R = np.asarray(R, np.float64)
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
+    """Unit quaternion (w, x, y, z) of a rotation matrix (viser's order)."""
+    return matrix_to_quat_wxyz(R)
 
 
 def _rotation(wxyz) -> np.ndarray:

@@ -36,6 +36,25 @@ class OutputError(Exception):
     """The output folder cannot be used; the message names the path and the problem (one line)."""
 
 
+@contextmanager
+def atomic_path(dest: Path) -> Iterator[Path]:
+    """Yields a temporary path beside ``dest`` (same suffix); when the block ends without an error it replaces
+    ``dest`` (``os.replace``: a reader sees the old file or the new one, never half of one)."""
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.stem}-", suffix=dest.suffix, dir=dest.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, dest)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
 def _reason(exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
 
@@ -130,19 +149,8 @@ class RunWriter:
     def atomic(self, name: str) -> Iterator[Path]:
         """Yields a temporary path in the folder; when the block ends without an error it becomes ``name``. The
         suffix is kept (writers that pick the format from it, such as OpenCV's, see the right one)."""
-        dest = self.out / name
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{dest.stem}-", suffix=dest.suffix, dir=dest.parent)
-        os.close(fd)
-        try:
-            yield Path(tmp)
-            os.replace(tmp, dest)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+        with atomic_path(self.out / name) as tmp:
+            yield tmp
         self._note(name)
 
     def write_with(self, name: str, fn: Callable[[Path], Any]) -> Path:
