@@ -348,13 +348,18 @@ class Odometry:
         tracked = self.track(frame)
         t0 = time.perf_counter()
         self.map(tracked)
+        return self._result(tracked, frame, t0, self._drain)
+
+    def _result(self, tracked: TrackedFrame, frame, t0: float, messages) -> FrameResult:
+        """The frame's result once its mapping (here) is done or queued: the mapping time on this thread since
+        ``t0``, the record's affine and keyframe id, the exposure, and (``emit_messages``) ``messages()``."""
         r = tracked.result
         r.time_map_s = time.perf_counter() - t0
         r.affine = tuple(float(v) for v in tracked.record.affine)
         r.keyframe_id = int(tracked.record.keyframe_id)
         r.exposure_ms = getattr(frame, "exposure_ms", None)
         if self.emit_messages:
-            r.messages = tuple(self._drain())
+            r.messages = tuple(messages())
         return r
 
     # ------------------------------------------------------------------------------- the mapping thread
@@ -364,7 +369,6 @@ class Odometry:
         keyframe mapped on the thread (not known yet); ``messages`` are those the mapping thread has finished."""
         self._raise_map_error()
         tracked = self.track(frame)
-        r = tracked.result
         t0 = time.perf_counter()
         if tracked.pyramid is not None:
             if tracked.record.status == FrameStatus.TRACKED and tracked.initialize is None:
@@ -375,13 +379,7 @@ class Odometry:
                 self.map(tracked)
                 if self.emit_messages:
                     self._ready.extend(self._drain())
-        r.time_map_s = time.perf_counter() - t0
-        r.affine = tuple(float(v) for v in tracked.record.affine)
-        r.keyframe_id = int(tracked.record.keyframe_id)
-        r.exposure_ms = getattr(frame, "exposure_ms", None)
-        if self.emit_messages:
-            r.messages = tuple(self._take_ready())
-        return r
+        return self._result(tracked, frame, t0, self._take_ready)
 
     def _start_map_thread(self) -> None:
         if self._map_worker is None or not self._map_worker.is_alive():

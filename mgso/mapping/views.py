@@ -104,10 +104,14 @@ class TrainView:
                 raise ValueError(f"{where}: mask must be {img.shape[:2]}, got {mask.shape}")
             if not np.all(np.isfinite(mask)) or np.any(mask < 0):
                 raise ValueError(f"{where}: mask weights must be finite and >= 0")
+        self._set(view_id, np.ascontiguousarray(img, dtype=np.float32), camera, mask, world_to_cam, exposure,
+                  timestamp, name)
+
+    def _set(self, view_id, image, camera, mask, world_to_cam, exposure, timestamp, name) -> None:
         self.view_id = int(view_id)
         self.name = name or f"view {view_id}"
         self.timestamp = timestamp
-        self.image = np.ascontiguousarray(img, dtype=np.float32)
+        self.image = image
         self.camera = camera
         self.mask = mask
         # ONLY changed by ViewSet.set_pose and the trainer's pose refinement.
@@ -126,8 +130,8 @@ class TrainView:
         # the keyframe); set once by the owner (the mapper) before training, read by the trainer's depth term.
         self.depth_uv: np.ndarray | None = None
         self.depth_z: np.ndarray | None = None
-        self._levels: dict[int, tuple[np.ndarray, PinholeCamera, np.ndarray | None]] = {
-            0: (self.image, camera, mask)}
+        self._levels: dict[int, tuple[np.ndarray, PinholeCamera, np.ndarray | None]] = (
+            {} if image is None else {0: (image, camera, mask)})
         self._device_arrays: dict[tuple[int, str], tuple[wp.array, wp.array | None]] = {}
 
     @classmethod
@@ -138,21 +142,9 @@ class TrainView:
         that trained on it (a map brought back from the mapper's process, :mod:`mgso.mapping.process`). It can be
         rendered from and moved, not trained on (:meth:`level` raises)."""
         v = cls.__new__(cls)
-        v.view_id = int(view_id)
-        v.name = name or f"view {view_id}"
-        v.timestamp = timestamp
-        v.image = None
-        v.camera = camera
-        v.mask = None
-        v.world_to_cam = _check_pose(world_to_cam, v.name)
-        v.exposure = np.array([float(exposure[0]), float(exposure[1])], dtype=np.float64)
-        v.exposure_adam = AdamState.zeros(2)
-        v.pose_adam = AdamState.zeros(6)
+        v._set(view_id, None, camera, None, world_to_cam, exposure, timestamp, name)
         v.fixed_pose = bool(fixed_pose)
         v.uses = int(uses)
-        v.depth_uv = v.depth_z = None
-        v._levels = {}
-        v._device_arrays = {}
         return v
 
     @property
