@@ -28,7 +28,7 @@ import yaml
 
 __all__ = [
     "opt", "RuntimeConfig", "InputConfig", "TrackingConfig", "WindowConfig", "MappingConfig", "OptimConfig",
-    "DensifyConfig", "TrainConfig", "SeedingConfig", "MapperConfig", "OutputConfig", "SystemConfig",
+    "DensifyConfig", "TrainConfig", "SeedingConfig", "MapperConfig", "OutputConfig", "SystemConfig", "LoopConfig",
     "Config", "ConfigError", "load_config", "apply_overrides", "config_from_dict", "config_to_dict", "save_config",
     "describe_config", "PROFILE_DIR", "available_profiles", "check_runtime", "DEVICE_FORMS", "RECTIFY_FORMS",
     "TRAJECTORY_FORMATS",
@@ -823,6 +823,49 @@ class SystemConfig:
 
 
 @dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure (mgso.loop, docs/loop.md): place recognition on keyframes, Sim(3) verification, a Sim(3) pose
+    graph over all keyframes, and the map moved with the corrected keyframes."""
+
+    enabled: bool = opt(True, "detect revisits, correct the trajectory by a Sim(3) pose graph and move the Gaussian "
+                              "map with it (false: DSO's odometry alone)")
+    orb_features: int = opt(1000, "ORB keypoints detected on each keyframe (OpenCV); those within depth_radius_px of "
+                                  "a DSO point get its depth")
+    depth_radius_px: float = opt(2.0, "a keypoint takes the inverse depth of the nearest DSO point within this many "
+                                      "pixels (LDSO puts its features on DSO's points); farther ones have no depth")
+    min_keyframe_gap: int = opt(15, "keyframes this recent (the active window, 7, and its neighbours) are never loop "
+                                    "candidates: they are the odometry's own business")
+    max_candidates: int = opt(3, "candidates verified per keyframe, best appearance first")
+    min_matches: int = opt(40, "ratio-test ORB matches for a keyframe to be a candidate by appearance")
+    match_ratio: float = opt(0.75, "Lowe's ratio test on Hamming distances (best < ratio x second best)")
+    ransac_iterations: int = opt(300, "Sim(3) RANSAC hypotheses (3 point pairs each) per candidate")
+    inlier_px: float = opt(3.0, "a match is an inlier when it reprojects within this many pixels in both keyframes "
+                                "(ORB-SLAM's Sim3Solver habit; level-0 pixels)")
+    min_inliers: int = opt(30, "RANSAC inliers for a candidate to go on to the photometric check (ORB-SLAM accepts "
+                               "20 after Sim3 RANSAC; wrong loops are worse than none)")
+    max_photometric_rmse: float = opt(12.0, "the photometric check: DSO's residual RMSE (0-255 intensities, Huber "
+                                            "weighted) of the candidate's points tracked into the new keyframe from "
+                                            "the RANSAC pose must end below this (DSO's own tracking of a good frame "
+                                            "is 5-10), else the candidate is rejected")
+    min_photometric_inliers: float = opt(0.5, "... and at least this fraction of the candidate's points must be "
+                                              "within the tracker's cutoff")
+    odometry_neighbours: int = opt(3, "odometry edges join each keyframe to this many previous ones (their relative "
+                                      "poses from the window's estimate, which is what the window measured)")
+    loop_edge_weight: float = opt(1.0, "information of a loop edge relative to an odometry edge (identity "
+                                       "information for both, as LDSO's pose graph)")
+    graph_iterations: int = opt(50, "Levenberg-Marquardt iterations of the pose graph (GTSAM)")
+
+    def __post_init__(self):
+        c = _Checks("loop", self)
+        c.ge(1, "orb_features", "max_candidates", "ransac_iterations", "odometry_neighbours", "graph_iterations")
+        c.ge(3, "min_inliers")
+        c.ge(0, "min_keyframe_gap", "min_matches")
+        c.gt(0, "depth_radius_px", "inlier_px", "max_photometric_rmse", "loop_edge_weight")
+        c.within(0, 1, "match_ratio", "min_photometric_inliers", open_lo=True)
+        c.done()
+
+
+@dataclass(frozen=True)
 class Config:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     input: InputConfig = field(default_factory=InputConfig)
@@ -831,6 +874,7 @@ class Config:
     mapping: MappingConfig = field(default_factory=MappingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     system: SystemConfig = field(default_factory=SystemConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
 
 
 # ---------------------------------------------------------------------------------------------- conversion
