@@ -8,7 +8,9 @@ Two halves, as in DSO, so that a mapping thread can build the next reference whi
   map down the pyramid and dilates it on every level (DSO ``makeCoarseDepthL0``: diagonal neighbours on levels 0-1,
   4-neighbours on coarser ones), and keeps per level the pixels with a depth as tracking points (pixel, inverse
   depth, reference intensity). The result, a :class:`TrackingReference`, is handed to the tracker with
-  :meth:`CoarseTracker.set_reference` (DSO swaps ``coarseTracker_forNewKF`` in; no attribute poking).
+  :meth:`CoarseTracker.set_reference` (DSO swaps ``coarseTracker_forNewKF`` in; no attribute poking). Its second
+  half, :func:`reference_from_points`, builds a reference from any keyframe's pyramid and points without a window
+  (the loop closure's photometric check, :mod:`mgso.loop.verify`).
 - :class:`CoarseTracker` (tracking side): :meth:`~CoarseTracker.track_levels` is DSO's ``trackNewestCoarse``
   (coarse-to-fine Levenberg-Marquardt on pose and affine brightness, DSO's damping schedule, step acceptance by
   mean energy, cutoff raised and the level repeated when too many residuals saturate, abort when a level is worse
@@ -40,8 +42,8 @@ from ..geometry import quat_wxyz_to_matrix, se3_exp, se3_inverse, se3_log, make_
 from ..window.window import ResidualState, Window
 
 __all__ = [
-    "TrackingReference", "ReferenceLevel", "make_tracking_reference", "CoarseTracker", "LevelsResult",
-    "TrackResult", "motion_hypotheses", "coarse_depth_maps", "SCALE",
+    "TrackingReference", "ReferenceLevel", "make_tracking_reference", "reference_from_points", "CoarseTracker",
+    "LevelsResult", "TrackResult", "motion_hypotheses", "coarse_depth_maps", "SCALE",
 ]
 
 log = logging.getLogger(__name__)
@@ -161,8 +163,40 @@ def make_tracking_reference(window: Window, config: TrackingConfig, device: str 
         uv_t, id_t, wt = np.concatenate(uv_t), np.concatenate(id_t), np.concatenate(wt)
         good = np.isfinite(id_t) & (id_t > 0) & np.all(np.isfinite(uv_t), axis=1)
         uv_t, id_t, wt = uv_t[good], id_t[good], wt[good]
-    ids, wss = coarse_depth_maps(g, uv_t, id_t, wt)
-    pyr = window.pyramids[slot]
+    return reference_from_points(
+        g, window.pyramids[slot], uv_t, id_t, wt, config, keyframe_id=int(window.keyframe_id_[slot]),
+        frame_index=int(window.frame_index_[slot]), segment=int(window.segment_[slot]),
+        world_to_cam=window.world_to_cam_[slot].copy(),
+        affine=(float(window.affine_[slot, 0]), float(window.affine_[slot, 1])),
+        exposure=float(window.exposure_[slot]), device=device)
+
+
+def reference_from_points(geometry: PyramidGeometry, pyramid: ImagePyramid, uv: np.ndarray, idepth: np.ndarray,
+                          weight: np.ndarray | None = None, config: TrackingConfig | None = None, *,
+                          keyframe_id: int = -1, frame_index: int = -1, segment: int = 0,
+                          world_to_cam: np.ndarray | None = None, affine: tuple[float, float] = (0.0, 0.0),
+                          exposure: float = 0.0, device: str | None = None) -> TrackingReference:
+    """A :class:`TrackingReference` from a keyframe's image pyramid and points, without a :class:`Window` (what
+    :func:`make_tracking_reference` does once it has projected the window's points; the loop closure's photometric
+    check uses it on an old keyframe).
+
+    ``uv [N, 2]`` level-0 pixels of ``geometry`` (rounded to the nearest pixel), ``idepth [N]`` inverse depths in the
+    keyframe, ``weight [N]`` their weights in the per-pixel average (default 1; points with a weight <= 0 or a
+    non-finite inverse depth are ignored). The depth maps are DSO's (:func:`coarse_depth_maps`); every pixel of a
+    level with a positive depth 2 pixels or more from the border is a tracking point. ``world_to_cam`` defaults to
+    the identity, ``exposure`` 0 = unknown.
+    """
+    g = geometry
+    config = config or TrackingConfig()
+    device = device or pyramid.device
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    idepth = np.asarray(idepth, dtype=np.float64).reshape(-1)
+    weight = np.ones(len(idepth)) if weight is None else np.asarray(weight, dtype=np.float64).reshape(-1)
+    if not (len(uv) == len(idepth) == len(weight)):
+        raise ValueError(f"reference_from_points: {len(uv)} pixels, {len(idepth)} inverse depths and {len(weight)} "
+                         "weights; expected as many of each")
+    ids, wss = coarse_depth_maps(g, uv, idepth, weight)
+    pyr = pyramid
     levels, maps = [], []
     pattern = bool(config.coarse_pattern)
     for lvl in range(g.levels):
@@ -192,11 +226,10 @@ def make_tracking_reference(window: Window, config: TrackingConfig, device: str 
     d0 = maps[0][maps[0] > 0]
     med = float(np.median(1.0 / d0)) if len(d0) else float("nan")
     return TrackingReference(
-        keyframe_id=int(window.keyframe_id_[slot]), frame_index=int(window.frame_index_[slot]),
-        segment=int(window.segment_[slot]), world_to_cam=window.world_to_cam_[slot].copy(),
-        affine=(float(window.affine_[slot, 0]), float(window.affine_[slot, 1])),
-        exposure=float(window.exposure_[slot]), levels=levels, idepth_maps=maps, num_points_l0=levels[0].n,
-        median_depth=med)
+        keyframe_id=int(keyframe_id), frame_index=int(frame_index), segment=int(segment),
+        world_to_cam=np.eye(4) if world_to_cam is None else np.array(world_to_cam, dtype=np.float64),
+        affine=(float(affine[0]), float(affine[1])), exposure=float(exposure), levels=levels, idepth_maps=maps,
+        num_points_l0=levels[0].n, median_depth=med)
 
 
 # ------------------------------------------------------------------------------------------------- hypotheses
