@@ -33,6 +33,9 @@ Who may change what (DSO's habit: the owner says it next to the field):
   the same units), :meth:`reset_stats`; structural changes move them and zero them for new rows.
 - ages: ``created_step`` is set by :meth:`add` / :meth:`clone` / :meth:`split` for the rows they create;
   ``stats.views_seen`` counts training views in which the Gaussian was visible and is never reset.
+- anchors: ``anchor`` is the keyframe a Gaussian was seeded from (-1: none), set by :meth:`add`, inherited by clones
+  and split children; :meth:`transform_anchored` moves the Gaussians of corrected keyframes by their Sim(3)
+  (loop closure, docs/loop.md).
 
 Nothing here grows the buffers implicitly: a full map raises :class:`MapFullError`; :meth:`reserve` grows it, between
 iterations only (it reallocates).
@@ -48,6 +51,7 @@ import numpy as np
 import warp as wp
 
 from mgso.config import OptimConfig
+from mgso.geometry import matrix_to_quat_wxyz
 from mgso_kernels import adam as kadam
 from mgso_kernels import runtime
 
@@ -94,6 +98,15 @@ def quat_wxyz_to_rotmat(q: np.ndarray) -> np.ndarray:
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1)
     return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` of a (4,) quaternion with (N, 4) ones, w x y z (the rotation of ``b`` then
+    ``a``)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b[:, 0], b[:, 1], b[:, 2], b[:, 3]
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=1)
 
 
 def _expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0,
@@ -279,6 +292,8 @@ class GaussianMap:
         self.stats_ = _alloc_stats(capacity, d)
         # ONLY set by add/clone/split for the rows they create.
         self.created_step_ = wp.zeros(capacity, dtype=wp.int32, device=d)
+        # ONLY set by add (clones and split children inherit their parent's): the keyframe a Gaussian was seeded from
+        self.anchor_ = wp.full(capacity, -1, dtype=wp.int32, device=d)
 
     def _all_buffers(self):
         """(name, full buffer, kind) of every per-row buffer; kind: param / moment / stat / age."""
@@ -291,6 +306,7 @@ class GaussianMap:
         for f in _STAT_FIELDS:
             out.append((f"stats.{f}", getattr(self.stats_, f), "stat" if f != "views_seen" else "age"))
         out.append(("created_step", self.created_step_, "age"))
+        out.append(("anchor", self.anchor_, "anchor"))
         return out
 
     @property
@@ -365,6 +381,10 @@ class GaussianMap:
     def created_step(self) -> wp.array:     # [n] int32 training step at which the row was created
         return self.created_step_[: self._n]
 
+    @property
+    def anchor(self) -> wp.array:           # [n] int32 keyframe the Gaussian was seeded from (-1: none)
+        return self.anchor_[: self._n]
+
     # ------------------------------------------------------------------------------------- helpers
     def _upload(self, buf: wp.array, lo: int, values: np.ndarray) -> None:
         hi = lo + len(values)
@@ -405,11 +425,12 @@ class GaussianMap:
         self.zero_grad()
 
     # ------------------------------------------------------------------------------------ operations
-    def add(self, means, log_scales, quats, opacity_logits, sh, step: int = 0) -> np.ndarray:
+    def add(self, means, log_scales, quats, opacity_logits, sh, step: int = 0, anchor=-1) -> np.ndarray:
         """Append Gaussians (moments, stats and step counts zero; ``created_step`` = ``step``).
 
         Arrays: means (M, 3), log_scales (M, 3), quats (M, 4) w x y z, opacity_logits (M,), sh (M, K, 3) with this
-        map's K, or (M, 3) for the DC coefficients only (higher bands zero). Returns the new row indices.
+        map's K, or (M, 3) for the DC coefficients only (higher bands zero). ``anchor``: the keyframe id they were
+        seeded from, one for all or (M,) (-1: none). Returns the new row indices.
         """
         means = np.asarray(means, dtype=np.float32).reshape(-1, 3)
         m = len(means)
@@ -423,9 +444,16 @@ class GaussianMap:
         for f in _PARAM_FIELDS:
             self._upload(getattr(self.params_, f), lo, getattr(arrays, f))
         for _, buf, kind in self._all_buffers():
-            if kind != "param":
+            if kind not in ("param", "anchor"):
                 self._zero_rows(buf, lo, lo + m)
         self._fill_rows(self.created_step_, lo, lo + m, int(step))
+        anchors = np.asarray(anchor, dtype=np.int64)
+        if anchors.ndim == 0:
+            self._fill_rows(self.anchor_, lo, lo + m, int(anchors))
+        elif anchors.shape == (m,):
+            self._upload(self.anchor_, lo, anchors.astype(np.int32))
+        else:
+            raise ValueError(f"GaussianMap.add: anchor must be one id or ({m},), got shape {anchors.shape}")
         for f in _PARAM_FIELDS:
             self._zero_rows(getattr(self.grads_, f), lo, lo + m)
         self._n = lo + m
@@ -500,6 +528,39 @@ class GaussianMap:
         self._upload(self.params_.means, len(keep), new_means.astype(np.float32))
         self._upload(self.params_.log_scales, len(keep), new_log_scales.astype(np.float32))
         return len(sel)
+
+    def transform_anchored(self, transforms) -> int:
+        """Move the Gaussians of corrected keyframes: ``transforms`` maps keyframe id -> 4x4 Sim(3) ``[[s R, t],
+        [0, 1]]`` (``X' = s R X + t``, world to corrected world); every Gaussian anchored to that keyframe gets its
+        mean mapped, its rotation turned by R and its scales multiplied by s (a rigid map of a Sim(3)'s shape).
+        Gaussians of other keyframes (and unanchored ones) stay. Adam moments stay too: a loop correction is a few
+        degrees and a few percent of scale, and the moments follow within a few steps. Returns the rows moved."""
+        if self._n == 0 or not transforms:
+            return 0
+        anchors = self.anchor.numpy()
+        means = self.means.numpy().astype(np.float64)
+        log_scales = self.log_scales.numpy().astype(np.float64)
+        quats = self.quats.numpy().astype(np.float64)
+        moved = 0
+        for kid, S in transforms.items():
+            rows = np.flatnonzero(anchors == int(kid))
+            if len(rows) == 0:
+                continue
+            S = np.asarray(S, dtype=np.float64)
+            sR = S[:3, :3]
+            s = float(np.cbrt(np.linalg.det(sR)))
+            if not (np.isfinite(s) and s > 0):
+                raise ValueError(f"GaussianMap.transform_anchored: keyframe {kid}: not a Sim(3) (det {s ** 3:g})")
+            R = sR / s
+            means[rows] = means[rows] @ sR.T + S[:3, 3]
+            log_scales[rows] += math.log(s)
+            quats[rows] = _quat_mul(matrix_to_quat_wxyz(R), quats[rows])
+            moved += len(rows)
+        if moved:
+            self.means.assign(means.astype(np.float32))
+            self.log_scales.assign(log_scales.astype(np.float32))
+            self.quats.assign(quats.astype(np.float32))
+        return moved
 
     def reset_opacity(self, max_value: float) -> None:
         """Clamp every opacity to at most ``max_value`` (in (0, 1)) and zero the opacity moments (3DGS)."""

@@ -650,8 +650,13 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
         g = GaussianArrays(g.means[sel], g.log_scales[sel], g.quats[sel], g.opacity_logits[sel], g.sh[sel])
         log.warning("seeding keyframe %s: room for %d of %d seeds (mapping.capacity)", msg.keyframe_id, room,
                     room + dropped)
-    gmap.add(g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, step=step)
+    gmap.add(g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, step=step, anchor=_anchor(msg))
     return _replace(res, num_added=g.n, num_dropped_capacity=dropped, seconds=time.perf_counter() - t0)
+
+
+def _anchor(msg: KeyframeSeedInput) -> int:
+    """The keyframe new Gaussians are anchored to (loop closure moves them with it; -1: none)."""
+    return -1 if msg.keyframe_id is None else int(msg.keyframe_id)
 
 
 def _replace(res: SeedResult, **changes) -> SeedResult:

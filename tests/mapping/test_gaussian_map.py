@@ -93,7 +93,7 @@ def test_clone_appends_copies_with_fresh_optimiser_state(gmap):
         assert len(after[name]) == 23, name
         np.testing.assert_array_equal(after[name][:20], before[name], err_msg=name)   # originals untouched
         new = after[name][20:]
-        if name.startswith("params."):
+        if name.startswith("params.") or name == "anchor":                           # anchors: the parent's
             np.testing.assert_array_equal(new, before[name][[2, 5, 11]], err_msg=name)
         elif name == "created_step":
             assert np.all(new == 100)
@@ -125,9 +125,10 @@ def test_split_follows_the_3dgs_rule(gmap):
     expect = (before["params.means"][sel][None] + np.einsum("nij,cnj->cni", R, s[None] * z)).reshape(-1, 3)
     np.testing.assert_allclose(after["params.means"][17:], expect, atol=1e-5)
     for name in before:
-        if not name.startswith("params.") and name != "created_step":
+        if not name.startswith("params.") and name not in ("created_step", "anchor"):
             assert not np.any(after[name][17:]), name
     assert np.all(after["created_step"][17:] == 200)
+    np.testing.assert_array_equal(after["anchor"][17:], before["anchor"][parents])     # children: the parent's
 
 
 def test_reset_opacity_clamps_and_zeroes_only_opacity_moments(gmap):
@@ -240,3 +241,83 @@ def test_float_views_share_memory_and_int_radii(wp_device, rng):
     gm.accumulate_stats(v, radii, 8, 6)
     assert list(gm.stats.vis_count.numpy()) == [1, 0, 1, 0, 1]
     np.testing.assert_allclose(gm.stats.grad2d_sum.numpy()[0], 5.0)   # |(1 * 4, 1 * 3)|
+
+
+# ------------------------------------------------------------------------------------- anchors (loop closure)
+def _add(gm, arrays, **kw):
+    return gm.add(arrays.means, arrays.log_scales, arrays.quats, arrays.opacity_logits, arrays.sh, **kw)
+
+
+def test_anchors_follow_their_rows_through_clone_split_remove_and_reserve(wp_device):
+    rng = np.random.default_rng(3)
+    gm = GaussianMap(64, 0, device=wp_device)
+    _add(gm, _arrays(rng, 5), anchor=7)
+    _add(gm, _arrays(rng, 4, first_id=5), anchor=np.array([1, 2, 3, 4]))
+    _add(gm, _arrays(rng, 2, first_id=9))                   # unanchored: -1
+    expect = {0: 7, 1: 7, 2: 7, 3: 7, 4: 7, 5: 1, 6: 2, 7: 3, 8: 4, 9: -1, 10: -1}
+
+    def check():
+        ids = gm.means.numpy()[:, 0].round().astype(int)
+        got = gm.anchor.numpy()
+        for i, a in zip(ids, got):
+            assert a == expect[i], (i, a)
+
+    check()
+    gm.clone(np.isin(np.arange(gm.n), [0, 6, 9]), step=3)    # copies keep their parent's anchor
+    check()
+    gm.remove(np.isin(np.arange(gm.n), [1, 5]))
+    check()
+    gm.reserve(128)
+    check()
+    mask = np.zeros(gm.n, bool)
+    mask[[2, 4]] = True
+    anchors_split = set(gm.anchor.numpy()[mask])
+    n0 = gm.n
+    gm.split(mask, children=2, step=4, rng=rng)              # children inherit (their means move: check the set)
+    assert gm.n == n0 + 2
+    assert set(gm.anchor.numpy()[-4:]) == anchors_split
+    with pytest.raises(ValueError, match="anchor"):
+        _add(gm, _arrays(rng, 3), anchor=np.array([1, 2]))
+
+
+def test_transform_anchored_moves_only_its_keyframes_gaussians_and_renders_the_same(wp_device):
+    """A Sim(3) of the world applied to a keyframe's Gaussians and to the camera gives the same image (a similarity
+    changes the world's scale, not what a camera sees of it); the other keyframe's Gaussians do not move."""
+    from mgso.camera import PinholeCamera
+    from mgso.config import load_config
+    from mgso.geometry import make_pose, se3_inverse, sim3_from_parts, so3_exp
+    from mgso.mapping.messages import sim3_apply_to_pose
+    from mgso.mapping.trainer import TrainStep
+
+    rng = np.random.default_rng(5)
+    n = 300
+    means = np.c_[rng.uniform(-1, 1, n), rng.uniform(-0.8, 0.8, n), rng.uniform(3, 5, n)].astype(np.float32)
+    arr = GaussianArrays(means, np.full((n, 3), -3.2, np.float32) + rng.uniform(-0.3, 0.3, (n, 3)).astype(np.float32),
+                         rng.standard_normal((n, 4)).astype(np.float32), np.full(n, 2.0, np.float32),
+                         rng.uniform(-1, 1, (n, 1, 3)).astype(np.float32))
+    gm = GaussianMap(n, 0, device=wp_device)
+    gm.add(arr.means, arr.log_scales, arr.quats, arr.opacity_logits, arr.sh, anchor=np.where(np.arange(n) < 200, 4, 9))
+    cam = PinholeCamera(60.0, 60.0, 39.5, 29.5, 80, 60)
+    c2w = make_pose(so3_exp([0.02, -0.05, 0.01]), [0.1, -0.05, 0.2])
+    step = TrainStep(load_config().mapping, wp_device)
+    S = sim3_from_parts(so3_exp([0.1, 0.3, -0.2]), np.array([0.5, -1.0, 2.0]), 1.7)
+    # only keyframe 4's Gaussians in view for the comparison: 9's are kept aside and checked unmoved
+    before = gm.to_numpy()
+    gm_only4 = GaussianMap(n, 0, device=wp_device)
+    gm_only4.add(*(getattr(before, f)[:200] for f in ("means", "log_scales", "quats", "opacity_logits", "sh")),
+                 anchor=4)
+    img0 = step.render(gm_only4, cam, se3_inverse(c2w))
+    assert gm_only4.transform_anchored({4: S, 9: np.eye(4)}) == 200
+    img1 = step.render(gm_only4, cam, se3_inverse(sim3_apply_to_pose(S, c2w)))
+    assert img0.std() > 0.05                                     # the view shows something
+    assert np.abs(img1 - img0).max() < 2e-3
+    # a negative control: the camera moved without the Gaussians sees a different image
+    img_wrong = step.render(gm, cam, se3_inverse(sim3_apply_to_pose(S, c2w)))
+    assert np.abs(img_wrong - img0).mean() > 0.02
+    moved = gm.transform_anchored({4: S})
+    after = gm.to_numpy()
+    assert moved == 200
+    np.testing.assert_array_equal(after.means[200:], before.means[200:])     # keyframe 9's stay
+    expect = before.means[:200].astype(np.float64) @ S[:3, :3].T + S[:3, 3]
+    np.testing.assert_allclose(after.means[:200], expect, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(after.log_scales[:200], before.log_scales[:200] + math.log(1.7), atol=1e-6)
