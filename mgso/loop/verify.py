@@ -1,0 +1,345 @@
+"""Geometric and photometric verification of a loop candidate (docs/loop.md, "Place recognition and verification").
+
+A wrong loop bends the whole trajectory and the map with it, so a candidate from :mod:`mgso.loop.place` is accepted
+only after four checks, each with a threshold of ``loop`` (:class:`~mgso.config.LoopConfig`):
+
+1. **Matches with depth.** ORB descriptors matched both ways with Lowe's ratio test (``match_ratio``), kept when
+   mutual and when both keypoints have a DSO depth: a 3D point in each keyframe's camera. Fewer than
+   ``min_inliers`` such pairs cannot pass step 2: rejected as ``"too few matches"``.
+2. **Sim(3) RANSAC** (LDSO verifies its candidates by a Sim(3) on the points' depths; monocular scale drifts, so the
+   two keyframes' depths differ by an unknown factor). ``ransac_iterations`` hypotheses from 3 random pairs each
+   (Umeyama's closed form, :func:`mgso.geometry.umeyama_alignment`); a pair is an inlier when it reprojects within
+   ``inlier_px`` in *both* keyframes (the current point mapped into the candidate's image and the candidate's into
+   the current one: ORB-SLAM's Sim3Solver test), which a 3D distance would not give: depth errors grow with depth,
+   pixels do not lie. The best hypothesis is refitted on its inliers (twice, while that adds inliers). Fewer than
+   ``min_inliers``: ``"too few inliers"``; no usable hypothesis (collinear or coincident points everywhere):
+   ``"degenerate"``. A look-alike place (the same texture elsewhere) gives plenty of matches but no Sim(3) that
+   reprojects them all.
+3. **Photometric check** (DSO's residual): a :class:`~mgso.tracking.coarse_tracker.TrackingReference` is built from
+   the candidate's gray image and its DSO points, their inverse depths multiplied by the Sim(3) scale (the
+   candidate's camera shrunk to the current keyframe's scale, so the motion between them is rigid), and the current
+   keyframe's image pyramid is tracked against it by DSO's coarse tracker
+   (:meth:`~mgso.tracking.coarse_tracker.CoarseTracker.track_levels`, coarse to fine, pose and affine brightness)
+   from the RANSAC pose. Rejected when the tracker fails (``"photometric tracking failed"``), when the level-0 RMSE
+   ends above ``max_photometric_rmse`` (``"photometric rmse"``) or when fewer than ``min_photometric_inliers`` of
+   the reference's level-0 points end within the tracker's cutoff (``"photometric inliers"``). The refined rigid
+   motion with the RANSAC scale is the accepted relative Sim(3).
+4. **Depth consistency.** The photometric check cannot tell a place from a flat photograph of it: a plane and a
+   rigid motion reproduce any view of the photograph (synthetic test: a picture of the room hung in another room
+   passed steps 2 and 3 with 33 inliers, RMSE 2.9 and 65 % of the points within the cutoff). Only the current
+   keyframe's own depths show it: its DSO points, moved by the refined motion into the candidate's camera, must
+   land on the candidate's depth map (level 0 of the reference) with the same inverse depth within
+   :data:`DEPTH_TOLERANCE`, for at least :data:`MIN_DEPTH_CONSISTENT` of those compared (``"depth
+   inconsistent"``), and at least :data:`MIN_DEPTH_COMPARED` must be compared (``"depth unverified"``). These
+   three are module constants until LoopConfig has them (verify reads them from the settings when it does).
+
+Nothing here raises on bad luck (no features, no depths, degenerate points, a candidate from another camera): the
+candidate is rejected with its reason, which the closer counts.
+
+Conventions: ``relative`` is the 4x4 Sim(3) ``S = [[s R, t], [0, 1]]`` with ``X_cand = S @ X_cur`` (camera
+coordinates of the current keyframe to the candidate's), i.e. the pose-graph edge ``pose_cand^-1 @ pose_cur`` of
+the two keyframes' Sim(3) camera-to-world poses; ``scale`` is its ``s`` (> 1 when the candidate's map is larger).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mgso.config import LoopConfig, TrackingConfig
+from mgso.geometry import se3_inverse, sim3_from_parts, sim3_inverse, umeyama_alignment
+from mgso.loop.place import KeyframeFeatures, ratio_matches
+from mgso_kernels import runtime
+from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry, plan_pyramid
+
+#: Defaults of the depth-consistency check (step 4 of the module text) until LoopConfig has them as settings
+#: (``loop.depth_tolerance``, ``loop.min_depth_consistent``, ``loop.min_depth_compared``; read from ``settings`` when
+#: it has them): the relative inverse-depth difference within which a current point agrees with the candidate's
+#: depth map (DSO's depths of good points are within a few percent; 15 % leaves room for depth edges and the
+#: dilated map), the fraction of compared points that must agree (true revisits measured 0.95-0.97 on synthetic
+#: scenes, a photograph of the place hung elsewhere 0.44-0.63: docs/loop.md) and the fewest points compared.
+DEPTH_TOLERANCE = 0.15
+MIN_DEPTH_CONSISTENT = 0.75
+MIN_DEPTH_COMPARED = 30
+
+__all__ = ["Verification", "verify", "mutual_matches", "sim3_ransac", "photometric_check", "REASONS"]
+
+#: Every reason a verification gives (the closer counts them).
+REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too few inliers",
+           "photometric no points", "photometric tracking failed", "photometric rmse", "photometric inliers",
+           "depth unverified", "depth inconsistent")
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The verdict on one candidate (see the module text). ``matches``: mutual ratio-test matches;
+    ``matches_with_depth``: those with a depth in both keyframes (RANSAC's input); ``inliers``: RANSAC's after the
+    refit; ``rmse``, ``inlier_fraction``: the photometric check's level-0 RMSE and fraction of the reference's points
+    within the cutoff (``None`` when it did not run); ``scale``: the Sim(3)'s ``s`` (``None`` before RANSAC);
+    ``relative``: the final Sim(3) when accepted, RANSAC's when the photometric check rejected it, else ``None``."""
+
+    accepted: bool
+    reason: str
+    relative: np.ndarray | None
+    matches: int
+    inliers: int
+    rmse: float | None
+    inlier_fraction: float | None
+    scale: float | None
+    matches_with_depth: int = 0
+    depth_compared: int = 0
+    depth_consistent: float | None = None
+
+
+# -------------------------------------------------------------------------------------------------- matching
+def mutual_matches(a: np.ndarray, b: np.ndarray, ratio: float) -> np.ndarray:
+    """``(K, 2)`` index pairs ``(i in a, j in b)`` of ORB descriptors that pass the ratio test both ways and are
+    each other's nearest neighbour."""
+    fwd = ratio_matches(a, b, ratio)
+    bwd = {q: t for q, t, _ in ratio_matches(b, a, ratio)}
+    pairs = [(i, j) for i, j, _ in fwd if bwd.get(j) == i]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def _backproject(cam, uv: np.ndarray, idepth: np.ndarray) -> np.ndarray:
+    z = 1.0 / idepth
+    return np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], axis=1)
+
+
+def _reproj_error(cam, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Pixel distance of the projections of camera points ``X`` to ``uv``; inf behind the camera."""
+    z = X[:, 2]
+    ok = z > 1e-9
+    zs = np.where(ok, z, 1.0)
+    u = cam.fx * X[:, 0] / zs + cam.cx
+    v = cam.fy * X[:, 1] / zs + cam.cy
+    err = np.hypot(u - uv[:, 0], v - uv[:, 1])
+    return np.where(ok, err, np.inf)
+
+
+def _apply(S: np.ndarray, X: np.ndarray) -> np.ndarray:
+    return X @ S[:3, :3].T + S[:3, 3]
+
+
+def _inliers(S: np.ndarray, Xc: np.ndarray, Xk: np.ndarray, cam_c, cam_k, uv_c: np.ndarray, uv_k: np.ndarray,
+             px: float) -> np.ndarray:
+    """Pairs that reproject within ``px`` in both keyframes under ``X_cand = S X_cur``."""
+    e_k = _reproj_error(cam_k, _apply(S, Xc), uv_k)
+    e_c = _reproj_error(cam_c, _apply(sim3_inverse(S), Xk), uv_c)
+    return (e_k < px) & (e_c < px)
+
+
+def _fit(Xc: np.ndarray, Xk: np.ndarray) -> np.ndarray | None:
+    """Umeyama Sim(3) with ``Xk ~= S Xc``; None for a degenerate set (coincident or collinear points)."""
+    for X in (Xc, Xk):
+        d = X - X.mean(0)
+        sv = np.linalg.svd(d, compute_uv=False)
+        if not sv[0] > 0 or sv[1] < 1e-6 * sv[0]:
+            return None
+    try:
+        al = umeyama_alignment(Xc, Xk, with_scale=True)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not (np.isfinite(al.scale) and al.scale > 1e-6 and np.all(np.isfinite(al.translation))):
+        return None
+    return al.matrix()
+
+
+def sim3_ransac(Xc: np.ndarray, Xk: np.ndarray, uv_c: np.ndarray, uv_k: np.ndarray, cam_c, cam_k,
+                iterations: int, inlier_px: float, rng_seed: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
+    """Sim(3) RANSAC ``X_cand = S X_cur`` over point pairs ``Xc[i] <-> Xk[i]`` (the current and the candidate
+    keyframe's camera coordinates, observed at ``uv_c[i]``, ``uv_k[i]``). Returns ``(S, inlier mask)`` after the
+    refit on the inliers, ``(None, all False)`` when no 3-pair sample gives a usable hypothesis. Deterministic for
+    a seed."""
+    n = len(Xc)
+    none = np.zeros(n, bool)
+    if n < 3:
+        return None, none
+    rng = np.random.default_rng(rng_seed)
+    best_S, best_in, best_n = None, none, 0
+    for _ in range(int(iterations)):
+        idx = rng.choice(n, 3, replace=False)
+        S = _fit(Xc[idx], Xk[idx])
+        if S is None:
+            continue
+        inl = _inliers(S, Xc, Xk, cam_c, cam_k, uv_c, uv_k, inlier_px)
+        k = int(inl.sum())
+        if k > best_n:
+            best_S, best_in, best_n = S, inl, k
+    if best_S is None:
+        return None, none
+    for _ in range(2):  # refit on the inliers while that adds some
+        if best_n < 3:
+            break
+        S = _fit(Xc[best_in], Xk[best_in])
+        if S is None:
+            break
+        inl = _inliers(S, Xc, Xk, cam_c, cam_k, uv_c, uv_k, inlier_px)
+        k = int(inl.sum())
+        if k < best_n:
+            break
+        grew = k > best_n
+        best_S, best_in, best_n = S, inl, k
+        if not grew:
+            break
+    return best_S, best_in
+
+
+# -------------------------------------------------------------------------------------------- photometric
+def _same_camera(a, b) -> bool:
+    return (int(a.width), int(a.height)) == (int(b.width), int(b.height)) and np.allclose(
+        [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], rtol=1e-6, atol=1e-6)
+
+
+def _geometry(cam, tracking: TrackingConfig) -> PyramidGeometry:
+    return plan_pyramid(int(cam.width), int(cam.height), Pinhole(cam.fx, cam.fy, cam.cx, cam.cy),
+                        levels=tracking.pyramid_levels, max_levels=tracking.pyramid_max_levels,
+                        min_area=tracking.pyramid_min_area, mode=tracking.pyramid_size_mode)
+
+
+def _pyramid(geom: PyramidGeometry, gray: np.ndarray, device: str) -> ImagePyramid:
+    return ImagePyramid(geom, device=device).build(np.ascontiguousarray(geom.adjust(gray), dtype=np.float32))
+
+
+@dataclass(frozen=True)
+class PhotometricResult:
+    ok: bool  # the tracker converged within its checks
+    relative: np.ndarray  # X_cand = relative @ X_cur, the refined rigid motion with the given scale
+    rmse: float  # level-0 RMSE (NaN when not reached)
+    inlier_fraction: float  # level-0 residuals within the cutoff / reference points at level 0
+    num_points: int  # reference points at level 0
+    depth_compared: int = 0  # current keyframe's points that land on a candidate pixel with a depth
+    depth_consistent: float = 0.0  # fraction of those whose inverse depths agree within DEPTH_TOLERANCE
+
+
+def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S: np.ndarray,
+                      tracking: TrackingConfig | None = None, device: str | None = None,
+                      depth_tolerance: float | None = None) -> PhotometricResult:
+    """Track the current keyframe's image against the candidate's DSO points (inverse depths times the scale of
+    ``S``) from the rigid part of ``S``, then compare the current keyframe's points with the candidate's depth map
+    under the refined motion (:func:`depth_consistency`; see the module text). Both keyframes must have the same
+    camera."""
+    from mgso.tracking.coarse_tracker import CoarseTracker, reference_from_points
+
+    tracking = tracking or TrackingConfig()
+    device = runtime.device_or_cpu(device)
+    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    R, t = S[:3, :3] / s, S[:3, 3]
+    # Y = X_cand / s = R X_cur + t / s: the candidate's camera at the current keyframe's scale; the tracker's
+    # ref_to_new maps Y to X_cur
+    cur_to_ref = np.eye(4)
+    cur_to_ref[:3, :3], cur_to_ref[:3, 3] = R, t / s
+    geom = _geometry(candidate.camera, tracking)
+    ref_pyr = _pyramid(geom, candidate.gray, device)
+    cur_pyr = _pyramid(geom, current.gray, device)
+    uv = candidate.points_uv - np.array([geom.offset_x, geom.offset_y], dtype=np.float64)
+    ref = reference_from_points(geom, ref_pyr, uv, candidate.points_idepth * s, None, tracking,
+                                keyframe_id=candidate.keyframe_id, device=device)
+    n0 = int(ref.num_points_l0)
+    if n0 == 0:
+        return PhotometricResult(False, S, float("nan"), 0.0, 0)
+    tracker = CoarseTracker(geom, tracking, device=device)
+    tracker.set_reference(ref)
+    res = tracker.track_levels(cur_pyr, 0.0, se3_inverse(cur_to_ref), (0.0, 0.0), np.full(geom.levels, np.nan))
+    T = se3_inverse(res.ref_to_new) if np.all(np.isfinite(res.ref_to_new)) else cur_to_ref
+    rel = sim3_from_parts(T[:3, :3], s * T[:3, 3], s)
+    inl = res.stats0.num_inliers / n0 if res.stats0 is not None else 0.0
+    n_cmp, frac = depth_consistency(current, T, ref.idepth_maps[0], geom, depth_tolerance)
+    return PhotometricResult(bool(res.ok), rel, float(res.rmse[0]), float(inl), n0, n_cmp, frac)
+
+
+def depth_consistency(current: KeyframeFeatures, cur_to_ref: np.ndarray, idepth_map: np.ndarray,
+                      geom: PyramidGeometry, tolerance: float | None = None) -> tuple[int, float]:
+    """How far the current keyframe's DSO points agree with the candidate's depth map: each point moved by
+    ``cur_to_ref`` (rigid, into the candidate's camera at the current scale) and projected; where it lands on a pixel
+    of ``idepth_map`` (level 0 of the reference, -1 where none) its inverse depth is compared with the map's.
+    Returns (points compared, fraction within ``tolerance`` relative inverse depth)."""
+    tol = DEPTH_TOLERANCE if tolerance is None else tolerance
+    if len(current.points_uv) == 0:
+        return 0, 0.0
+    X = _backproject(current.camera, current.points_uv, current.points_idepth)
+    Y = X @ cur_to_ref[:3, :3].T + cur_to_ref[:3, 3]
+    cam = geom.camera
+    z = Y[:, 2]
+    ok = z > 1e-9
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(cam.fx * Y[:, 0] / zs + cam.cx + 0.5)
+    v = np.floor(cam.fy * Y[:, 1] / zs + cam.cy + 0.5)
+    h, w = idepth_map.shape
+    ok &= (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    ui, vi = u[ok].astype(np.int64), v[ok].astype(np.int64)
+    m = idepth_map[vi, ui].astype(np.float64)
+    has = m > 0
+    pred = 1.0 / zs[ok][has]
+    m = m[has]
+    n = int(len(m))
+    if n == 0:
+        return 0, 0.0
+    return n, float(np.mean(np.abs(pred - m) <= tol * m))
+
+
+# ---------------------------------------------------------------------------------------------------- verify
+def verify(current: KeyframeFeatures, candidate: KeyframeFeatures, settings: LoopConfig, device: str | None = None,
+           rng_seed: int = 0, tracking: TrackingConfig | None = None, *, depth_tolerance: float | None = None,
+           min_depth_consistent: float | None = None, min_depth_compared: int | None = None) -> Verification:
+    """Accept or reject ``candidate`` as the place ``current`` shows (see the module text). ``tracking``: the
+    pyramid and coarse tracker's settings for the photometric check (default ``TrackingConfig()``; pass the run's
+    ``config.tracking``). The depth check's thresholds: the arguments, else ``settings``' fields of those names
+    when it has them, else :data:`DEPTH_TOLERANCE`, :data:`MIN_DEPTH_CONSISTENT`, :data:`MIN_DEPTH_COMPARED`
+    (``min_depth_consistent=0`` and ``min_depth_compared=0`` switch it off). Deterministic for ``rng_seed`` (on one
+    device)."""
+    cfg = settings
+
+    def pick(value, name, default):
+        return value if value is not None else getattr(cfg, name, default)
+
+    tol = float(pick(depth_tolerance, "depth_tolerance", DEPTH_TOLERANCE))
+    min_consistent = float(pick(min_depth_consistent, "min_depth_consistent", MIN_DEPTH_CONSISTENT))
+    min_compared = int(pick(min_depth_compared, "min_depth_compared", MIN_DEPTH_COMPARED))
+
+    def reject(reason, **kw):
+        base = dict(relative=None, matches=0, inliers=0, rmse=None, inlier_fraction=None, scale=None)
+        base.update(kw)
+        return Verification(False, reason, **base)
+
+    if not _same_camera(current.camera, candidate.camera) or current.gray.shape != candidate.gray.shape:
+        return reject("camera mismatch")
+    pairs = mutual_matches(current.descriptors, candidate.descriptors, cfg.match_ratio)
+    n_match = len(pairs)
+    if n_match:
+        dc, dk = current.idepths[pairs[:, 0]], candidate.idepths[pairs[:, 1]]
+        keep = np.isfinite(dc) & (dc > 0) & np.isfinite(dk) & (dk > 0)
+        pairs = pairs[keep]
+    n_depth = len(pairs)
+    if n_depth < max(3, cfg.min_inliers):
+        return reject("too few matches", matches=n_match, matches_with_depth=n_depth)
+    uv_c, uv_k = current.keypoints[pairs[:, 0]], candidate.keypoints[pairs[:, 1]]
+    Xc = _backproject(current.camera, uv_c, current.idepths[pairs[:, 0]])
+    Xk = _backproject(candidate.camera, uv_k, candidate.idepths[pairs[:, 1]])
+    S, inl = sim3_ransac(Xc, Xk, uv_c, uv_k, current.camera, candidate.camera, cfg.ransac_iterations,
+                         cfg.inlier_px, rng_seed)
+    if S is None:
+        return reject("degenerate", matches=n_match, matches_with_depth=n_depth)
+    n_in = int(inl.sum())
+    scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    common = dict(matches=n_match, matches_with_depth=n_depth, inliers=n_in, scale=scale)
+    if n_in < cfg.min_inliers:
+        return reject("too few inliers", **common)
+    ph = photometric_check(current, candidate, S, tracking, device, depth_tolerance=tol)
+    common.update(relative=S, rmse=ph.rmse, inlier_fraction=ph.inlier_fraction, depth_compared=ph.depth_compared,
+                  depth_consistent=ph.depth_consistent)
+    if ph.num_points == 0:
+        return reject("photometric no points", **common)
+    if not ph.ok or not np.isfinite(ph.rmse):
+        return reject("photometric tracking failed", **common)
+    if ph.rmse > cfg.max_photometric_rmse:
+        return reject("photometric rmse", **common)
+    if ph.inlier_fraction < cfg.min_photometric_inliers:
+        return reject("photometric inliers", **common)
+    if ph.depth_compared < min_compared:
+        return reject("depth unverified", **common)
+    if ph.depth_consistent < min_consistent:
+        return reject("depth inconsistent", **common)
+    common["relative"] = ph.relative
+    return Verification(True, "accepted", **common)
