@@ -52,6 +52,8 @@ from mgso.geometry import se3_inverse, sim3_from_parts, sim3_inverse, umeyama_al
 from mgso.loop.place import KeyframeFeatures, ratio_matches
 from mgso_kernels import runtime
 from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry, plan_pyramid
+from mgso_kernels.photometric import make_frame_pair
+from mgso_kernels.track import track_system
 
 #: Defaults of the depth-consistency check (step 4 of the module text) until LoopConfig has them as settings
 #: (``loop.depth_tolerance``, ``loop.min_depth_consistent``, ``loop.min_depth_compared``; read from ``settings`` when
@@ -206,11 +208,12 @@ def _pyramid(geom: PyramidGeometry, gray: np.ndarray, device: str) -> ImagePyram
 class PhotometricResult:
     ok: bool  # the tracker converged within its checks
     relative: np.ndarray  # X_cand = relative @ X_cur, the refined rigid motion with the given scale
-    rmse: float  # level-0 RMSE (NaN when not reached)
-    inlier_fraction: float  # level-0 residuals within the cutoff / reference points at level 0
+    rmse: float  # level-0 RMSE at the final pose, at DSO's cutoff (tracking.coarse_cutoff_th; NaN: none in view)
+    inlier_fraction: float  # level-0 residuals within that cutoff / reference points at level 0
     num_points: int  # reference points at level 0
     depth_compared: int = 0  # current keyframe's points that land on a candidate pixel with a depth
     depth_consistent: float = 0.0  # fraction of those whose inverse depths agree within DEPTH_TOLERANCE
+    tracker_rmse: float = float("nan")  # the tracker's own level-0 RMSE (at its possibly raised cutoff)
 
 
 def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S: np.ndarray,
@@ -242,11 +245,23 @@ def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S:
     tracker = CoarseTracker(geom, tracking, device=device)
     tracker.set_reference(ref)
     res = tracker.track_levels(cur_pyr, 0.0, se3_inverse(cur_to_ref), (0.0, 0.0), np.full(geom.levels, np.nan))
-    T = se3_inverse(res.ref_to_new) if np.all(np.isfinite(res.ref_to_new)) else cur_to_ref
+    finite = bool(np.all(np.isfinite(res.ref_to_new)) and np.all(np.isfinite(res.affine)))
+    T = se3_inverse(res.ref_to_new) if finite else cur_to_ref
     rel = sim3_from_parts(T[:3, :3], s * T[:3, 3], s)
-    inl = res.stats0.num_inliers / n0 if res.stats0 is not None else 0.0
+    rmse, inl = float("nan"), 0.0
+    if finite:
+        # the verdict at DSO's own cutoff: the tracker raises its cutoff (x2, x4, ...) while most residuals
+        # saturate, and within a raised cutoff a wrong image's residuals would count as inliers
+        L = ref.levels[0]
+        pair = make_frame_pair(res.ref_to_new, ref.affine[0], ref.affine[1], res.affine[0], res.affine[1],
+                               ref.exposure, 0.0)
+        st = track_system(L.uv, L.idepth, L.color, pair, tracker.cams[0], cur_pyr.dI[0], tracker.workspaces[0],
+                          cutoff_th=tracking.coarse_cutoff_th, huber_th=tracking.huber_th, flow_stride=0)
+        if st.num_terms:
+            rmse = float(np.sqrt(st.energy / st.num_terms))
+        inl = st.num_inliers / n0
     n_cmp, frac = depth_consistency(current, T, ref.idepth_maps[0], geom, depth_tolerance)
-    return PhotometricResult(bool(res.ok), rel, float(res.rmse[0]), float(inl), n0, n_cmp, frac)
+    return PhotometricResult(bool(res.ok), rel, rmse, float(inl), n0, n_cmp, frac, float(res.rmse[0]))
 
 
 def depth_consistency(current: KeyframeFeatures, cur_to_ref: np.ndarray, idepth_map: np.ndarray,
