@@ -13,6 +13,12 @@ can be tested and measured apart from tracking:
 - a keyframe leaving the window marginalises its points (:class:`~mgso.mapping.messages.PointsMessage`, world
   positions at the exact pose, colours over DSO's pattern); :meth:`finish` marginalises the rest.
 
+``drift`` (rotation rad, translation m, log-scale, each per frame) bends the whole estimate as an odometry drifts:
+frame i's world is moved by the Sim(3) ``D_i = exp(i xi)`` (rotation about the world's y axis, translation along x,
+scale), poses, points and inverse depths alike (a keyframe keeps its frame's ``D``; its window refinement gives the
+exact pose in that drifted world). A camera that comes back to where it started then sees the place at a different
+pose and scale: the loop closure's test (docs/loop.md).
+
 Non-keyframes keep their noisy pose in :meth:`trajectory`; keyframes get the exact one. The affine brightness is
 (0, 0) and the frame's exposure time is passed on (DSO with known exposures). It is **not** an odometry: the CLI
 never uses it; ``mgso run`` needs the real one.
@@ -33,9 +39,9 @@ from typing import Callable
 import numpy as np
 
 from mgso.camera import PinholeCamera
-from mgso.geometry import orthonormalize, se3_exp
+from mgso.geometry import orthonormalize, se3_exp, sim3_exp
 from mgso.io.trajectory import Trajectory
-from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate
+from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, sim3_apply_to_pose
 from mgso.mapping.seeding import backproject, sample_pattern_colors
 from mgso.system import OdometryFrame
 
@@ -72,7 +78,8 @@ class OracleOdometry:
     def __init__(self, camera: PinholeCamera, poses: Callable[[int], np.ndarray | None],
                  depth: Callable[[int], np.ndarray | None], *, keyframe_every: int = 5, points: int = 600,
                  idepth_noise: float = 0.0, pose_noise_m: float = 0.0, pose_noise_rad: float = 0.0,
-                 window: int = 7, seed: int = 0, name: str = "oracle"):
+                 window: int = 7, seed: int = 0, name: str = "oracle",
+                 drift: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         if keyframe_every < 1 or window < 1 or points < 1:
             raise ValueError("OracleOdometry: keyframe_every, window and points must be >= 1")
         self.camera = camera
@@ -82,6 +89,8 @@ class OracleOdometry:
         self.points = int(points)
         self.idepth_noise = float(idepth_noise)
         self.pose_noise = (float(pose_noise_m), float(pose_noise_rad))
+        rot, trans, log_scale = (float(v) for v in drift)
+        self._drift_xi = np.array([trans, 0.0, 0.0, 0.0, rot, 0.0, log_scale])
         self.window_size = int(window)
         self.seed = int(seed)
         self.name = name
@@ -134,6 +143,20 @@ class OracleOdometry:
         xi = np.concatenate([rng.normal(0, sm, 3), rng.normal(0, sr, 3)])
         return T @ se3_exp(xi)
 
+    def drift(self, index: int) -> np.ndarray:
+        """The Sim(3) that moves frame ``index``'s world into the drifted estimate (identity without drift)."""
+        if not np.any(self._drift_xi):
+            return np.eye(4)
+        return sim3_exp(int(index) * self._drift_xi)
+
+    def _drifted(self, T: np.ndarray, index: int) -> np.ndarray:
+        if not np.any(self._drift_xi):
+            return T
+        return sim3_apply_to_pose(self.drift(index), T)
+
+    def _drift_scale(self, index: int) -> float:
+        return float(np.exp(int(index) * self._drift_xi[6]))
+
     def _select(self, frame) -> tuple[np.ndarray, np.ndarray]:
         from mgso_kernels.reference.image import build_pyramid
 
@@ -153,8 +176,11 @@ class OracleOdometry:
         return xy.astype(np.float64), idepth
 
     def _marginalize(self, entry) -> PointsMessage:
-        kid, _, T, uv, idepth, colors = entry
+        kid, i, T, uv, idepth, colors = entry
         pts = backproject(uv, 1.0 / idepth, self.camera, T) if len(uv) else np.zeros((0, 3))
+        if len(pts) and np.any(self._drift_xi):
+            D = self.drift(i)
+            pts = pts @ D[:3, :3].T + D[:3, 3]
         return PointsMessage(pts, colors, host_keyframe_id=kid)
 
     def process(self, frame) -> OdometryFrame:
@@ -165,7 +191,7 @@ class OracleOdometry:
         if T is None:
             return OdometryFrame(i, frame.timestamp, None, status="lost", exposure_ms=exposure,
                                  seconds=time.perf_counter() - t0)
-        T_est = self._noisy(T, i)
+        T_est = self._drifted(self._noisy(T, i), i)
         self._since_kf += 1
         messages = []
         is_kf = self._since_kf >= self.keyframe_every
@@ -175,13 +201,15 @@ class OracleOdometry:
             kid = self._next_kf
             self._next_kf += 1
             if self._window:     # the window refined the earlier keyframes: their exact poses
-                messages.append(PoseUpdate({e[0]: e[2] for e in self._window}))
+                exact = {e[0]: self._drifted(e[2], e[1]) for e in self._window}
+                messages.append(PoseUpdate(exact))
                 for e in self._window:
-                    self._kf[e[0]] = (self._kf[e[0]][0], e[2])
+                    self._kf[e[0]] = (self._kf[e[0]][0], exact[e[0]])
             uv, idepth = self._select(frame)
             rgb = np.asarray(frame.rgb, np.float32)
             colors = sample_pattern_colors(rgb, uv) if len(uv) else np.zeros((0, 3), np.float32)
-            messages.append(KeyframeMessage(kid, i, frame.timestamp, rgb, self.camera, T_est, uv, idepth,
+            messages.append(KeyframeMessage(kid, i, frame.timestamp, rgb, self.camera, T_est, uv,
+                                            idepth / self._drift_scale(i),
                                             kinds=np.full(len(uv), int(PointKind.ACTIVE), np.int8),
                                             exposure_ms=exposure))
             self._kf[kid] = (float(frame.timestamp), T_est)
@@ -197,9 +225,10 @@ class OracleOdometry:
     def finish(self) -> list:
         out = []
         if self._window:
-            out.append(PoseUpdate({e[0]: e[2] for e in self._window}))
+            exact = {e[0]: self._drifted(e[2], e[1]) for e in self._window}
+            out.append(PoseUpdate(exact))
             for e in self._window:
-                self._kf[e[0]] = (self._kf[e[0]][0], e[2])
+                self._kf[e[0]] = (self._kf[e[0]][0], exact[e[0]])
         while self._window:
             out.append(self._marginalize(self._window.popleft()))
         return out

@@ -11,6 +11,8 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
   the odometry never waits for the map);
 - :class:`~mgso.mapping.messages.PointsMessage`: seed from points with their final depth, seen from their host
   keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived);
+- :class:`~mgso.mapping.messages.LoopCorrection`: loop closure moved keyframes: move their views, depth points and
+  the Gaussians anchored to them by each keyframe's Sim(3);
 - :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
   keyframes) unless the run was interrupted, and stop.
 
@@ -53,7 +55,8 @@ import numpy as np
 from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
-from mgso.mapping.messages import KeyframeMessage, MapperMessage, PointsMessage, PoseUpdate, Stop, map_exposure
+from mgso.mapping.messages import (KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop,
+                                   map_exposure, sim3_apply_to_pose)
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
                                   plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
@@ -93,6 +96,8 @@ class MapperStats:
     queue_wait_seconds: float = 0.0
     max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
     image_blocks: int = 0                   # mapper's process: shared-memory blocks of keyframe images it took
+    loop_corrections: int = 0               # LoopCorrection messages applied
+    gaussians_moved: int = 0                # Gaussians moved by them (each time it moved)
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
                                                    "skipped_capacity": 0, "opacity_resets": 0,
                                                    "clamped_aspect": 0})
@@ -215,7 +220,7 @@ class Mapper:
         """Put ``msg`` on the queue. When it is full: in real time the caller waits for room (counted in
         ``stats.queue_waits`` / ``queue_wait_seconds``); in deterministic mode the pending messages are applied
         first. Raises :class:`MapperError` if the mapping thread has failed."""
-        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, Stop)):
+        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, LoopCorrection, Stop)):
             raise TypeError(f"Mapper.submit: expected a mapper message, got {type(msg).__name__}")
         self._raise_if_failed()
         depth = self.queue.qsize()
@@ -355,6 +360,8 @@ class Mapper:
             self._on_pose_update(msg)
         elif isinstance(msg, PointsMessage):
             self._on_points(msg)
+        elif isinstance(msg, LoopCorrection):
+            self._on_loop_correction(msg)
         elif isinstance(msg, Stop):
             raise ValueError("Mapper.handle: Stop ends the stream (use stop())")
         else:
@@ -409,6 +416,21 @@ class Mapper:
             view = self.views[kid]
             self.views.set_exposure(kid, view.exposure[0] + new[0] - old[0], view.exposure[1] + new[1] - old[1])
             self._dso_exposure[kid] = new
+
+    def _on_loop_correction(self, msg: LoopCorrection) -> None:
+        """Loop closure moved keyframes: each view (and the odometry pose it follows) moves by its keyframe's Sim(3),
+        its depth points scale with it, and the Gaussians anchored to it move with it."""
+        self.stats.loop_corrections += 1
+        for kid, S in msg.transforms.items():
+            if kid not in self.views:
+                continue
+            view = self.views[kid]
+            self.views.set_pose(kid, se3_inverse(sim3_apply_to_pose(S, view.cam_to_world)))
+            if kid in self._odo_c2w:
+                self._odo_c2w[kid] = sim3_apply_to_pose(S, self._odo_c2w[kid])
+            if view.depth_z is not None and len(view.depth_z):
+                view.set_depth_points(view.depth_uv, view.depth_z * float(np.cbrt(np.linalg.det(S[:3, :3]))))
+        self.stats.gaussians_moved += self.gmap.transform_anchored(msg.transforms)
 
     def _on_points(self, msg: PointsMessage) -> None:
         self.stats.point_messages += 1
@@ -526,7 +548,8 @@ class Mapper:
         focal = math.sqrt(cam.fx * cam.fy)
         scales = seed_scales(means, z, focal, scfg, neighbours)
         g: GaussianArrays = gaussians_from_seeds(means, np.clip(rgb, 0.0, 1.0), scales, scfg, gmap.sh_degree)
-        gmap.add(g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, step=step)
+        gmap.add(g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, step=step,
+                 anchor=-1 if seed_in.keyframe_id is None else int(seed_in.keyframe_id))
         return dataclasses.replace(res, status=SeedStatus.ADDED, num_added=n)
 
     # ------------------------------------------------------------------------------------------ training

@@ -11,6 +11,8 @@ on the mapper's bounded queue, and the mapper (:mod:`mgso.mapping.mapper`) appli
 - :class:`PointsMessage`: points left the window for good (final depth): world positions, colours, the host
   keyframe. They join the DSO point cloud (``points.ply``), and the mapper seeds from them as from a keyframe's
   points (where the map is still empty, seen from the host keyframe).
+- :class:`LoopCorrection`: loop closure moved keyframes (a Sim(3) each, world to corrected world): the mapper moves
+  their views and the Gaussians anchored to them (:mod:`mgso.loop`).
 - :class:`Stop`: the end of the stream (``refine``: run the final refinement first; an interrupted run does not).
 
 Every array is copied, made read-only and checked at construction; bad input raises ``ValueError`` naming the field,
@@ -35,8 +37,8 @@ from mgso.camera import PinholeCamera
 from mgso.geometry import orthonormalize
 from mgso.mapping.seeding import KeyframeSeedInput, PointKind, _frozen_array as _frozen, check_points
 
-__all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "Stop", "MapperMessage", "PointKind",
-           "map_exposure"]
+__all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "LoopCorrection", "Stop", "MapperMessage",
+           "PointKind", "map_exposure", "check_sim3", "sim3_apply_to_pose"]
 
 
 def _rigid(T, where: str) -> np.ndarray:
@@ -250,6 +252,54 @@ class PointsMessage:
         return int(self.points.shape[0])
 
 
+def check_sim3(S, where: str) -> np.ndarray:
+    """A 4x4 Sim(3) ``[[s R, t], [0, 0, 0, 1]]`` (``X' = s R X + t``), checked: finite, ``s > 0``, R a rotation."""
+    M = np.array(S, dtype=np.float64)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ValueError(f"{where}: expected a finite 4x4 Sim(3), got shape {M.shape}")
+    det = float(np.linalg.det(M[:3, :3]))
+    if not det > 0:
+        raise ValueError(f"{where}: not a Sim(3) (determinant of s R is {det:g}, must be > 0)")
+    s = det ** (1.0 / 3.0)
+    R = M[:3, :3] / s
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-2 or np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError(f"{where}: not a Sim(3) (rotation not orthonormal: error {err:.2g}, or last row not "
+                         "0 0 0 1)")
+    return M
+
+
+def sim3_apply_to_pose(S: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
+    """A camera pose moved by a Sim(3) of the world: the camera's centre maps as a point, its axes turn by R (the
+    result is rigid: a similarity changes the scale of the world, not of the camera)."""
+    S = np.asarray(S, dtype=np.float64)
+    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    R = S[:3, :3] / s
+    out = np.eye(4)
+    out[:3, :3] = orthonormalize(R @ cam_to_world[:3, :3])
+    out[:3, 3] = S[:3, :3] @ cam_to_world[:3, 3] + S[:3, 3]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class LoopCorrection:
+    """Loop closure moved keyframes: ``transforms`` maps keyframe id -> 4x4 Sim(3) from the world the map has to the
+    corrected one (``X' = s R X + t``); the mapper moves each keyframe's view (:func:`sim3_apply_to_pose`), its
+    depth points and the Gaussians anchored to it. ``loop``: the loop's number (1 for the first)."""
+
+    transforms: Mapping[int, np.ndarray]
+    loop: int = 0
+
+    def __post_init__(self):
+        tf = {int(k): _frozen(check_sim3(v, f"LoopCorrection.transforms[{k}]"))
+              for k, v in dict(self.transforms).items()}
+        object.__setattr__(self, "transforms", MappingProxyType(tf))
+        object.__setattr__(self, "loop", int(self.loop))
+
+    def __reduce__(self):
+        return (LoopCorrection, (dict(self.transforms), self.loop))
+
+
 @dataclass(frozen=True)
 class Stop:
     """End of the message stream. ``refine``: run the final refinement before stopping (false when the run was
@@ -258,4 +308,4 @@ class Stop:
     refine: bool = True
 
 
-MapperMessage = Union[KeyframeMessage, PoseUpdate, PointsMessage, Stop]
+MapperMessage = Union[KeyframeMessage, PoseUpdate, PointsMessage, LoopCorrection, Stop]

@@ -50,7 +50,7 @@ import numpy as np
 
 from mgso.config import Config
 from mgso.mapping.mapper import MapperError, MapperStats, MapState
-from mgso.mapping.messages import KeyframeMessage, MapperMessage, PointsMessage, PoseUpdate, Stop
+from mgso.mapping.messages import KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard
 from mgso.observers import Observer
 
@@ -380,7 +380,7 @@ class MapperProcess:
     def submit(self, msg: MapperMessage) -> None:
         """Put ``msg`` on the queue (a keyframe's image into the ring). A full queue or ring makes the caller wait
         (counted); raises :class:`MapperError` if the mapper process has failed or ended."""
-        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, Stop)):
+        if not isinstance(msg, (KeyframeMessage, PoseUpdate, PointsMessage, LoopCorrection, Stop)):
             raise TypeError(f"MapperProcess.submit: expected a mapper message, got {type(msg).__name__}")
         if self._proc is None:
             raise RuntimeError("MapperProcess.submit: call start() first")

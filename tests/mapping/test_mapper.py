@@ -294,3 +294,38 @@ def test_map_corrections_survive_pose_updates_and_move_every_frame(wp_device, se
         np.testing.assert_allclose(out.cam_to_world[1], se3_exp(a2 * se3_log(W[4])) @ poses[1], atol=1e-9)
         np.testing.assert_allclose(out.cam_to_world[2], half @ poses[2], atol=1e-9)
         np.testing.assert_allclose(out.cam_to_world[3], W[8] @ poses[3], atol=1e-9)    # after the last: W8
+
+
+# ------------------------------------------------------------------------------------------- loop corrections
+def test_loop_correction_moves_views_depths_and_anchored_gaussians(wp_device, seq, cam):
+    """A LoopCorrection moves keyframe 4's view, depth points and Gaussians by its Sim(3) and leaves keyframe 0's:
+    keyframe 4 then renders from its moved pose as it did before, and keyframe 0 renders what it did."""
+    from mgso.geometry import sim3_from_parts, so3_exp
+    from mgso.mapping.messages import LoopCorrection, sim3_apply_to_pose
+
+    mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.train.depth_weight=0.2"), device=wp_device)
+    mp.submit(_kf(seq, cam, 0))
+    mp.submit(_kf(seq, cam, 8))
+    mp.process_pending()
+    anchors = mp.gmap.anchor.numpy()
+    assert set(np.unique(anchors)) == {0, 8}
+    S = sim3_from_parts(so3_exp([0.05, -0.1, 0.02]), np.array([0.3, 0.1, -0.2]), 1.4)
+    w2c0, w2c8 = mp.views[0].world_to_cam.copy(), mp.views[8].world_to_cam.copy()
+    z8 = mp.views[8].depth_z.copy()
+    before = mp.gmap.to_numpy()
+    only8 = anchors == 8
+    mp.submit(LoopCorrection({8: S, 99: np.eye(4)}, loop=1))        # 99: a keyframe the map does not have
+    mp.process_pending()
+    assert mp.stats.loop_corrections == 1 and mp.stats.gaussians_moved == int(only8.sum())
+    np.testing.assert_array_equal(mp.views[0].world_to_cam, w2c0)
+    np.testing.assert_allclose(mp.views[8].cam_to_world, sim3_apply_to_pose(S, se3_inverse(w2c8)), atol=1e-12)
+    np.testing.assert_allclose(mp.views[8].depth_z, 1.4 * z8, rtol=1e-12)
+    after = mp.gmap.to_numpy()
+    np.testing.assert_array_equal(after.means[~only8], before.means[~only8])
+    expect = before.means[only8].astype(np.float64) @ S[:3, :3].T + S[:3, 3]
+    np.testing.assert_allclose(after.means[only8], expect, atol=1e-5)
+    with pytest.raises(ValueError, match=r"LoopCorrection.transforms\[3\].*Sim\(3\)"):
+        LoopCorrection({3: -np.eye(4)})
+    import pickle
+    back = pickle.loads(pickle.dumps(LoopCorrection({8: S}, loop=2)))     # it crosses to the mapper's process
+    assert back.loop == 2 and np.array_equal(back.transforms[8], S)
