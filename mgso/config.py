@@ -836,6 +836,9 @@ class LoopConfig:
     min_keyframe_gap: int = opt(15, "keyframes this recent (the active window, 7, and its neighbours) are never loop "
                                     "candidates: they are the odometry's own business")
     max_candidates: int = opt(3, "candidates verified per keyframe, best appearance first")
+    proximity_depths: float = opt(0.5, "old keyframes whose corrected camera is within this x the new keyframe's "
+                                       "median depth (and looks within 60 degrees of its direction) are candidates "
+                                       "whatever their appearance score; 0 = appearance only")
     min_matches: int = opt(40, "ratio-test ORB matches for a keyframe to be a candidate by appearance")
     match_ratio: float = opt(0.75, "Lowe's ratio test on Hamming distances (best < ratio x second best)")
     ransac_iterations: int = opt(300, "Sim(3) RANSAC hypotheses (3 point pairs each) per candidate")
@@ -859,7 +862,7 @@ class LoopConfig:
         c = _Checks("loop", self)
         c.ge(1, "orb_features", "max_candidates", "ransac_iterations", "odometry_neighbours", "graph_iterations")
         c.ge(3, "min_inliers")
-        c.ge(0, "min_keyframe_gap", "min_matches")
+        c.ge(0, "min_keyframe_gap", "min_matches", "proximity_depths")
         c.gt(0, "depth_radius_px", "inlier_px", "max_photometric_rmse", "loop_edge_weight")
         c.within(0, 1, "match_ratio", "min_photometric_inliers", open_lo=True)
         c.done()

@@ -27,6 +27,12 @@ stand-in for tests and profiles.
   player thread releases each frame at its time, and a frame that arrives while the odometry is still busy with an
   earlier one replaces it (the earlier one is dropped, as a live camera's would be; counted).
 
+**Loop closure** (``loop.enabled``, :mod:`mgso.loop`): a :class:`~mgso.loop.closer.LoopCloser` sees every message
+of the odometry, looks for a revisit at each keyframe (in the caller's thread in the deterministic mode, on a thread
+of its own in real time), and the mapper gets the messages moved into the corrected world and a
+:class:`~mgso.mapping.messages.LoopCorrection` after each loop. The result's trajectories and point cloud are the
+corrected ones (the odometry's stay in ``SystemResult.odometry_trajectory``).
+
 After the last frame: ``odometry.finish()``, its messages to the mapper, the final refinement; the application
 (:mod:`mgso.app.full`) then writes the outputs. Ctrl-C (``KeyboardInterrupt``, also when raised by the frame source,
 and SIGTERM, which the application turns into one) stops cleanly in both modes: the odometry is finished, the mapper
@@ -56,6 +62,7 @@ import numpy as np
 
 from mgso.config import Config
 from mgso.io.trajectory import Trajectory
+from mgso.loop.closer import LoopCloser, LoopStats
 from mgso.mapping.mapper import Mapper, MapperStats
 from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
 from mgso.mapping.process import MapperProcess, split_threads
@@ -181,6 +188,9 @@ class SystemResult:
     keyframe_frames: list = field(default_factory=list)   # frame index of every keyframe sent to the map
     mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic), "thread" or "process"
     cpu_seconds: float = 0.0            # CPU time of this process over the run (all its threads)
+    loop: LoopStats | None = None       # loop closure's counts (None: loop.enabled false)
+    odometry_trajectory: Trajectory | None = None           # the odometry's own poses when a loop corrected them
+    odometry_keyframe_trajectory: Trajectory | None = None
 
     @property
     def mapper_cpu_share(self) -> float | None:
@@ -325,6 +335,9 @@ class System:
                 image_slots=sc.image_slots)
         else:
             self.mapper = Mapper(config, device=device, observer=self.observer)
+        self.loop: LoopCloser | None = None
+        if config.loop.enabled:
+            self.loop = LoopCloser(config, device=getattr(odometry, "device", None), background=self.realtime)
         self.cloud = MarginalizedCloud()
         self.frame_log = FrameLog()
         self._keyframes = 0
@@ -332,7 +345,11 @@ class System:
         self._pose_updates = 0
 
     def _dispatch(self, messages) -> None:
+        loop = self.loop
         for msg in messages:
+            if loop is not None:
+                loop.observe(msg)            # in the odometry's world
+                msg = loop.correct(msg)      # the map's (the same object until a loop moved something)
             if isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
                 self._keyframe_frames.append(msg.frame_index)
@@ -346,6 +363,10 @@ class System:
             else:
                 raise TypeError(f"the odometry emitted {type(msg).__name__}, not a mapper message")
             self.mapper.submit(msg)
+        if loop is not None:
+            corr = loop.poll()
+            if corr is not None:
+                self.mapper.submit(corr)
         if not self.realtime:
             self.mapper.process_pending()
 
@@ -371,6 +392,8 @@ class System:
         try:
             return self._run(source, player)
         finally:
+            if self.loop is not None:
+                self.loop.close()
             if threads_before is not None:
                 runtime.set_cpu_threads(threads_before)
             close = getattr(self.mapper, "close", None)
@@ -435,6 +458,13 @@ class System:
             read = player.read
         done = set(self.frame_log.timestamp)   # a frame cut off mid-way by an interrupt is not in the results
         traj = self.odometry.trajectory().at_times(done)
+        kf_traj = self.odometry.keyframe_trajectory().at_times(done)
+        odo_traj = odo_kf = None
+        cloud = self.cloud
+        if self.loop is not None and self.loop.corrected:
+            odo_traj, odo_kf = traj, kf_traj
+            traj, kf_traj = self.loop.correct_trajectory(traj), self.loop.correct_keyframes(kf_traj)
+            cloud = _corrected_cloud(self.cloud, self.loop)
         # without a pose in the end (a frame that had none when it was tracked may get one later: DSO's first
         # frame, once the initialiser succeeds)
         lost = processed - len(traj)
@@ -442,12 +472,13 @@ class System:
             mode=self.config.system.mode, frames_read=read, frames_processed=processed,
             frames_dropped=player.dropped if player is not None else 0, keyframes=self._keyframes,
             pose_updates=self._pose_updates, interrupted=interrupted,
-            trajectory=traj,
-            keyframe_trajectory=self.odometry.keyframe_trajectory().at_times(done), frame_log=self.frame_log,
-            cloud=self.cloud, mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,
+            trajectory=traj, keyframe_trajectory=kf_traj, frame_log=self.frame_log, cloud=cloud,
+            mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,
             finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames),
             mapper_in=("process" if isinstance(self.mapper, MapperProcess) else "thread") if self.realtime
-            else "caller", cpu_seconds=time.process_time() - self._cpu0)
+            else "caller", cpu_seconds=time.process_time() - self._cpu0,
+            loop=None if self.loop is None else self.loop.stats, odometry_trajectory=odo_traj,
+            odometry_keyframe_trajectory=odo_kf)
         self.observer.on_sequence_end(result)
         if error is not None:
             raise SystemRunError(result, error) from error
@@ -455,13 +486,19 @@ class System:
 
     def _abort(self) -> None:
         """The run failed: stop the mapping thread without training (its own failure, if any, is logged)."""
+        if self.loop is not None:
+            self.loop.close()
         try:
             self.mapper.stop(refine=False, timeout=60)
         except Exception:  # the original error is the one to raise
             log.exception("stopping the mapper after a failure")
 
     def _dispatch_final(self, final, interrupted: bool) -> None:
+        loop = self.loop
         for msg in final:
+            if loop is not None:
+                loop.observe(msg)
+                msg = loop.correct(msg)
             if isinstance(msg, PoseUpdate):
                 self._pose_updates += 1
             elif isinstance(msg, PointsMessage):
@@ -470,7 +507,24 @@ class System:
                 self._keyframes += 1
                 self._keyframe_frames.append(msg.frame_index)
             self.mapper.submit(msg)
+        if loop is not None:
+            if interrupted:
+                loop.close()              # the loops not yet solved are dropped; those found are kept
+            corr = loop.finish()
+            if corr is not None:
+                self.mapper.submit(corr)
         self.mapper.stop(refine=not interrupted)
+
+
+def _corrected_cloud(cloud: MarginalizedCloud, loop: LoopCloser) -> MarginalizedCloud:
+    """The DSO point cloud moved by each host keyframe's loop correction."""
+    pts, cols, hosts = cloud.arrays()
+    out = MarginalizedCloud()
+    if len(pts):
+        out.points.append(loop.correct_points(pts, hosts))
+        out.colors.append(cols)
+        out.hosts.append(hosts)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- figures

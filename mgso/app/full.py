@@ -4,7 +4,8 @@ written through the :class:`~mgso.app.writer.RunWriter` in two phases (docs/mgso
 1. **What must exist** (signals deferred): ``trajectory.txt`` (every frame with a pose, TUM; with
    ``output.trajectory_format: kitti`` also ``trajectory_kitti.txt`` and ``keyframes_kitti.txt``), ``keyframes.txt``,
    ``map.ply`` (3DGS layout), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
-   ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), and ``metrics.json`` with the ATE, the counts and
+   ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), ``trajectory_odometry.txt`` (the odometry's own
+   poses, when loop closure corrected them: ``trajectory.txt`` and ``keyframes.txt`` are the corrected ones), and ``metrics.json`` with the ATE, the counts and
    the timings (``"evaluation": "pending"``).
 2. **Evaluation** (a signal cuts it short): ``trajectory.png`` (``output.plot``, with ground truth), the renders of
    the evaluation frames (``renders/``, ``output.save_renders``) and their PSNR/SSIM, then ``report.png``
@@ -40,7 +41,7 @@ METRICS_KEYS = (
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
-    "protocols",
+    "protocols", "loop", "ate_odometry_all_frames_m",
 )
 
 
@@ -72,8 +73,12 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
         refined = mapper.refined_trajectory(traj) if mapper.refines_poses else None
         if refined is not None:
             writer.write_trajectories(refined, None, "tum", name="trajectory_refined")
+        odo = result.odometry_trajectory         # before loop closure corrected it (None: nothing corrected)
+        if odo is not None:
+            writer.write_trajectories(odo, None, "tum", name="trajectory_odometry")
         for key, tr, label in (("all", traj, "all frames"), ("keyframes", kf_traj, "keyframes"),
-                               ("refined", refined, "all frames, refined by the map")):
+                               ("refined", refined, "all frames, refined by the map"),
+                               ("odometry", odo, "all frames, the odometry's before loop closure")):
             if gt is None or tr is None or len(tr) < 3:
                 continue
             try:
@@ -183,8 +188,14 @@ def _headline(f: dict) -> list[str]:
     else:
         ref = (f", refined {f['ate_refined_all_frames_m']:.4f} m" if f["ate_refined_all_frames_m"] is not None
                else "")
+        odo = (f", odometry before loop closure {f['ate_odometry_all_frames_m']:.4f} m"
+               if f.get("ate_odometry_all_frames_m") is not None else "")
         lines.append(f"ATE RMSE (Sim(3)): all frames {f['ate_all_frames_m']:.4f} m, keyframes "
-                     f"{num(f['ate_keyframes_m'], '.4f')} m{ref}")
+                     f"{num(f['ate_keyframes_m'], '.4f')} m{ref}{odo}")
+    lp = f.get("loop")
+    if lp is not None:
+        lines.append(f"loop closure: {lp['accepted']} loops accepted, {lp['rejected_total']} candidates rejected "
+                     f"of {lp['candidates']} verified")
     psnr = []
     if f["psnr_monogs_db"] is not None:
         psnr.append(f"MonoGS protocol {f['psnr_monogs_db']:.2f} dB / SSIM {f['ssim_monogs']:.3f}")
@@ -270,6 +281,7 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "ate_all_frames_m": ate["all"].rmse if "all" in ate else None,
         "ate_keyframes_m": ate["keyframes"].rmse if "keyframes" in ate else None,
         "ate_refined_all_frames_m": ate["refined"].rmse if "refined" in ate else None,
+        "ate_odometry_all_frames_m": ate["odometry"].rmse if "odometry" in ate else None,
         "psnr_monogs_db": by_key["monogs"].mean_psnr if "monogs" in by_key else None,
         "ssim_monogs": by_key["monogs"].mean_ssim if "monogs" in by_key else None,
         "psnr_photo_slam_db": by_key["photo-slam"].mean_psnr if "photo-slam" in by_key else None,
@@ -304,6 +316,7 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
             "mapper_cpu_share": result.mapper_cpu_share,
             "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds},
+        "loop": None if result.loop is None else result.loop.as_dict(),
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
         "protocols": {

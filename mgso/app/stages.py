@@ -401,6 +401,13 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
                  + (f", {100 * share:.0f}% of the CPU" if share is not None else "")
                  + (f"; the odometry waited for the map {rt['queue_waits']} times ({rt['queue_wait_seconds']:.1f} s)"
                     if rt["queue_waits"] else ""))
+    lp = metrics.get("loop")
+    if lp:
+        why = ", ".join(f"{n} {r}" for r, n in lp["rejected"].items())
+        m.append(f"loop closure: {lp['accepted']} loops accepted of {lp['candidates']} candidates verified"
+                 + (f" (rejected: {why})" if why else "") + f", {lp['seconds']:.1f} s"
+                 + ("; trajectory.txt is corrected, trajectory_odometry.txt the odometry's" if lp["accepted"]
+                    else ""))
     no_pose = metrics["frames"]["in_trajectory"] == 0 and result.frames_processed > 0
     if no_pose:
         m.append("no frame got a pose: the odometry never initialised (a monocular start needs the camera to "
