@@ -39,7 +39,10 @@ stiff prior: the fixed pose comes back bit for bit). Every connected part of the
 
 **Threads.** Nothing here is global: each :meth:`PoseGraph.optimize` builds its own GTSAM graph, values and optimiser,
 so the closer can build a fresh graph each time it solves, on its own thread. One PoseGraph must not be changed while
-it is being optimised.
+it is being optimised. GTSAM's Python wrapper does not release the interpreter lock: while its optimiser runs
+(``GraphResult.solve_seconds``) no other Python thread of the process runs (measured: a Python loop on another thread
+kept 0.1 % of its speed during a 1.9 s solve of 2000 keyframes). 500 keyframes take about 0.04 s inside GTSAM and
+0.08 s in all (docs/loop.md, profiles/pose_graph.py); where even that pause matters, solve in another process.
 
 This module depends on numpy, gtsam and :mod:`mgso.geometry` only.
 """
@@ -74,7 +77,9 @@ def to_gtsam(S: np.ndarray) -> gtsam.Similarity3:
     """Our Sim(3) ``[[s R, t], [0, 1]]`` (``X' = s R X + t``) as GTSAM's ``Similarity3(R, t / s, s)``
     (``X' = s (R X + t / s)``), its rotation re-orthonormalised (SVD). The inverse of :func:`from_gtsam`."""
     R, t, s = sim3_to_parts(S)
-    return gtsam.Similarity3(gtsam.Rot3(orthonormalize(R)), t / s, s)
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-12:  # SVD only where needed: it is most of the conversion's cost
+        R = orthonormalize(R)
+    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
 
 
 def from_gtsam(g: gtsam.Similarity3) -> np.ndarray:
@@ -158,7 +163,9 @@ class GraphResult:
 
     ``poses``: the optimised 4x4 Sim(3) of every node (our convention); ``initial_poses``: the values it started from;
     ``initial_error`` / ``final_error``: the cost (module docstring) at those two; ``iterations``: Levenberg-Marquardt
-    iterations run; ``seconds``: wall time of the whole ``optimize`` call (building GTSAM's graph included)."""
+    iterations run; ``seconds``: wall time of the whole ``optimize`` call (building GTSAM's graph included);
+    ``solve_seconds``: the part of it inside GTSAM's optimiser, which holds Python's interpreter lock throughout (the
+    module docstring, "Threads")."""
 
     poses: dict[int, np.ndarray]
     initial_poses: dict[int, np.ndarray]
@@ -166,6 +173,7 @@ class GraphResult:
     final_error: float
     iterations: int
     seconds: float
+    solve_seconds: float
 
     def correction(self, node_id: int, original_pose: np.ndarray | None = None) -> np.ndarray:
         """The Sim(3) that takes the node's ``original_pose`` (default: the value the solve started from) to its
@@ -307,14 +315,17 @@ class PoseGraph:
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(float(relative_tolerance))
         params.setAbsoluteErrorTol(float(absolute_tolerance))
+        t_solve = time.perf_counter()
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         solution = optimizer.optimize()
+        solve_seconds = time.perf_counter() - t_solve
         poses = {n: from_gtsam(solution.atSimilarity3(key[n])) for n in self._poses}
         for n in self._fixed:  # exact by construction; keep the caller's matrix bit for bit
             poses[n] = self._poses[n].copy()
         return GraphResult(poses=poses, initial_poses={n: p.copy() for n, p in self._poses.items()},
                            initial_error=float(graph.error(values)), final_error=float(graph.error(solution)),
-                           iterations=int(optimizer.iterations()), seconds=time.perf_counter() - t0)
+                           iterations=int(optimizer.iterations()), seconds=time.perf_counter() - t0,
+                           solve_seconds=solve_seconds)
 
 
 def _gtsam_noise(edge: Edge):
