@@ -40,9 +40,9 @@ stiff prior: the fixed pose comes back bit for bit). Every connected part of the
 **Threads.** Nothing here is global: each :meth:`PoseGraph.optimize` builds its own GTSAM graph, values and optimiser,
 so the closer can build a fresh graph each time it solves, on its own thread. One PoseGraph must not be changed while
 it is being optimised. GTSAM's Python wrapper does not release the interpreter lock: while its optimiser runs
-(``GraphResult.solve_seconds``) no other Python thread of the process runs (measured: a Python loop on another thread
-kept 0.1 % of its speed during a 1.9 s solve of 2000 keyframes). 500 keyframes take about 0.04 s inside GTSAM and
-0.08 s in all (docs/loop.md, profiles/pose_graph.py); where even that pause matters, solve in another process.
+(``GraphResult.solve_seconds``) the other Python threads of the process stop (measured: a Python loop on another
+thread kept 2.7 % of its speed during a 0.32 s solve of 2000 keyframes). 500 keyframes take about 0.04 s inside GTSAM
+and 0.08 s in all (docs/loop.md, profiles/pose_graph.py); where even that pause matters, solve in another process.
 
 This module depends on numpy, gtsam and :mod:`mgso.geometry` only.
 """
@@ -292,13 +292,11 @@ class PoseGraph:
                 raise ValueError(f"PoseGraph.optimize: node {n} (in a part of {size} node(s)) is joined to no fixed "
                                  f"node: add an edge to the rest of the graph or fix one of its nodes")
 
-    def optimize(self, iterations: int = 50, *, relative_tolerance: float = 1e-10,
-                 absolute_tolerance: float = 1e-12) -> GraphResult:
-        """Levenberg-Marquardt on the Sim(3) manifold (GTSAM), at most ``iterations`` iterations (the closer passes
-        ``loop.graph_iterations``); it stops earlier when the cost falls by less than ``relative_tolerance`` of
-        itself or ``absolute_tolerance`` in one iteration (tight: a pose graph converges in a handful of iterations
-        and the tests compare poses to 1e-8)."""
-        t0 = time.perf_counter()
+    def gtsam_problem(self, iterations: int = 50, relative_tolerance: float = 1e-10,
+                      absolute_tolerance: float = 1e-12):
+        """What :meth:`optimize` hands to GTSAM: ``(graph, values, params, key)`` (the factor graph, the initial
+        values, the Levenberg-Marquardt settings and node id -> GTSAM key), after the same checks. For measuring
+        GTSAM's part alone (profiles/pose_graph.py) and for inspecting the factors."""
         if isinstance(iterations, bool) or not isinstance(iterations, numbers.Integral) or iterations < 1:
             raise ValueError(f"PoseGraph.optimize: iterations = {iterations!r} must be an integer >= 1")
         self._check_gauge()
@@ -315,6 +313,16 @@ class PoseGraph:
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(float(relative_tolerance))
         params.setAbsoluteErrorTol(float(absolute_tolerance))
+        return graph, values, params, key
+
+    def optimize(self, iterations: int = 50, *, relative_tolerance: float = 1e-10,
+                 absolute_tolerance: float = 1e-12) -> GraphResult:
+        """Levenberg-Marquardt on the Sim(3) manifold (GTSAM), at most ``iterations`` iterations (the closer passes
+        ``loop.graph_iterations``); it stops earlier when the cost falls by less than ``relative_tolerance`` of
+        itself or ``absolute_tolerance`` in one iteration (tight: a pose graph converges in a handful of iterations
+        and the tests compare poses to 1e-8)."""
+        t0 = time.perf_counter()
+        graph, values, params, key = self.gtsam_problem(iterations, relative_tolerance, absolute_tolerance)
         t_solve = time.perf_counter()
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         solution = optimizer.optimize()
