@@ -12,10 +12,14 @@ whitened residual (``k^2/2 log(1 + |W^1/2 r|^2 / k^2)``), so an edge whose white
 with a force that falls off instead of growing. ``GraphResult.initial_error`` and ``final_error`` are this cost (GTSAM's
 ``NonlinearFactorGraph.error``) before and after.
 
-**Library.** GTSAM (``gtsam`` on PyPI, BSD licence): it is made for the job. Its ``Similarity3`` is a Lie group with
-``Expmap``/``Logmap`` and analytic Jacobians, ``BetweenFactorSimilarity3`` is exactly the residual above, and
-``LevenbergMarquardtOptimizer`` updates the poses on the Sim(3) manifold and solves each step by sparse elimination
-(COLAMD ordering, multifrontal Cholesky), so a graph of a few hundred keyframes takes tens of milliseconds.
+**Library.** GTSAM (``gtsam`` on PyPI, BSD licence): it is made for the job. Its ``Similarity3`` is a Lie group
+(``Expmap``/``Logmap``, analytic Jacobians of ``between``), ``BetweenFactorSimilarity3`` is exactly the residual above,
+and ``LevenbergMarquardtOptimizer`` updates the poses on the Sim(3) manifold and solves each step by sparse
+elimination (COLAMD ordering, multifrontal Cholesky), so a graph of a few hundred keyframes takes tens of milliseconds.
+One caveat: the between factor linearises with the identity for the logarithm's derivative (GTSAM's default build;
+``Similarity3::Logmap`` has no derivative), exact at zero residual. Consistent graphs are solved exactly; where edges
+disagree the solution is off the exact least-squares minimum by a second-order term (1.2e-4 on a loop whose drift is
+1.1 m; docs/loop.md has the table).
 ``scipy.optimize.least_squares`` would have needed our own manifold update, our own Jacobians and our own sparsity
 pattern. g2o (what ORB-SLAM and LDSO use) and Ceres have Python wrappers on PyPI (``g2opy``, ``pyceres``); they were
 not evaluated: GTSAM's wheel has the Sim(3) group, factor and solver in C++ and is a dependency already
@@ -96,8 +100,9 @@ def _gtsam_order(ours: np.ndarray) -> np.ndarray:
 
 
 def check_sim3(S, what: str) -> np.ndarray:
-    """``S`` as a float64 4x4 copy if it is a Sim(3) within :data:`ROTATION_TOLERANCE`, else ``ValueError`` with a
-    one-line message that starts with ``what`` and says what is wrong."""
+    """``S`` as a float64 4x4 copy (its last row set to exactly ``[0, 0, 0, 1]``) if it is a Sim(3) within
+    :data:`ROTATION_TOLERANCE`, else ``ValueError`` with a one-line message that starts with ``what`` and says what is
+    wrong."""
     try:
         M = np.array(S, dtype=np.float64)
     except (TypeError, ValueError):
@@ -117,6 +122,7 @@ def check_sim3(S, what: str) -> np.ndarray:
     if off > ROTATION_TOLERANCE:
         raise ValueError(f"{what} is not a Sim(3): the rotation is not orthonormal after removing the scale "
                          f"(max |R^T R - I| = {off:.3g} > {ROTATION_TOLERANCE:g})")
+    M[3] = (0.0, 0.0, 0.0, 1.0)  # round-off there has no meaning in a Sim(3); the products downstream assume it exact
     return M
 
 
@@ -218,7 +224,7 @@ class PoseGraph:
             if n not in self._poses:
                 raise ValueError(f"{what}: node {n} is unknown (add_node it first)")
         if i == j:
-            raise ValueError(f"{what}: an edge joins two different nodes")
+            raise ValueError(f"{what}: both ends are node {i} (an edge joins two different nodes)")
         if kind not in EDGE_KINDS:
             raise ValueError(f"{what}: kind {kind!r} is not one of {', '.join(EDGE_KINDS)}")
         if robust is not None:
