@@ -1,10 +1,20 @@
 """Place recognition on keyframes (docs/loop.md, "Place recognition and verification").
 
-Every keyframe that reaches the loop closer becomes a :class:`KeyframeFeatures`: ORB keypoints and descriptors
-(OpenCV) on its gray image, each keypoint with the inverse depth of the nearest DSO point within
-``loop.depth_radius_px`` (LDSO puts its features on DSO's points; here the features are OpenCV's and borrow the
-points' depths, so a keypoint with no DSO point near it has no depth, NaN), the gray image itself and DSO's points
-(the photometric check of :mod:`mgso.loop.verify` tracks against them).
+Every keyframe that reaches the loop closer becomes a :class:`KeyframeFeatures`: ORB descriptors (OpenCV) at
+two kinds of keypoints on its gray image, each with an inverse depth from DSO's points:
+
+- **DSO's points themselves** (LDSO puts its features on DSO's points): the ``loop.orb_features`` most corner-like
+  (Shi-Tomasi score; DSO also selects edge pixels, whose descriptors match poorly), oriented by ORB's intensity
+  centroid; each carries its own point's depth. Verification needs matches with a depth in both keyframes: with
+  OpenCV's corners alone (borrowing the depth of a DSO point within 2 pixels) only 19 % of the features of a
+  7-Scenes keyframe had one and true revisits kept 0-9 such matches (docs/loop.md).
+- **OpenCV's own ORB corners** (up to half as many, over its scale pyramid) where no chosen point lies within
+  ``loop.depth_radius_px``: appearance where DSO has no point; each takes the inverse depth of the nearest DSO point
+  within that radius, NaN when none.
+
+So every keypoint's inverse depth is that of the nearest DSO point within ``depth_radius_px`` (its own, for the
+first kind), NaN beyond. The gray image and DSO's points are kept too (the photometric check of
+:mod:`mgso.loop.verify` tracks against them).
 
 :class:`PlaceDatabase` keeps every keyframe's features and answers "which old keyframes look like this one": exact
 brute-force Hamming matching (``cv2.BFMatcher``, two nearest neighbours, Lowe's ratio test ``loop.match_ratio``)
@@ -12,7 +22,7 @@ against every stored keyframe; those with at least ``loop.min_matches`` matches 
 at most ``loop.max_candidates``, plus the ids the caller names in ``extra`` (the closer's candidates from pose
 proximity), never the ``exclude`` ids (the active window and its neighbours).
 
-Exact matching costs about 3.3 ms a stored keyframe of 1000 features on one core (0.34 s a query against 100, 1.7 s
+Exact matching costs about 3.3 ms a stored keyframe of 1000 features against a query of 1000 on one core (0.34 s a query against 100, 1.7 s
 against 500: docs/loop.md), so beyond :data:`PREFILTER_ABOVE` stored keyframes a prefilter picks which ones are
 matched exactly: a bag of binary words (:class:`BinaryVocabulary`, LDSO's DBoW3 idea without its downloaded
 vocabulary) learned from the running sequence's own descriptors by k-majority clustering once the database holds
@@ -51,8 +61,8 @@ VOCABULARY_WORDS = 512
 class KeyframeFeatures:
     """What place recognition and verification keep of a keyframe (arrays read-only).
 
-    ``keypoints (N, 2)`` float pixels, ``descriptors (N, 32)`` uint8 ORB, ``idepths (N,)`` inverse depth of the
-    nearest DSO point within ``depth_radius_px`` (NaN when none), ``gray (H, W)`` uint8, ``points_uv (M, 2)`` and
+    ``keypoints (N, 2)`` float pixels (DSO's points first, then OpenCV's corners), ``descriptors (N, 32)`` uint8
+    ORB, ``idepths (N,)`` inverse depth of the nearest DSO point within ``depth_radius_px`` (NaN when none), ``gray (H, W)`` uint8, ``points_uv (M, 2)`` and
     ``points_idepth (M,)``: DSO's points of the keyframe (finite, positive inverse depths only)."""
 
     keyframe_id: int
@@ -107,7 +117,9 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 def extract_features(keyframe_id: int, image: np.ndarray, camera, points_uv: np.ndarray, idepths: np.ndarray,
                      settings: LoopConfig) -> KeyframeFeatures:
-    """ORB features of a keyframe with DSO's depths (see the module text).
+    """ORB features of a keyframe with DSO's depths (see the module text): descriptors at up to
+    ``settings.orb_features`` of DSO's points, then OpenCV's corners (up to half as many) not within
+    ``settings.depth_radius_px`` of those.
 
     ``image``: the keyframe's RGB in [0, 1] (or gray, :func:`to_gray`), in the odometry's image geometry;
     ``camera``: its pinhole intrinsics; ``points_uv (M, 2)`` pixels and ``idepths (M,)`` inverse depths of DSO's
@@ -126,20 +138,63 @@ def extract_features(keyframe_id: int, image: np.ndarray, camera, points_uv: np.
         raise ValueError(f"keyframe {keyframe_id}: {len(uv)} DSO points but {len(idp)} inverse depths")
     ok = np.isfinite(idp) & (idp > 0) & np.all(np.isfinite(uv), axis=1)
     uv, idp = uv[ok], idp[ok]
-    orb = cv2.ORB_create(nfeatures=int(settings.orb_features))
-    kps, desc = orb.detectAndCompute(gray, None)
-    if desc is None or not kps:
-        kp = np.zeros((0, 2))
-        desc = np.zeros((0, 32), np.uint8)
-    else:
-        kp = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
-    kid = np.full(len(kp), np.nan)
-    if len(kp) and len(uv):
-        dist, idx = cKDTree(uv).query(kp, k=1, distance_upper_bound=float(settings.depth_radius_px))
+    n = int(settings.orb_features)
+    # descriptors on DSO's points (LDSO): the most corner-like up to orb_features, each with its own depth
+    sel, desc_p = _descriptors_at(gray, uv, n)
+    # OpenCV's own corners (up to half as many more) where no chosen point is near: appearance where DSO has none
+    orb = cv2.ORB_create(nfeatures=max(1, n // 2))
+    kps, desc_c = orb.detectAndCompute(gray, None)
+    kp_c = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2) if kps else np.zeros((0, 2))
+    desc_c = np.zeros((0, 32), np.uint8) if desc_c is None or not kps else desc_c
+    radius = float(settings.depth_radius_px)
+    if len(kp_c) and len(sel):
+        d_sel, _ = cKDTree(uv[sel]).query(kp_c, k=1, distance_upper_bound=radius)
+        keep = ~np.isfinite(d_sel)
+        kp_c, desc_c = kp_c[keep], desc_c[keep]
+    id_c = np.full(len(kp_c), np.nan)
+    if len(kp_c) and len(uv):
+        dist, idx = cKDTree(uv).query(kp_c, k=1, distance_upper_bound=radius)
         near = np.isfinite(dist)
-        kid[near] = idp[idx[near]]
-    return KeyframeFeatures(int(keyframe_id), cam, _readonly(kp), _readonly(desc.astype(np.uint8)),
-                            _readonly(kid), _readonly(gray), _readonly(uv), _readonly(idp))
+        id_c[near] = idp[idx[near]]
+    kp = np.concatenate([uv[sel], kp_c])
+    desc = np.concatenate([desc_p, desc_c]).astype(np.uint8)
+    kid = np.concatenate([idp[sel], id_c])
+    return KeyframeFeatures(int(keyframe_id), cam, _readonly(kp), _readonly(desc), _readonly(kid), _readonly(gray),
+                            _readonly(uv), _readonly(idp))
+
+
+_HALF_PATCH = 15  # ORB's orientation patch radius (HALF_PATCH_SIZE)
+_pv, _pu = np.mgrid[-_HALF_PATCH:_HALF_PATCH + 1, -_HALF_PATCH:_HALF_PATCH + 1]
+_circle = _pu ** 2 + _pv ** 2 <= _HALF_PATCH ** 2
+_PATCH_U, _PATCH_V = _pu[_circle].astype(np.float64), _pv[_circle].astype(np.float64)
+
+
+def _descriptors_at(gray: np.ndarray, uv: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """ORB descriptors at given pixels: the ``n`` with the largest Shi-Tomasi score (the most corner-like; DSO also
+    selects edges, whose descriptors match poorly), oriented by ORB's intensity centroid (OpenCV's ``compute`` keeps a
+    given keypoint's angle). Returns (indices into ``uv`` that got one, descriptors (K, 32)); pixels closer to the
+    border than ORB's patch get none."""
+    h, w = gray.shape
+    if len(uv) == 0 or n <= 0:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    x = np.floor(uv[:, 0] + 0.5).astype(np.int64)
+    y = np.floor(uv[:, 1] + 0.5).astype(np.int64)
+    m = _HALF_PATCH + 1
+    idx = np.flatnonzero((x >= m) & (y >= m) & (x < w - m) & (y < h - m))
+    if len(idx) > n:
+        score = cv2.cornerMinEigenVal(gray, 5)[y[idx], x[idx]]
+        idx = np.sort(idx[np.argsort(-score, kind="stable")[:n]])
+    if len(idx) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    patch = gray[y[idx, None] + _PATCH_V.astype(np.int64)[None], x[idx, None] + _PATCH_U.astype(np.int64)[None]]
+    patch = patch.astype(np.float64)
+    angle = np.degrees(np.arctan2(patch @ _PATCH_V, patch @ _PATCH_U)) % 360.0
+    kps = [cv2.KeyPoint(float(uv[i, 0]), float(uv[i, 1]), 31.0, float(a), 0.0, 0, j)
+           for j, (i, a) in enumerate(zip(idx, angle))]
+    kps, desc = cv2.ORB_create().compute(gray, kps)
+    if desc is None or not kps:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    return idx[np.array([k.class_id for k in kps], dtype=np.int64)], desc
 
 
 def ratio_matches(query: np.ndarray, train: np.ndarray, ratio: float, matcher=None) -> list[tuple[int, int, int]]:

@@ -4,17 +4,19 @@ A wrong loop bends the whole trajectory and the map with it, so a candidate from
 only after four checks, each with a threshold of ``loop`` (:class:`~mgso.config.LoopConfig`):
 
 1. **Matches with depth.** ORB descriptors matched both ways with Lowe's ratio test (``match_ratio``), kept when
-   mutual and when both keypoints have a DSO depth: a 3D point in each keyframe's camera. Fewer than
-   ``min_inliers`` such pairs cannot pass step 2: rejected as ``"too few matches"``.
+   mutual and when at least one of the two keypoints has a DSO depth. Pairs with a depth on both sides (3D-3D)
+   make and test hypotheses; pairs with one depth can only test one. Fewer than 3 3D-3D pairs, or fewer than
+   ``min_inliers`` pairs with a depth in all, cannot pass step 2: rejected as ``"too few matches"``.
 2. **Sim(3) RANSAC** (LDSO verifies its candidates by a Sim(3) on the points' depths; monocular scale drifts, so the
-   two keyframes' depths differ by an unknown factor). ``ransac_iterations`` hypotheses from 3 random pairs each
-   (Umeyama's closed form, :func:`mgso.geometry.umeyama_alignment`); a pair is an inlier when it reprojects within
-   ``inlier_px`` in *both* keyframes (the current point mapped into the candidate's image and the candidate's into
-   the current one: ORB-SLAM's Sim3Solver test), which a 3D distance would not give: depth errors grow with depth,
-   pixels do not lie. The best hypothesis is refitted on its inliers (twice, while that adds inliers). Fewer than
-   ``min_inliers``: ``"too few inliers"``; no usable hypothesis (collinear or coincident points everywhere):
-   ``"degenerate"``. A look-alike place (the same texture elsewhere) gives plenty of matches but no Sim(3) that
-   reprojects them all.
+   two keyframes' depths differ by an unknown factor). ``ransac_iterations`` hypotheses from 3 random 3D-3D pairs
+   each (Umeyama's closed form, :func:`mgso.geometry.umeyama_alignment`); a 3D-3D pair is an inlier when it
+   reprojects within ``inlier_px`` in *both* keyframes (the current point mapped into the candidate's image and
+   the candidate's into the current one: ORB-SLAM's Sim3Solver test), which a 3D distance would not give: depth
+   errors grow with depth, pixels do not lie; a one-sided pair is an inlier when its point reprojects within
+   ``inlier_px`` in the other keyframe. The best hypothesis is refitted on its 3D-3D inliers (twice, while that
+   adds inliers). Fewer than ``min_inliers`` inliers in all: ``"too few inliers"``; no usable hypothesis
+   (collinear or coincident points everywhere): ``"degenerate"``. A look-alike place whose 3D layout differs
+   gives matches but no Sim(3) that reprojects them.
 3. **Photometric check** (DSO's residual): a :class:`~mgso.tracking.coarse_tracker.TrackingReference` is built from
    the candidate's gray image and its DSO points, their inverse depths multiplied by the Sim(3) scale (the
    candidate's camera shrunk to the current keyframe's scale, so the motion between them is rigid), and the current
@@ -25,8 +27,9 @@ only after four checks, each with a threshold of ``loop`` (:class:`~mgso.config.
    the reference's level-0 points end within the tracker's cutoff (``"photometric inliers"``). The refined rigid
    motion with the RANSAC scale is the accepted relative Sim(3).
 4. **Depth consistency.** The photometric check cannot tell a place from a flat photograph of it: a plane and a
-   rigid motion reproduce any view of the photograph (synthetic test: a picture of the room hung in another room
-   passed steps 2 and 3 with 33 inliers, RMSE 2.9 and 65 % of the points within the cutoff). Only the current
+   rigid motion reproduce any view of the photograph (synthetic test: a picture of the room hung in another room,
+   seen from 5 directions, passed steps 2 and 3 with 35-91 inliers, RMSE 2.8-3.0 and 60-70 % of the points within
+   the cutoff). Only the current
    keyframe's own depths show it: its DSO points, moved by the refined motion into the candidate's camera, must
    land on the candidate's depth map (level 0 of the reference) with the same inverse depth within
    :data:`DEPTH_TOLERANCE`, for at least :data:`MIN_DEPTH_CONSISTENT` of those compared (``"depth
@@ -59,13 +62,13 @@ from mgso_kernels.track import track_system
 #: (``loop.depth_tolerance``, ``loop.min_depth_consistent``, ``loop.min_depth_compared``; read from ``settings`` when
 #: it has them): the relative inverse-depth difference within which a current point agrees with the candidate's
 #: depth map (DSO's depths of good points are within a few percent; 15 % leaves room for depth edges and the
-#: dilated map), the fraction of compared points that must agree (true revisits measured 0.95-0.97 on synthetic
-#: scenes, a photograph of the place hung elsewhere 0.44-0.63: docs/loop.md) and the fewest points compared.
+#: dilated map), the fraction of compared points that must agree (true revisits measured 0.95-0.98 on synthetic
+#: scenes, a photograph of the place hung elsewhere 0.41-0.54: docs/loop.md) and the fewest points compared.
 DEPTH_TOLERANCE = 0.15
 MIN_DEPTH_CONSISTENT = 0.75
 MIN_DEPTH_COMPARED = 30
 
-__all__ = ["Verification", "verify", "mutual_matches", "sim3_ransac", "photometric_check", "REASONS"]
+__all__ = ["Verification", "verify", "mutual_matches", "sim3_ransac", "OneSided", "photometric_check", "REASONS"]
 
 #: Every reason a verification gives (the closer counts them).
 REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too few inliers",
@@ -76,8 +79,9 @@ REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too 
 @dataclass(frozen=True)
 class Verification:
     """The verdict on one candidate (see the module text). ``matches``: mutual ratio-test matches;
-    ``matches_with_depth``: those with a depth in both keyframes (RANSAC's input); ``inliers``: RANSAC's after the
-    refit; ``rmse``, ``inlier_fraction``: the photometric check's level-0 RMSE and fraction of the reference's points
+    ``matches_with_depth``: those with a depth in at least one keyframe (RANSAC's input), ``matches_3d3d``: in
+    both; ``inliers``: RANSAC's after the refit (3D-3D and one-sided); ``depth_compared``, ``depth_consistent``:
+    the depth check's points compared and fraction agreeing; ``rmse``, ``inlier_fraction``: the photometric check's level-0 RMSE and fraction of the reference's points
     within the cutoff (``None`` when it did not run); ``scale``: the Sim(3)'s ``s`` (``None`` before RANSAC);
     ``relative``: the final Sim(3) when accepted, RANSAC's when the photometric check rejected it, else ``None``."""
 
@@ -90,6 +94,7 @@ class Verification:
     inlier_fraction: float | None
     scale: float | None
     matches_with_depth: int = 0
+    matches_3d3d: int = 0
     depth_compared: int = 0
     depth_consistent: float | None = None
 
@@ -148,16 +153,49 @@ def _fit(Xc: np.ndarray, Xk: np.ndarray) -> np.ndarray | None:
     return al.matrix()
 
 
+@dataclass(frozen=True)
+class OneSided:
+    """Matches with a depth on one side only: current points ``Xc (A, 3)`` seen at candidate pixels ``uv_k (A, 2)``,
+    candidate points ``Xk (B, 3)`` seen at current pixels ``uv_c (B, 2)``. They cannot make a hypothesis but each
+    can confirm one, by its one reprojection."""
+
+    Xc: np.ndarray
+    uv_k: np.ndarray
+    Xk: np.ndarray
+    uv_c: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "OneSided":
+        z3, z2 = np.zeros((0, 3)), np.zeros((0, 2))
+        return cls(z3, z2, z3, z2)
+
+    def inliers(self, S: np.ndarray, cam_c, cam_k, px: float) -> tuple[np.ndarray, np.ndarray]:
+        a = _reproj_error(cam_k, _apply(S, self.Xc), self.uv_k) < px if len(self.Xc) else np.zeros(0, bool)
+        b = _reproj_error(cam_c, _apply(sim3_inverse(S), self.Xk), self.uv_c) < px if len(self.Xk) else \
+            np.zeros(0, bool)
+        return a, b
+
+
 def sim3_ransac(Xc: np.ndarray, Xk: np.ndarray, uv_c: np.ndarray, uv_k: np.ndarray, cam_c, cam_k,
-                iterations: int, inlier_px: float, rng_seed: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
+                iterations: int, inlier_px: float, rng_seed: int = 0,
+                one_sided: OneSided | None = None) -> tuple[np.ndarray | None, np.ndarray, int]:
     """Sim(3) RANSAC ``X_cand = S X_cur`` over point pairs ``Xc[i] <-> Xk[i]`` (the current and the candidate
-    keyframe's camera coordinates, observed at ``uv_c[i]``, ``uv_k[i]``). Returns ``(S, inlier mask)`` after the
-    refit on the inliers, ``(None, all False)`` when no 3-pair sample gives a usable hypothesis. Deterministic for
-    a seed."""
+    keyframe's camera coordinates, observed at ``uv_c[i]``, ``uv_k[i]``), each hypothesis from 3 such pairs; a pair
+    is an inlier when it reprojects within ``inlier_px`` in both images, a ``one_sided`` match when its one point
+    does in the other image. Returns ``(S, inlier mask of the pairs, inliers in all)`` after refitting on the
+    pairs' inliers, ``(None, all False, 0)`` when no 3-pair sample gives a usable hypothesis. Deterministic for a
+    seed."""
     n = len(Xc)
     none = np.zeros(n, bool)
+    one = one_sided or OneSided.empty()
     if n < 3:
-        return None, none
+        return None, none, 0
+
+    def score(S):
+        inl = _inliers(S, Xc, Xk, cam_c, cam_k, uv_c, uv_k, inlier_px)
+        a, b = one.inliers(S, cam_c, cam_k, inlier_px)
+        return inl, int(inl.sum()) + int(a.sum()) + int(b.sum())
+
     rng = np.random.default_rng(rng_seed)
     best_S, best_in, best_n = None, none, 0
     for _ in range(int(iterations)):
@@ -165,27 +203,25 @@ def sim3_ransac(Xc: np.ndarray, Xk: np.ndarray, uv_c: np.ndarray, uv_k: np.ndarr
         S = _fit(Xc[idx], Xk[idx])
         if S is None:
             continue
-        inl = _inliers(S, Xc, Xk, cam_c, cam_k, uv_c, uv_k, inlier_px)
-        k = int(inl.sum())
+        inl, k = score(S)
         if k > best_n:
             best_S, best_in, best_n = S, inl, k
     if best_S is None:
-        return None, none
-    for _ in range(2):  # refit on the inliers while that adds some
-        if best_n < 3:
+        return None, none, 0
+    for _ in range(2):  # refit on the pairs' inliers while that adds some
+        if best_in.sum() < 3:
             break
         S = _fit(Xc[best_in], Xk[best_in])
         if S is None:
             break
-        inl = _inliers(S, Xc, Xk, cam_c, cam_k, uv_c, uv_k, inlier_px)
-        k = int(inl.sum())
+        inl, k = score(S)
         if k < best_n:
             break
         grew = k > best_n
         best_S, best_in, best_n = S, inl, k
         if not grew:
             break
-    return best_S, best_in
+    return best_S, best_in, best_n
 
 
 # -------------------------------------------------------------------------------------------- photometric
@@ -322,23 +358,26 @@ def verify(current: KeyframeFeatures, candidate: KeyframeFeatures, settings: Loo
         return reject("camera mismatch")
     pairs = mutual_matches(current.descriptors, candidate.descriptors, cfg.match_ratio)
     n_match = len(pairs)
-    if n_match:
-        dc, dk = current.idepths[pairs[:, 0]], candidate.idepths[pairs[:, 1]]
-        keep = np.isfinite(dc) & (dc > 0) & np.isfinite(dk) & (dk > 0)
-        pairs = pairs[keep]
-    n_depth = len(pairs)
-    if n_depth < max(3, cfg.min_inliers):
-        return reject("too few matches", matches=n_match, matches_with_depth=n_depth)
-    uv_c, uv_k = current.keypoints[pairs[:, 0]], candidate.keypoints[pairs[:, 1]]
-    Xc = _backproject(current.camera, uv_c, current.idepths[pairs[:, 0]])
-    Xk = _backproject(candidate.camera, uv_k, candidate.idepths[pairs[:, 1]])
-    S, inl = sim3_ransac(Xc, Xk, uv_c, uv_k, current.camera, candidate.camera, cfg.ransac_iterations,
-                         cfg.inlier_px, rng_seed)
+    dc, dk = current.idepths[pairs[:, 0]], candidate.idepths[pairs[:, 1]]
+    hc, hk = np.isfinite(dc) & (dc > 0), np.isfinite(dk) & (dk > 0)
+    both, cur_only, cand_only = pairs[hc & hk], pairs[hc & ~hk], pairs[~hc & hk]
+    n_both = len(both)
+    n_depth = n_both + len(cur_only) + len(cand_only)
+    if n_both < 3 or n_depth < cfg.min_inliers:
+        return reject("too few matches", matches=n_match, matches_with_depth=n_depth, matches_3d3d=n_both)
+    cc, kc = current.camera, candidate.camera
+    uv_c, uv_k = current.keypoints[both[:, 0]], candidate.keypoints[both[:, 1]]
+    Xc = _backproject(cc, uv_c, current.idepths[both[:, 0]])
+    Xk = _backproject(kc, uv_k, candidate.idepths[both[:, 1]])
+    one = OneSided(_backproject(cc, current.keypoints[cur_only[:, 0]], current.idepths[cur_only[:, 0]]),
+                   candidate.keypoints[cur_only[:, 1]],
+                   _backproject(kc, candidate.keypoints[cand_only[:, 1]], candidate.idepths[cand_only[:, 1]]),
+                   current.keypoints[cand_only[:, 0]])
+    S, inl, n_in = sim3_ransac(Xc, Xk, uv_c, uv_k, cc, kc, cfg.ransac_iterations, cfg.inlier_px, rng_seed, one)
     if S is None:
-        return reject("degenerate", matches=n_match, matches_with_depth=n_depth)
-    n_in = int(inl.sum())
+        return reject("degenerate", matches=n_match, matches_with_depth=n_depth, matches_3d3d=n_both)
     scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-    common = dict(matches=n_match, matches_with_depth=n_depth, inliers=n_in, scale=scale)
+    common = dict(matches=n_match, matches_with_depth=n_depth, matches_3d3d=n_both, inliers=n_in, scale=scale)
     if n_in < cfg.min_inliers:
         return reject("too few inliers", **common)
     ph = photometric_check(current, candidate, S, tracking, device, depth_tolerance=tol)

@@ -69,9 +69,14 @@ def test_features_take_the_nearest_points_depth_within_the_radius():
     true = depth[kp[:, 1], kp[:, 0]]
     rel = np.abs(1.0 / f.idepths[within] - true) / true
     assert np.median(rel) < 0.06, np.median(rel)
-    # a larger radius gives depth to more keypoints
-    wide = extract_features(1, img, CAM, uv, idp, dataclasses.replace(SETTINGS, depth_radius_px=6.0))
-    assert wide.num_with_depth > f.num_with_depth
+    # descriptors on DSO's points themselves (LDSO), as many as ORB's patch allows away from the border
+    on_points = d.min(axis=1) == 0.0
+    inside = np.all((uv >= 32) & (uv <= [W - 33, H - 33]), axis=1)
+    assert on_points.sum() >= 0.9 * min(inside.sum(), SETTINGS.orb_features), (on_points.sum(), inside.sum())
+    # the others are OpenCV's corners, none within the radius of a point that has a descriptor
+    corners = f.keypoints[~on_points]
+    assert len(corners) > 50
+    assert np.linalg.norm(corners[:, None] - f.keypoints[on_points][None], axis=2).min() > SETTINGS.depth_radius_px
 
 
 def test_features_drop_bad_points_and_refuse_a_wrong_image():
@@ -82,7 +87,7 @@ def test_features_drop_bad_points_and_refuse_a_wrong_image():
     assert len(g.points_idepth) == len(idp) - len(idp[::2]) and np.all(np.isfinite(g.points_idepth))
     with pytest.raises(ValueError, match="keyframe 2: image is 160x120, its camera 320x240"):
         extract_features(2, img[::2, ::2], CAM, uv, idp, SETTINGS)
-    blank = extract_features(3, np.zeros((H, W, 3), np.float32), CAM, uv, idp, SETTINGS)  # no corners: no features
+    blank = extract_features(3, np.zeros((H, W, 3), np.float32), CAM, uv[:0], idp[:0], SETTINGS)  # nothing to describe
     assert blank.num_features == 0 and blank.descriptors.shape == (0, 32)
 
 
