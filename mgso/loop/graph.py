@@ -252,8 +252,9 @@ class PoseGraph:
         return tuple(self._poses)
 
     @property
-    def edges(self) -> tuple[Edge, ...]:
-        return tuple(self._edges)
+    def edges(self) -> list[Edge]:
+        """The edge records in the order they were added (a copy of the list)."""
+        return list(self._edges)
 
     @property
     def fixed(self) -> tuple[int, ...]:

@@ -284,6 +284,24 @@ def test_drifted_loop_matches_a_dense_solve_and_closes_the_drift():
     assert small_gap < gap / 8
 
 
+def test_consistent_loop_from_the_drifted_chain_is_solved_to_the_true_poses():
+    """The issue's sentence as it reads: edges from the true poses (odometry and one loop edge), the drifted chain as
+    the initial values: GTSAM and the dense solve both return the true poses (the residuals are zero there, so
+    GTSAM's linearisation is exact)."""
+    rng = np.random.default_rng(17)
+    n = 20
+    true = loop_poses(n)
+    _, chain = drifted_odometry(true, rng, drift=LOOP_DRIFT)
+    odometry = [(k, k + 1, relative(true[k], true[k + 1])) for k in range(n - 1)]
+    loop = [(n - 1, 0, relative(true[n - 1], true[0]))]
+    result = build(chain, odometry, loop_edges=loop, loop_information=LOOP_W).optimize()
+    assert result.initial_error > 0.1
+    assert max_pose_difference([result.poses[k] for k in range(n)], true) < 1e-8
+    dense, dense_cost = dense_solve(chain, [(i, j, z, np.ones(7)) for i, j, z in odometry]
+                                    + [(i, j, z, LOOP_W) for i, j, z in loop])
+    assert max_pose_difference(dense, true) < 1e-7 and dense_cost < 1e-14
+
+
 def test_without_the_loop_edge_the_solution_is_the_drifted_chain():
     """Negative control: the same graph without the loop edge has nothing to correct; it returns the chain."""
     rng = np.random.default_rng(17)
