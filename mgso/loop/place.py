@@ -22,13 +22,13 @@ against every stored keyframe; those with at least ``loop.min_matches`` matches 
 at most ``loop.max_candidates``, plus the ids the caller names in ``extra`` (the closer's candidates from pose
 proximity), never the ``exclude`` ids (the active window and its neighbours).
 
-Exact matching costs about 3.3 ms a stored keyframe of 1000 features against a query of 1000 on one core (0.34 s a query against 100, 1.7 s
-against 500: docs/loop.md), so beyond :data:`PREFILTER_ABOVE` stored keyframes a prefilter picks which ones are
-matched exactly: a bag of binary words (:class:`BinaryVocabulary`, LDSO's DBoW3 idea without its downloaded
-vocabulary) learned from the running sequence's own descriptors by k-majority clustering once the database holds
-:data:`PREFILTER_ABOVE` keyframes, and learned again each time it has doubled since; each keyframe is a tf-idf
-histogram over its words, and the :data:`PREFILTER_KEEP` stored keyframes most similar to the query (cosine), plus
-the ``extra`` ids, go on to the exact matching. Nothing is downloaded at run time.
+Exact matching costs about 3.3 ms a stored keyframe of 1000 features against a query of 1000 on one core (0.34 s a
+query against 100, 1.7 s against 500: docs/loop.md), so beyond :data:`PREFILTER_ABOVE` stored keyframes a prefilter
+picks which ones are matched exactly: a bag of binary words (:class:`BinaryVocabulary`, LDSO's DBoW3 idea without
+its downloaded vocabulary) learned from the running sequence's own descriptors by k-majority clustering once the
+database holds :data:`PREFILTER_ABOVE` keyframes, and learned again each time it has doubled since; each keyframe is
+a tf-idf histogram over its words, and the :data:`PREFILTER_KEEP` stored keyframes most similar to the query
+(cosine), plus the ``extra`` ids, go on to the exact matching. Nothing is downloaded at run time.
 """
 
 from __future__ import annotations
@@ -62,8 +62,9 @@ class KeyframeFeatures:
     """What place recognition and verification keep of a keyframe (arrays read-only).
 
     ``keypoints (N, 2)`` float pixels (DSO's points first, then OpenCV's corners), ``descriptors (N, 32)`` uint8
-    ORB, ``idepths (N,)`` inverse depth of the nearest DSO point within ``depth_radius_px`` (NaN when none), ``gray (H, W)`` uint8, ``points_uv (M, 2)`` and
-    ``points_idepth (M,)``: DSO's points of the keyframe (finite, positive inverse depths only)."""
+    ORB, ``idepths (N,)`` inverse depth of the nearest DSO point within ``depth_radius_px`` (NaN when none),
+    ``gray (H, W)`` uint8, ``points_uv (M, 2)`` and ``points_idepth (M,)``: DSO's points of the keyframe (finite,
+    positive inverse depths only)."""
 
     keyframe_id: int
     camera: PinholeCamera

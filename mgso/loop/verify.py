@@ -79,11 +79,12 @@ REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too 
 @dataclass(frozen=True)
 class Verification:
     """The verdict on one candidate (see the module text). ``matches``: mutual ratio-test matches;
-    ``matches_with_depth``: those with a depth in at least one keyframe (RANSAC's input), ``matches_3d3d``: in
-    both; ``inliers``: RANSAC's after the refit (3D-3D and one-sided); ``depth_compared``, ``depth_consistent``:
-    the depth check's points compared and fraction agreeing; ``rmse``, ``inlier_fraction``: the photometric check's level-0 RMSE and fraction of the reference's points
-    within the cutoff (``None`` when it did not run); ``scale``: the Sim(3)'s ``s`` (``None`` before RANSAC);
-    ``relative``: the final Sim(3) when accepted, RANSAC's when the photometric check rejected it, else ``None``."""
+    ``matches_with_depth``: those with a depth in at least one keyframe (RANSAC's input), ``matches_3d3d``: in both;
+    ``inliers``: RANSAC's after the refit (3D-3D and one-sided); ``depth_compared``, ``depth_consistent``: the depth
+    check's points compared and fraction agreeing; ``rmse``, ``inlier_fraction``: the photometric check's level-0
+    RMSE and fraction of the reference's points within the cutoff (``None`` when it did not run); ``scale``: the
+    Sim(3)'s ``s`` (``None`` before RANSAC); ``relative``: the final Sim(3) when accepted, RANSAC's when the
+    photometric or the depth check rejected it, else ``None``."""
 
     accepted: bool
     reason: str
