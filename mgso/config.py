@@ -829,13 +829,21 @@ class LoopConfig:
 
     enabled: bool = opt(True, "detect revisits, correct the trajectory by a Sim(3) pose graph and move the Gaussian "
                               "map with it (false: DSO's odometry alone)")
-    orb_features: int = opt(1000, "ORB keypoints detected on each keyframe (OpenCV); those within depth_radius_px of "
-                                  "a DSO point get its depth")
+    orb_features: int = opt(1000, "ORB descriptors of a keyframe at its most corner-like DSO points (LDSO: each with "
+                                  "its depth), plus up to half as many of OpenCV's own corners where no chosen point "
+                                  "is near (those borrow the depth of a DSO point within depth_radius_px)")
     depth_radius_px: float = opt(2.0, "a keypoint takes the inverse depth of the nearest DSO point within this many "
                                       "pixels (LDSO puts its features on DSO's points); farther ones have no depth")
     min_keyframe_gap: int = opt(15, "keyframes this recent (the active window, 7, and its neighbours) are never loop "
                                     "candidates: they are the odometry's own business")
     max_candidates: int = opt(3, "candidates verified per keyframe, best appearance first")
+    prefilter_above: int = opt(60, "stored keyframes beyond which a bag of binary words learned from the sequence "
+                                   "picks which are matched exactly (exact matching costs ~3.3 ms a stored keyframe: "
+                                   "0.2 s a query at 60); 0 = always exact")
+    prefilter_keep: int = opt(30, "keyframes the bag-of-words prefilter keeps for exact matching (~0.1-0.17 s a "
+                                  "query, the same first candidate as exact matching in 35 of 36 7-Scenes queries)")
+    vocabulary_words: int = opt(512, "binary words of the prefilter's vocabulary, learned from the running sequence "
+                                     "(nothing downloaded)")
     proximity_depths: float = opt(0.5, "old keyframes whose corrected camera is within this x the new keyframe's "
                                        "median depth (and looks within 60 degrees of its direction) are candidates "
                                        "whatever their appearance score; 0 = appearance only")
@@ -852,6 +860,13 @@ class LoopConfig:
                                             "is 5-10), else the candidate is rejected")
     min_photometric_inliers: float = opt(0.5, "... and at least this fraction of the candidate's points must be "
                                               "within the tracker's cutoff")
+    depth_tolerance: float = opt(0.15, "the depth check: a current keyframe's DSO point, moved by the verified pose "
+                                       "into the candidate, agrees with the candidate's depth map within this "
+                                       "relative inverse depth")
+    min_depth_consistent: float = opt(0.75, "... and at least this fraction of the points compared must agree (true "
+                                            "views 0.95-0.98, a photograph of the place 0.41-0.54: the check with "
+                                            "margin, docs/loop.md); 0 = off")
+    min_depth_compared: int = opt(30, "... out of at least this many points compared; 0 = off")
     odometry_neighbours: int = opt(3, "odometry edges join each keyframe to this many previous ones (their relative "
                                       "poses from the window's estimate, which is what the window measured)")
     loop_edge_weight: float = opt(1.0, "information of a loop edge relative to an odometry edge (identity "
@@ -860,7 +875,11 @@ class LoopConfig:
 
     def __post_init__(self):
         c = _Checks("loop", self)
-        c.ge(1, "orb_features", "max_candidates", "ransac_iterations", "odometry_neighbours", "graph_iterations")
+        c.ge(1, "orb_features", "max_candidates", "ransac_iterations", "odometry_neighbours", "graph_iterations",
+             "prefilter_keep", "vocabulary_words")
+        c.ge(0, "prefilter_above", "min_depth_compared")
+        c.within(0, 1, "min_depth_consistent")
+        c.gt(0, "depth_tolerance")
         c.ge(3, "min_inliers")
         c.ge(0, "min_keyframe_gap", "min_matches", "proximity_depths")
         c.gt(0, "depth_radius_px", "inlier_px", "max_photometric_rmse", "loop_edge_weight")

@@ -130,7 +130,7 @@ class LoopCloser:
         self.device = device
         self.background = bool(background)
         self.stats = LoopStats(enabled=bool(self.cfg.enabled))
-        self.db = PlaceDatabase()
+        self.db = PlaceDatabase(self.cfg.prefilter_above, self.cfg.prefilter_keep, self.cfg.vocabulary_words)
         self._features: dict[int, object] = {}
         self._odo: dict[int, np.ndarray] = {}           # keyframe id -> odometry cam_to_world (latest)
         self._frame: dict[int, int] = {}
@@ -368,7 +368,8 @@ class LoopCloser:
         self.db.add(feats)
         for cand in cands:
             self.stats.candidates += 1
-            v = verify(feats, self._features[cand.keyframe_id], cfg, device=self.device, rng_seed=kid)
+            v = verify(feats, self._features[cand.keyframe_id], cfg, device=self.device, rng_seed=kid,
+                       tracking=self.config.tracking)
             if not v.accepted:
                 self._reject(v.reason)
                 continue
