@@ -798,7 +798,7 @@ class SystemConfig:
                                  "0 = half the cores (at least 1)")
     mapper_nice: int = opt(5, "realtime mode with mapper_process (POSIX): the mapper process's niceness increment, "
                               "so that when the cores are short the odometry's frames come first and the map trains "
-                              "in what is left; 0 = same priority")
+                              "in what is left (loop closure's thread gets the same increment, on Linux); 0 = same priority")
     image_slots: int = opt(8, "realtime mode with mapper_process: keyframe images a block of the shared-memory ring "
                               "to the mapper process holds; when every slot waits for the mapper the ring grows by a "
                               "block (up to mapping.mapper.queue_size slots; beyond that the odometry waits, counted)")
@@ -837,14 +837,16 @@ class LoopConfig:
     min_keyframe_gap: int = opt(15, "keyframes this recent (the active window, 7, and its neighbours) are never loop "
                                     "candidates: they are the odometry's own business")
     max_candidates: int = opt(3, "candidates verified per keyframe, best appearance first")
-    prefilter_above: int = opt(60, "stored keyframes beyond which a bag of binary words learned from the sequence "
-                                   "picks which are matched exactly (exact matching costs ~3.3 ms a stored keyframe: "
-                                   "0.2 s a query at 60); 0 = always exact")
-    prefilter_keep: int = opt(30, "keyframes the bag-of-words prefilter keeps for exact matching (~0.1-0.17 s a "
-                                  "query, the same first candidate as exact matching in 35 of 36 7-Scenes queries)")
+    prefilter_above: int = opt(20, "stored keyframes beyond which a bag of binary words learned from the sequence "
+                                   "picks which are matched exactly (exact matching costs 3-6 ms a stored keyframe: "
+                                   "the closer's time on 7-Scenes 13.4 s with 60, 8.8 s with 20 and keep 10, "
+                                   "docs/loop.md); 0 = always exact")
+    prefilter_keep: int = opt(10, "keyframes the bag-of-words prefilter keeps for exact matching (30: the same first "
+                                  "candidate as exact matching in 35 of 36 7-Scenes queries; 10: the same loops on "
+                                  "the synthetic loop, a third of the matching)")
     vocabulary_words: int = opt(512, "binary words of the prefilter's vocabulary, learned from the running sequence "
                                      "(nothing downloaded)")
-    proximity_depths: float = opt(0.5, "old keyframes whose corrected camera is within this x the new keyframe's "
+    proximity_depths: float = opt(0.2, "old keyframes whose corrected camera is within this x the new keyframe's "
                                        "median depth (and looks within 60 degrees of its direction) are candidates "
                                        "whatever their appearance score; 0 = appearance only")
     min_matches: int = opt(40, "ratio-test ORB matches for a keyframe to be a candidate by appearance")
@@ -867,6 +869,11 @@ class LoopConfig:
                                             "views 0.95-0.98, a photograph of the place 0.41-0.54: the check with "
                                             "margin, docs/loop.md); 0 = off")
     min_depth_compared: int = opt(30, "... out of at least this many points compared; 0 = off")
+    realtime_cpu_share: float = opt(0.1, "real time: the closer's thread works at most this share of one core (it "
+                                         "rests in between); keyframes that arrive meanwhile are stored and only the "
+                                         "newest is searched, so the tracking keeps its cores (7-Scenes at 2 cores: "
+                                         "tracking 40.2-40.6 frames/s with 0.1 against 36.5-41.2 off, 31-34 with no "
+                                         "rest: docs/loop.md); 1 = no rest")
     odometry_neighbours: int = opt(3, "odometry edges join each keyframe to this many previous ones (their relative "
                                       "poses from the window's estimate, which is what the window measured)")
     loop_edge_weight: float = opt(1.0, "information of a loop edge relative to an odometry edge (identity "
@@ -879,6 +886,7 @@ class LoopConfig:
              "prefilter_keep", "vocabulary_words")
         c.ge(0, "prefilter_above", "min_depth_compared")
         c.within(0, 1, "min_depth_consistent")
+        c.within(0, 1, "realtime_cpu_share", open_lo=True)
         c.gt(0, "depth_tolerance")
         c.ge(3, "min_inliers")
         c.ge(0, "min_keyframe_gap", "min_matches", "proximity_depths")

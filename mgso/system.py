@@ -337,7 +337,8 @@ class System:
             self.mapper = Mapper(config, device=device, observer=self.observer)
         self.loop: LoopCloser | None = None
         if config.loop.enabled:
-            self.loop = LoopCloser(config, device=getattr(odometry, "device", None), background=self.realtime)
+            self.loop = LoopCloser(config, device=getattr(odometry, "device", None), background=self.realtime,
+                                   nice=config.system.mapper_nice)
         self.cloud = MarginalizedCloud()
         self.frame_log = FrameLog()
         self._keyframes = 0

@@ -180,7 +180,7 @@ BAD = {
     "loop.max_photometric_rmse": [0], "loop.min_photometric_inliers": [0, 1.1], "loop.odometry_neighbours": [0],
     "loop.loop_edge_weight": [0], "loop.graph_iterations": [0],
     "loop.prefilter_above": [-1], "loop.prefilter_keep": [0], "loop.vocabulary_words": [0],
-    "loop.depth_tolerance": [0], "loop.min_depth_consistent": [-0.1, 1.1], "loop.min_depth_compared": [-1],
+    "loop.realtime_cpu_share": [0, 1.1], "loop.depth_tolerance": [0], "loop.min_depth_consistent": [-0.1, 1.1], "loop.min_depth_compared": [-1],
 }
 FREE = {"input.camera"}  # names a camera of the dataset's layout: checked when the sequence is opened
 

@@ -40,7 +40,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import queue
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -84,6 +86,7 @@ class LoopStats:
     enabled: bool = True
     keyframes: int = 0                      # keyframes seen
     queries: int = 0                        # place queries made (keyframes old enough to have candidates)
+    searches_skipped: int = 0               # real time: keyframes stored without a search (a newer one waited)
     candidates: int = 0                     # candidates verified
     accepted: int = 0                       # loops accepted (each solved the graph)
     rejected: dict = field(default_factory=dict)     # reason -> candidates rejected for it
@@ -94,6 +97,7 @@ class LoopStats:
 
     def as_dict(self) -> dict:
         return {"enabled": self.enabled, "keyframes": self.keyframes, "queries": self.queries,
+                "searches_skipped": self.searches_skipped,
                 "candidates": self.candidates, "accepted": self.accepted,
                 "rejected": dict(sorted(self.rejected.items())),
                 "rejected_total": int(sum(self.rejected.values())), "graph_solves": self.graph_solves,
@@ -120,15 +124,18 @@ class _Solve:
 
 class LoopCloser:
     """See the module doc. ``config``: the full configuration (``loop``, ``tracking`` for the photometric check);
-    ``device``: the Warp device of the photometric check; ``background``: run detection on a thread of its own."""
+    ``device``: the Warp device of the photometric check; ``background``: run detection on a thread of its own;
+    ``nice``: on Linux, that thread's niceness increment (the system passes ``system.mapper_nice``: tracking first
+    when the cores are short)."""
 
-    def __init__(self, config: Config, *, device: str | None = None, background: bool = False):
+    def __init__(self, config: Config, *, device: str | None = None, background: bool = False, nice: int = 0):
         from mgso.loop.place import PlaceDatabase
 
         self.config = config
         self.cfg = config.loop
         self.device = device
         self.background = bool(background)
+        self.nice = int(nice)
         self.stats = LoopStats(enabled=bool(self.cfg.enabled))
         self.db = PlaceDatabase(self.cfg.prefilter_above, self.cfg.prefilter_keep, self.cfg.vocabulary_words)
         self._features: dict[int, object] = {}
@@ -147,6 +154,7 @@ class LoopCloser:
         self._jobs: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._loops = 0
+        self._rest = threading.Event()             # set when the run ends: no more resting between jobs
         if self.background and self.cfg.enabled:
             self._jobs = queue.Queue()
             self._thread = threading.Thread(target=self._work, name="mgso-loop", daemon=True)
@@ -247,6 +255,7 @@ class LoopCloser:
         """End of the stream: wait for the closer's thread to finish the keyframes queued (``timeout``: give up
         after so many seconds, the loops not yet solved are dropped) and return the last correction."""
         if self._thread is not None:
+            self._rest.set()
             self._jobs.put(None)
             self._thread.join(timeout)
             if self._thread.is_alive():
@@ -263,6 +272,7 @@ class LoopCloser:
                     self._jobs.get_nowait()
                 except queue.Empty:
                     break
+            self._rest.set()
             self._jobs.put(None)
             self._thread.join(5.0)
             self._thread = None
@@ -321,21 +331,42 @@ class LoopCloser:
 
     # --------------------------------------------------------------------------------------- detection
     def _work(self) -> None:
+        if self.nice > 0 and hasattr(os, "setpriority"):
+            try:    # Linux: a thread's own niceness (its native id is a task id); elsewhere the whole process's
+                if sys.platform.startswith("linux"):
+                    tid = threading.get_native_id()
+                    os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self.nice)
+            except OSError:
+                log.debug("loop closure: could not lower the closer thread's priority", exc_info=True)
+        share = float(self.cfg.realtime_cpu_share)
         while True:
-            job = self._jobs.get()
-            if job is None:
-                return
+            jobs = [self._jobs.get()]
+            while jobs[-1] is not None:       # everything that waits: the newest is searched, the rest only stored
+                try:
+                    jobs.append(self._jobs.get_nowait())
+                except queue.Empty:
+                    break
+            ending = jobs[-1] is None
+            jobs = [j for j in jobs if j is not None]
+            t0 = time.perf_counter()
             try:
-                self._run_job(job)
+                for i, job in enumerate(jobs):
+                    self._run_job(job, search=i == len(jobs) - 1)
             except BaseException as exc:  # noqa: BLE001 - raised in the system's thread at the next poll
                 log.exception("loop closure failed")
                 self._error = exc
                 return
+            if ending:
+                return
+            # the duty cycle: at most `share` of a core, so that the tracking keeps its own
+            busy = time.perf_counter() - t0
+            if 0 < share < 1 and busy > 0:
+                self._rest.wait(busy * (1.0 / share - 1.0))
 
-    def _run_job(self, job) -> None:
+    def _run_job(self, job, search: bool = True) -> None:
         t0 = time.perf_counter()
         try:
-            solve = self._detect(*job)
+            solve = self._detect(*job, search=search)
         finally:
             self.stats.seconds += time.perf_counter() - t0
         if solve is not None:
@@ -345,7 +376,7 @@ class LoopCloser:
     def _reject(self, reason: str) -> None:
         self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
 
-    def _detect(self, kid: int, image, camera, points_uv, idepths) -> _Solve | None:
+    def _detect(self, kid: int, image, camera, points_uv, idepths, search: bool = True) -> _Solve | None:
         from mgso.loop.place import extract_features
         from mgso.loop.verify import verify
 
@@ -359,7 +390,9 @@ class LoopCloser:
             near = self._near(kid, old, idepths)
         self._features[kid] = feats
         cands = []
-        if old:
+        if old and not search:
+            self.stats.searches_skipped += 1
+        elif old:
             self.stats.queries += 1
             cands = self.db.query(feats, exclude=recent | {kid}, settings=cfg, extra=near)
             # the best by appearance, pose-proximity ones included: loop.max_candidates bounds the verification's

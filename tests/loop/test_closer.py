@@ -53,7 +53,7 @@ def loop_runs(loop_folder, tmp_path_factory):
 def test_a_loop_with_drift_is_closed_and_corrects_trajectory_and_map(loop_runs):
     (res, m, system), (res_off, m_off, _) = loop_runs
     lp = m["loop"]
-    # measured (2026-12-02): 3 loops accepted (keyframes 19-21 on keyframes 0-1), ATE 0.0694 -> 0.0229 m, PSNR
+    # measured (2026-12-02): 3 loops accepted (keyframes 19-21 on keyframes 0-1), ATE 0.0695 -> 0.0225 m, PSNR
     # (MonoGS protocol) 23.58 -> 24.05 dB
     assert lp["accepted"] >= 1 and lp["graph_solves"] == lp["accepted"] and lp["corrections_sent"] >= 1
     for rec in lp["loops"]:
@@ -105,3 +105,28 @@ def test_realtime_closes_the_loop_on_its_own_thread(loop_folder, tmp_path):
     assert system.loop.background and m["loop"]["accepted"] >= 1
     assert res.mapper.loop_corrections >= 1
     assert m["ate_all_frames_m"] < 0.5 * m["ate_odometry_all_frames_m"]
+
+
+def test_an_error_on_the_closers_thread_reaches_the_system(loop_folder, monkeypatch):
+    """A failure on the closer's thread is raised in the system's thread at the next poll (the run then stops with
+    SystemRunError and writes what was done), not lost on the thread."""
+    import mgso.loop.place as place
+    from mgso.loop.closer import LoopCloser
+    from mgso.mapping.messages import KeyframeMessage
+
+    def broken(*a, **k):
+        raise MemoryError("no room for features")
+
+    monkeypatch.setattr(place, "extract_features", broken)
+    cfg = load_config(None, BASE)
+    seq = open_sequence(str(loop_folder), config=cfg.input)
+    odo = OracleOdometry.from_sequence(seq, **ORACLE)
+    closer = LoopCloser(cfg, background=True)
+    for f in seq.frames():
+        msgs = [m for m in odo.process(f).messages if isinstance(m, KeyframeMessage)]
+        if msgs:
+            closer.observe(msgs[0])
+            break
+    with pytest.raises(RuntimeError, match="loop closure failed: MemoryError: no room for features"):
+        closer.finish(timeout=30)
+    closer.close()
