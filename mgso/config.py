@@ -870,8 +870,8 @@ class LoopConfig:
                                             "margin, docs/loop.md); 0 = off")
     min_depth_compared: int = opt(30, "... out of at least this many points compared; 0 = off")
     realtime_cpu_share: float = opt(0.1, "real time: the closer's thread works at most this share of one core (it "
-                                         "rests in between); keyframes that arrive meanwhile are stored and only the "
-                                         "newest is searched, so the tracking keeps its cores (7-Scenes at 2 cores: "
+                                         "rests in between); of the keyframes that arrive meanwhile only the newest "
+                                         "is searched and stored, so the tracking keeps its cores (7-Scenes at 2 cores: "
                                          "tracking 40.2-40.6 frames/s with 0.1 against 36.5-41.2 off, 31-34 with no "
                                          "rest: docs/loop.md); 1 = no rest")
     odometry_neighbours: int = opt(3, "odometry edges join each keyframe to this many previous ones (their relative "

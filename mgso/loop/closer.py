@@ -86,7 +86,7 @@ class LoopStats:
     enabled: bool = True
     keyframes: int = 0                      # keyframes seen
     queries: int = 0                        # place queries made (keyframes old enough to have candidates)
-    searches_skipped: int = 0               # real time: keyframes stored without a search (a newer one waited)
+    keyframes_skipped: int = 0              # real time: keyframes neither stored nor searched (a newer one waited)
     candidates: int = 0                     # candidates verified
     accepted: int = 0                       # loops accepted (each solved the graph)
     rejected: dict = field(default_factory=dict)     # reason -> candidates rejected for it
@@ -97,7 +97,7 @@ class LoopStats:
 
     def as_dict(self) -> dict:
         return {"enabled": self.enabled, "keyframes": self.keyframes, "queries": self.queries,
-                "searches_skipped": self.searches_skipped,
+                "keyframes_skipped": self.keyframes_skipped,
                 "candidates": self.candidates, "accepted": self.accepted,
                 "rejected": dict(sorted(self.rejected.items())),
                 "rejected_total": int(sum(self.rejected.values())), "graph_solves": self.graph_solves,
@@ -341,17 +341,20 @@ class LoopCloser:
         share = float(self.cfg.realtime_cpu_share)
         while True:
             jobs = [self._jobs.get()]
-            while jobs[-1] is not None:       # everything that waits: the newest is searched, the rest only stored
+            while jobs[-1] is not None:       # everything that waits: the newest is taken, the older ones skipped
                 try:
                     jobs.append(self._jobs.get_nowait())
                 except queue.Empty:
                     break
             ending = jobs[-1] is None
             jobs = [j for j in jobs if j is not None]
+            # a closer that fell behind stays bounded in time and memory: the places of the skipped keyframes are
+            # seen by their neighbours (a place spans several keyframes), and the pose graph has every keyframe
+            self.stats.keyframes_skipped += max(0, len(jobs) - 1)
             t0 = time.perf_counter()
             try:
-                for i, job in enumerate(jobs):
-                    self._run_job(job, search=i == len(jobs) - 1)
+                for job in jobs[-1:]:
+                    self._run_job(job)
             except BaseException as exc:  # noqa: BLE001 - raised in the system's thread at the next poll
                 log.exception("loop closure failed")
                 self._error = exc
@@ -363,10 +366,10 @@ class LoopCloser:
             if 0 < share < 1 and busy > 0:
                 self._rest.wait(busy * (1.0 / share - 1.0))
 
-    def _run_job(self, job, search: bool = True) -> None:
+    def _run_job(self, job) -> None:
         t0 = time.perf_counter()
         try:
-            solve = self._detect(*job, search=search)
+            solve = self._detect(*job)
         finally:
             self.stats.seconds += time.perf_counter() - t0
         if solve is not None:
@@ -376,7 +379,7 @@ class LoopCloser:
     def _reject(self, reason: str) -> None:
         self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
 
-    def _detect(self, kid: int, image, camera, points_uv, idepths, search: bool = True) -> _Solve | None:
+    def _detect(self, kid: int, image, camera, points_uv, idepths) -> _Solve | None:
         from mgso.loop.place import extract_features
         from mgso.loop.verify import verify
 
@@ -390,9 +393,7 @@ class LoopCloser:
             near = self._near(kid, old, idepths)
         self._features[kid] = feats
         cands = []
-        if old and not search:
-            self.stats.searches_skipped += 1
-        elif old:
+        if old:
             self.stats.queries += 1
             cands = self.db.query(feats, exclude=recent | {kid}, settings=cfg, extra=near)
             # the best by appearance, pose-proximity ones included: loop.max_candidates bounds the verification's
