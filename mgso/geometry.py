@@ -26,7 +26,8 @@ import numpy as np
 __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "so3_left_jacobian", "orthonormalize",
     "se3_exp", "se3_log", "se3_inverse", "se3_adjoint", "se3_interpolate", "make_pose", "transform_points",
-    "sim3_exp", "sim3_log", "sim3_inverse", "sim3_from_parts", "sim3_to_parts",
+    "sim3_exp", "sim3_log", "sim3_inverse", "sim3_from_parts", "sim3_to_parts", "check_sim3",
+    "SIM3_ROTATION_TOLERANCE",
     "quat_xyzw_to_matrix", "matrix_to_quat_xyzw", "quat_wxyz_to_matrix", "matrix_to_quat_wxyz",
     "quat_xyzw_to_wxyz", "quat_wxyz_to_xyzw", "quat_normalize",
     "Alignment", "umeyama_alignment", "rotation_angle",
@@ -311,6 +312,40 @@ def sim3_log(S) -> np.ndarray:
     sigma = np.log(s)
     v = np.linalg.solve(_sim3_V(w, sigma), t)
     return np.concatenate([v, w, [sigma]])
+
+
+#: Largest ``|R^T R - I|`` (max abs entry, after removing the scale) accepted for a pose or measurement. Poses chained
+#: from the odometry carry round-off near 1e-12; a matrix further off than this is not a rotation (a shear, a
+#: transposed or mis-built matrix), and is refused rather than silently projected. What is accepted is kept as given
+#: (the pose graph re-orthonormalises it on its way to GTSAM: ``mgso.loop.graph.to_gtsam``).
+SIM3_ROTATION_TOLERANCE = 1e-5
+
+
+def check_sim3(S, what: str) -> np.ndarray:
+    """``S`` as a float64 4x4 copy (its last row set to exactly ``[0, 0, 0, 1]``) if it is a Sim(3) within
+    :data:`SIM3_ROTATION_TOLERANCE`, else ``ValueError`` with a one-line message that starts with ``what`` and says
+    what is wrong (loop closure's pose graph and its messages to the mapper check their Sim(3)s with it)."""
+    try:
+        M = np.array(S, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} is not a Sim(3): not a numeric array ({type(S).__name__})") from None
+    if M.shape != (4, 4):
+        raise ValueError(f"{what} is not a Sim(3): shape {M.shape}, expected (4, 4)")
+    if not np.all(np.isfinite(M)):
+        raise ValueError(f"{what} is not a Sim(3): it has non-finite entries (nan or inf)")
+    if np.max(np.abs(M[3] - (0.0, 0.0, 0.0, 1.0))) > SIM3_ROTATION_TOLERANCE:
+        raise ValueError(f"{what} is not a Sim(3): last row {M[3].tolist()}, expected [0, 0, 0, 1]")
+    det = float(np.linalg.det(M[:3, :3]))
+    if not det > 0.0:
+        raise ValueError(f"{what} is not a Sim(3): det(s R) = {det:.6g} <= 0 (scale <= 0, or a reflection)")
+    s = det ** (1.0 / 3.0)
+    R = M[:3, :3] / s
+    off = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if off > SIM3_ROTATION_TOLERANCE:
+        raise ValueError(f"{what} is not a Sim(3): the rotation is not orthonormal after removing the scale "
+                         f"(max |R^T R - I| = {off:.3g} > {SIM3_ROTATION_TOLERANCE:g})")
+    M[3] = (0.0, 0.0, 0.0, 1.0)  # round-off there has no meaning in a Sim(3); the products downstream assume it exact
+    return M
 
 
 def sim3_inverse(S) -> np.ndarray:

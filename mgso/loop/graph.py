@@ -61,7 +61,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from mgso.geometry import orthonormalize, sim3_from_parts, sim3_inverse, sim3_to_parts
+from mgso.geometry import SIM3_ROTATION_TOLERANCE as ROTATION_TOLERANCE     # re-exported: the tests' name
+from mgso.geometry import check_sim3, orthonormalize, sim3_from_parts, sim3_inverse, sim3_to_parts
 
 __all__ = ["EDGE_KINDS", "ROTATION_TOLERANCE", "Edge", "GraphResult", "PoseGraph", "check_sim3", "from_gtsam",
            "to_gtsam"]
@@ -69,11 +70,6 @@ __all__ = ["EDGE_KINDS", "ROTATION_TOLERANCE", "Edge", "GraphResult", "PoseGraph
 #: The kinds of edge :meth:`PoseGraph.add_edge` takes; ``num_loop_edges`` counts the ``"loop"`` ones.
 EDGE_KINDS = ("odometry", "loop")
 
-#: Largest ``|R^T R - I|`` (max abs entry, after removing the scale) accepted for a pose or measurement. Poses chained
-#: from the odometry carry round-off near 1e-12; a matrix further off than this is not a rotation (a shear, a
-#: transposed or mis-built matrix), and is refused rather than silently projected. What is accepted is kept as given and
-#: re-orthonormalised (SVD) on its way to GTSAM (:func:`to_gtsam`).
-ROTATION_TOLERANCE = 1e-5
 
 
 # ----------------------------------------------------------------------------------------------- conversions
@@ -97,33 +93,6 @@ def _gtsam_order(ours: np.ndarray) -> np.ndarray:
     """A 7-vector in our tangent order (translation, rotation, log-scale) in GTSAM's (rotation, translation,
     log-scale)."""
     return np.concatenate([ours[3:6], ours[0:3], ours[6:7]])
-
-
-def check_sim3(S, what: str) -> np.ndarray:
-    """``S`` as a float64 4x4 copy (its last row set to exactly ``[0, 0, 0, 1]``) if it is a Sim(3) within
-    :data:`ROTATION_TOLERANCE`, else ``ValueError`` with a one-line message that starts with ``what`` and says what is
-    wrong."""
-    try:
-        M = np.array(S, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} is not a Sim(3): not a numeric array ({type(S).__name__})") from None
-    if M.shape != (4, 4):
-        raise ValueError(f"{what} is not a Sim(3): shape {M.shape}, expected (4, 4)")
-    if not np.all(np.isfinite(M)):
-        raise ValueError(f"{what} is not a Sim(3): it has non-finite entries (nan or inf)")
-    if np.max(np.abs(M[3] - (0.0, 0.0, 0.0, 1.0))) > ROTATION_TOLERANCE:
-        raise ValueError(f"{what} is not a Sim(3): last row {M[3].tolist()}, expected [0, 0, 0, 1]")
-    det = float(np.linalg.det(M[:3, :3]))
-    if not det > 0.0:
-        raise ValueError(f"{what} is not a Sim(3): det(s R) = {det:.6g} <= 0 (scale <= 0, or a reflection)")
-    s = det ** (1.0 / 3.0)
-    R = M[:3, :3] / s
-    off = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if off > ROTATION_TOLERANCE:
-        raise ValueError(f"{what} is not a Sim(3): the rotation is not orthonormal after removing the scale "
-                         f"(max |R^T R - I| = {off:.3g} > {ROTATION_TOLERANCE:g})")
-    M[3] = (0.0, 0.0, 0.0, 1.0)  # round-off there has no meaning in a Sim(3); the products downstream assume it exact
-    return M
 
 
 def _node_id(node_id, what: str) -> int:

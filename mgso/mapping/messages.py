@@ -34,11 +34,11 @@ from typing import Mapping, Union
 import numpy as np
 
 from mgso.camera import PinholeCamera
-from mgso.geometry import orthonormalize
+from mgso.geometry import check_sim3, orthonormalize
 from mgso.mapping.seeding import KeyframeSeedInput, PointKind, _frozen_array as _frozen, check_points
 
 __all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "LoopCorrection", "Stop", "MapperMessage",
-           "PointKind", "map_exposure", "check_sim3", "sim3_apply_to_pose"]
+           "PointKind", "map_exposure", "sim3_apply_to_pose"]
 
 
 def _rigid(T, where: str) -> np.ndarray:
@@ -250,23 +250,6 @@ class PointsMessage:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
-
-
-def check_sim3(S, where: str) -> np.ndarray:
-    """A 4x4 Sim(3) ``[[s R, t], [0, 0, 0, 1]]`` (``X' = s R X + t``), checked: finite, ``s > 0``, R a rotation."""
-    M = np.array(S, dtype=np.float64)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise ValueError(f"{where}: expected a finite 4x4 Sim(3), got shape {M.shape}")
-    det = float(np.linalg.det(M[:3, :3]))
-    if not det > 0:
-        raise ValueError(f"{where}: not a Sim(3) (determinant of s R is {det:g}, must be > 0)")
-    s = det ** (1.0 / 3.0)
-    R = M[:3, :3] / s
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > 1e-2 or np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise ValueError(f"{where}: not a Sim(3) (rotation not orthonormal: error {err:.2g}, or last row not "
-                         "0 0 0 1)")
-    return M
 
 
 def sim3_apply_to_pose(S: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:

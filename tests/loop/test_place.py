@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 import pytest
 
@@ -16,22 +15,14 @@ from mgso.config import LoopConfig
 from mgso.loop.place import BinaryVocabulary, PlaceDatabase, extract_features
 from mgso.synthetic import SyntheticCamera, camera_path, make_scene, render
 
+from loop_helpers import dso_points
+
 W, H = 320, 240
 SCAM = SyntheticCamera.from_fov(W, H)
 CAM = PinholeCamera(SCAM.fx, SCAM.fy, SCAM.cx, SCAM.cy, W, H)
 PATH = camera_path(314).cam_to_world  # one whole figure-eight
 PLACES = (0, 40, 80, 120, 160, 200, 240, 280)  # keyframes at distinct places along it
 SETTINGS = LoopConfig()
-
-
-def dso_points(image, depth, n=2000, seed=0):
-    """Stand-ins for DSO's points: ``n`` random pixels among the 20 % of highest gradient, with 1 / depth."""
-    g = cv2.cvtColor((image * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    mag[:4], mag[-4:], mag[:, :4], mag[:, -4:] = 0, 0, 0, 0
-    ys, xs = np.nonzero(mag > np.percentile(mag, 80))
-    k = np.random.default_rng(seed).choice(len(xs), min(n, len(xs)), replace=False)
-    return np.stack([xs[k], ys[k]], 1).astype(np.float64), 1.0 / depth[ys[k], xs[k]].astype(np.float64)
 
 
 def features_at(keyframe_id, pose, seed=0, scene=None):

@@ -19,22 +19,14 @@ from mgso.loop.place import PlaceDatabase, extract_features
 from mgso.loop.verify import REASONS, verify
 from mgso.synthetic import SyntheticCamera, camera_path, make_scene, render
 
+from loop_helpers import dso_points
+
 W, H = 320, 240
 SCAM = SyntheticCamera.from_fov(W, H)
 CAM = PinholeCamera(SCAM.fx, SCAM.fy, SCAM.cx, SCAM.cy, W, H)
 PATH = camera_path(80).cam_to_world
 SETTINGS = LoopConfig()
 SCALE = 1.3
-
-
-def dso_points(image, depth, n=2000, seed=0):
-    """Stand-ins for DSO's points: ``n`` random pixels among the 20 % of highest gradient, with 1 / depth."""
-    g = cv2.cvtColor((image * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    mag[:4], mag[-4:], mag[:, :4], mag[:, -4:] = 0, 0, 0, 0
-    ys, xs = np.nonzero(mag > np.percentile(mag, 80))
-    k = np.random.default_rng(seed).choice(len(xs), min(n, len(xs)), replace=False)
-    return np.stack([xs[k], ys[k]], 1).astype(np.float64), 1.0 / depth[ys[k], xs[k]].astype(np.float64)
 
 
 def features(keyframe_id, image, depth, seed, scale=1.0):
