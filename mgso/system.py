@@ -498,7 +498,7 @@ class System:
         loop = self.loop
         for msg in final:
             if loop is not None:
-                loop.observe(msg)
+                loop.observe(msg, final=True)
                 msg = loop.correct(msg)
             if isinstance(msg, PoseUpdate):
                 self._pose_updates += 1

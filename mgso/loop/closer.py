@@ -170,9 +170,10 @@ class LoopCloser:
         return self._loops > 0
 
     # ----------------------------------------------------------------------------------------- the stream
-    def observe(self, msg) -> None:
+    def observe(self, msg, final: bool = False) -> None:
         """A message of the odometry, in its world: keep the keyframes' poses and the window, and look for a loop
-        at each new keyframe (now, or on the closer's thread)."""
+        at each new keyframe (now, or on the closer's thread). ``final``: one of ``odometry.finish()``'s messages,
+        whose pose update names every keyframe, not the window's."""
         if isinstance(msg, KeyframeMessage):
             kid = msg.keyframe_id
             with self._lock:
@@ -195,9 +196,15 @@ class LoopCloser:
                     if kid in self._odo:
                         self._odo[kid] = np.array(T, dtype=np.float64)
                 ids = set(msg.cam_to_world)
-                if ids:          # the window's keyframes: those just optimised, and any newer
+                if ids and not final:     # the window's keyframes: those just optimised, and any newer
                     newest = max(ids)
                     self._active = ids | {k for k in self._active if k > newest}
+
+    @property
+    def window_keyframes(self) -> list[int]:
+        """The keyframes the closer takes for the odometry's window (moved rigidly by a loop's correction)."""
+        with self._lock:
+            return sorted(self._active)
 
     def correction_of(self, keyframe_id: int) -> np.ndarray:
         """The correction ``C_k`` of a keyframe (the current one for a keyframe the closer has not seen)."""

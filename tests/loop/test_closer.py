@@ -130,3 +130,31 @@ def test_an_error_on_the_closers_thread_reaches_the_system(loop_folder, monkeypa
     with pytest.raises(RuntimeError, match="loop closure failed: MemoryError: no room for features"):
         closer.finish(timeout=30)
     closer.close()
+
+
+def test_the_window_is_what_the_last_window_update_named_not_the_final_one(loop_folder):
+    """The odometry's window optimisations name the window's keyframes; its finish() names every keyframe. The
+    closer moves the window rigidly and gives the others the graph's solution, so the final update must not make
+    every keyframe a window keyframe."""
+    from mgso.loop.closer import LoopCloser
+    from mgso.mapping.messages import KeyframeMessage, PoseUpdate
+
+    cfg = load_config(None, BASE)
+    seq = open_sequence(str(loop_folder), config=cfg.input)
+    odo = OracleOdometry.from_sequence(seq, **{**ORACLE, "window": 3})
+    closer = LoopCloser(cfg)
+    kids = []
+    for i, f in enumerate(seq.frames()):
+        for m in odo.process(f).messages:
+            closer.observe(m)
+            if isinstance(m, KeyframeMessage):
+                kids.append(m.keyframe_id)
+        if i == 40:
+            break
+    # the oracle's window update at keyframe k names the 3 before it; k itself is newer: 4 in the window
+    assert closer.window_keyframes == kids[-4:]
+    everything = PoseUpdate({k: np.eye(4) for k in kids})   # what DSO's finish() sends: every keyframe
+    closer.observe(everything, final=True)
+    assert closer.window_keyframes == kids[-4:]
+    closer.observe(everything)                     # the negative control: taken as a window update
+    assert closer.window_keyframes == kids
