@@ -348,8 +348,9 @@ class System:
     def _dispatch(self, messages) -> None:
         loop = self.loop
         for msg in messages:
+            raw = msg                        # the odometry's world (the DSO cloud is corrected at the end)
             if loop is not None:
-                loop.observe(msg)            # in the odometry's world
+                loop.observe(msg)
                 msg = loop.correct(msg)      # the map's (the same object until a loop moved something)
             if isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
@@ -359,7 +360,7 @@ class System:
                 self._pose_updates += 1
                 self.observer.on_window_optimized(msg)
             elif isinstance(msg, PointsMessage):
-                self.cloud.add(msg)
+                self.cloud.add(raw)
                 self.observer.on_points_marginalized(msg)
             else:
                 raise TypeError(f"the odometry emitted {type(msg).__name__}, not a mapper message")
@@ -497,13 +498,14 @@ class System:
     def _dispatch_final(self, final, interrupted: bool) -> None:
         loop = self.loop
         for msg in final:
+            raw = msg
             if loop is not None:
                 loop.observe(msg, final=True)
                 msg = loop.correct(msg)
             if isinstance(msg, PoseUpdate):
                 self._pose_updates += 1
             elif isinstance(msg, PointsMessage):
-                self.cloud.add(msg)
+                self.cloud.add(raw)
             elif isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
                 self._keyframe_frames.append(msg.frame_index)

@@ -406,6 +406,7 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
         why = ", ".join(f"{n} {r}" for r, n in lp["rejected"].items())
         m.append(f"loop closure: {lp['accepted']} loops accepted of {lp['candidates']} candidates verified"
                  + (f" (rejected: {why})" if why else "") + f", {lp['seconds']:.1f} s"
+                 + (f"; it failed and was off from then on: {lp['error']}" if lp.get("error") else "")
                  + ("; trajectory.txt is corrected, trajectory_odometry.txt the odometry's" if lp["accepted"]
                     else ""))
     no_pose = metrics["frames"]["in_trajectory"] == 0 and result.frames_processed > 0

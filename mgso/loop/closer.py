@@ -93,6 +93,7 @@ class LoopStats:
     graph_solves: int = 0
     seconds: float = 0.0                    # features, queries, verification and the graph, all together
     corrections_sent: int = 0               # LoopCorrection messages handed to the mapper
+    error: str | None = None                # what stopped loop closure (it is then off for the rest of the run)
     loops: list = field(default_factory=list)        # LoopRecord per accepted loop
 
     def as_dict(self) -> dict:
@@ -101,7 +102,7 @@ class LoopStats:
                 "candidates": self.candidates, "accepted": self.accepted,
                 "rejected": dict(sorted(self.rejected.items())),
                 "rejected_total": int(sum(self.rejected.values())), "graph_solves": self.graph_solves,
-                "seconds": self.seconds, "corrections_sent": self.corrections_sent,
+                "seconds": self.seconds, "corrections_sent": self.corrections_sent, "error": self.error,
                 "loops": [dict(r.__dict__) for r in self.loops]}
 
 
@@ -154,6 +155,7 @@ class LoopCloser:
         self._jobs: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._loops = 0
+        self._off = False                          # after a failure: no more searches, the corrections kept
         self._rest = threading.Event()             # set when the run ends: no more resting between jobs
         if self.background and self.cfg.enabled:
             self._jobs = queue.Queue()
@@ -184,12 +186,15 @@ class LoopCloser:
                 self._active.add(kid)
                 self._C[kid] = self._C_cur.copy()
             self.stats.keyframes += 1
-            if self.enabled:
+            if self.enabled and not self._off:
                 job = (kid, msg.image, msg.camera, np.asarray(msg.points_uv), np.asarray(msg.idepths))
                 if self._jobs is not None:
                     self._jobs.put(job)
                 else:
-                    self._run_job(job)
+                    try:
+                        self._run_job(job)
+                    except Exception as exc:  # noqa: BLE001 - loop closure is off, the run goes on
+                        self._fail(exc)
         elif isinstance(msg, PoseUpdate):
             with self._lock:
                 for kid, T in msg.cam_to_world.items():
@@ -235,12 +240,22 @@ class LoopCloser:
             return PointsMessage(pts, msg.colors, host_keyframe_id=msg.host_keyframe_id, weights=msg.weights)
         return msg
 
+    def _fail(self, exc: BaseException) -> None:
+        """Loop closure failed: it is off for the rest of the run (no more searches; the corrections found so far
+        stay, so the map and the trajectories stay consistent); the error is in ``stats.error`` and the log."""
+        if self.stats.error is None:
+            self.stats.error = f"{type(exc).__name__}: {exc}"
+            log.warning("loop closure failed and is off for the rest of the run (the corrections so far are kept): "
+                        "%s", self.stats.error, exc_info=log.isEnabledFor(logging.DEBUG) and exc)
+        self._off = True
+
     def poll(self) -> LoopCorrection | None:
         """A loop finished since the last call: apply its corrections and return what the mapper must do (the Sim(3)
-        each keyframe it has moved by), or ``None``. Raises the closer thread's error, if any."""
+        each keyframe it has moved by), or ``None``. A failure on the closer's thread turns loop closure off here
+        (:meth:`_fail`)."""
         if self._error is not None:
             err, self._error = self._error, None
-            raise RuntimeError(f"loop closure failed: {type(err).__name__}: {err}") from err
+            self._fail(err)
         with self._lock:
             ready, self._ready = self._ready, []
         if not ready:
@@ -362,8 +377,7 @@ class LoopCloser:
             try:
                 for job in jobs[-1:]:
                     self._run_job(job)
-            except BaseException as exc:  # noqa: BLE001 - raised in the system's thread at the next poll
-                log.exception("loop closure failed")
+            except BaseException as exc:  # noqa: BLE001 - handed to the system's thread at the next poll
                 self._error = exc
                 return
             if ending:
