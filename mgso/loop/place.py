@@ -47,8 +47,9 @@ from mgso.config import LoopConfig
 __all__ = ["KeyframeFeatures", "Candidate", "PlaceDatabase", "BinaryVocabulary", "extract_features", "to_gray",
            "ratio_matches", "PREFILTER_ABOVE", "PREFILTER_KEEP", "VOCABULARY_WORDS"]
 
-#: The prefilter's defaults until LoopConfig has them as settings (PlaceDatabase's arguments meanwhile): exact
-#: matching against more than this many stored keyframes costs more than 0.2 s a query (3.3 ms each, measured) ...
+#: PlaceDatabase's prefilter when built without settings (the closer passes loop.prefilter_above, prefilter_keep and
+#: vocabulary_words, whose defaults are 20, 10 and 512: docs/loop.md): exact matching against more than this many
+#: stored keyframes costs more than 0.2 s a query (3.3 ms each, measured) ...
 PREFILTER_ABOVE = 60
 #: ... so only this many, the most similar by bag of words, are matched exactly (about 0.1 s) ...
 PREFILTER_KEEP = 30

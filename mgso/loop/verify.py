@@ -33,8 +33,9 @@ only after four checks, each with a threshold of ``loop`` (:class:`~mgso.config.
    keyframe's own depths show it: its DSO points, moved by the refined motion into the candidate's camera, must
    land on the candidate's depth map (level 0 of the reference) with the same inverse depth within
    :data:`DEPTH_TOLERANCE`, for at least :data:`MIN_DEPTH_CONSISTENT` of those compared (``"depth
-   inconsistent"``), and at least :data:`MIN_DEPTH_COMPARED` must be compared (``"depth unverified"``). These
-   three are module constants until LoopConfig has them (verify reads them from the settings when it does).
+   inconsistent"``), and at least :data:`MIN_DEPTH_COMPARED` must be compared (``"depth unverified"``); the
+   settings ``loop.depth_tolerance``, ``loop.min_depth_consistent`` and ``loop.min_depth_compared`` (the module
+   constants are their defaults for callers without them).
 
 Nothing here raises on bad luck (no features, no depths, degenerate points, a candidate from another camera): the
 candidate is rejected with its reason, which the closer counts.
