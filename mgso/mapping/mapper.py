@@ -181,6 +181,8 @@ class Mapper:
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
         if self.cfg.refine_every > 0:
             densify = dataclasses.replace(densify, refine_every=self.cfg.refine_every)
+        if self.cfg.prune_opacity > 0:
+            densify = dataclasses.replace(densify, prune_opacity=self.cfg.prune_opacity)
         step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
         self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
                                train_step=step, seed=seed)
