@@ -157,6 +157,13 @@ class OracleOdometry:
     def _drift_scale(self, index: int) -> float:
         return float(np.exp(int(index) * self._drift_xi[6]))
 
+    def _refine_window(self) -> PoseUpdate:
+        """The window's keyframes at their exact poses (in the drifted world), kept as their final poses."""
+        exact = {e[0]: self._drifted(e[2], e[1]) for e in self._window}
+        for kid, T in exact.items():
+            self._kf[kid] = (self._kf[kid][0], T)
+        return PoseUpdate(exact)
+
     def _select(self, frame) -> tuple[np.ndarray, np.ndarray]:
         from mgso_kernels.reference.image import build_pyramid
 
@@ -201,10 +208,7 @@ class OracleOdometry:
             kid = self._next_kf
             self._next_kf += 1
             if self._window:     # the window refined the earlier keyframes: their exact poses
-                exact = {e[0]: self._drifted(e[2], e[1]) for e in self._window}
-                messages.append(PoseUpdate(exact))
-                for e in self._window:
-                    self._kf[e[0]] = (self._kf[e[0]][0], exact[e[0]])
+                messages.append(self._refine_window())
             uv, idepth = self._select(frame)
             rgb = np.asarray(frame.rgb, np.float32)
             colors = sample_pattern_colors(rgb, uv) if len(uv) else np.zeros((0, 3), np.float32)
@@ -225,10 +229,7 @@ class OracleOdometry:
     def finish(self) -> list:
         out = []
         if self._window:
-            exact = {e[0]: self._drifted(e[2], e[1]) for e in self._window}
-            out.append(PoseUpdate(exact))
-            for e in self._window:
-                self._kf[e[0]] = (self._kf[e[0]][0], exact[e[0]])
+            out.append(self._refine_window())
         while self._window:
             out.append(self._marginalize(self._window.popleft()))
         return out

@@ -27,6 +27,8 @@ from mgso.observers import Observer
 from mgso.oracle import OracleOdometry
 from mgso.system import System, SystemRunError
 
+from odometry_doubles import SlowOdometry
+
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
         "system.eval_photo_slam=false"]
 ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.02, pose_noise_m=0.01, pose_noise_rad=0.005)
@@ -44,18 +46,6 @@ def _system(room, *over, observer=None, wrapper=None):
     seq = open_sequence(str(room), config=cfg.input)
     odo = OracleOdometry.from_sequence(seq, **ORACLE)
     return System(wrapper(odo) if wrapper else odo, cfg, observer=observer), seq, odo
-
-
-class _Slow:
-    def __init__(self, odo, seconds):
-        self.odo, self.seconds = odo, seconds
-
-    def process(self, frame):
-        time.sleep(self.seconds)
-        return self.odo.process(frame)
-
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
 
 
 # ------------------------------------------------------------------------------------------------ the wire
@@ -188,7 +178,7 @@ class _Watcher(Observer):
 def test_watchers_get_snapshots_and_renders_while_the_map_trains(room, mode):
     w = _Watcher()
     system, seq, _ = _system(room, f"system.mode={mode}", "system.playback_speed=0", observer=w,
-                             wrapper=lambda o: _Slow(o, 0.05))
+                             wrapper=lambda o: SlowOdometry(o, 0.05))
     w.system, w.camera = system, seq.calibration.output
     system.run(seq.frames())
     m = system.mapper
@@ -224,7 +214,7 @@ def test_a_mapper_process_that_fails_stops_the_run_with_its_reason(room):
     reason, the run ends with SystemRunError carrying what was done, and the process is gone."""
     cfg = load_config(None, [*BASE, "system.mode=realtime", "system.playback_speed=0"])
     seq = open_sequence(str(room), config=cfg.input)
-    system = System(_Slow(OracleOdometry.from_sequence(seq, **ORACLE), 0.1), cfg, device="cuda:7")
+    system = System(SlowOdometry(OracleOdometry.from_sequence(seq, **ORACLE), 0.1), cfg, device="cuda:7")
     with pytest.raises(SystemRunError) as info:
         system.run(seq.frames())
     assert isinstance(info.value.error, MapperError) and "cuda:7" in str(info.value.error)

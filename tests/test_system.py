@@ -25,6 +25,8 @@ from mgso.oracle import OracleOdometry
 from mgso.app.full import METRICS_KEYS, write_outputs
 from mgso.system import System, SystemRunError
 
+from odometry_doubles import SlowOdometry
+
 # Small CPU-sized runs: 96x72 images, a keyframe every 4 frames, 15 mapping steps a keyframe, 60 final steps.
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=true"]
 ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.02, pose_noise_m=0.01, pose_noise_rad=0.005)
@@ -296,24 +298,10 @@ def test_real_time_mode_delivers_every_keyframe_and_pose_update(room, tmp_path):
     assert metrics["mode"] == "realtime" and metrics["psnr_monogs_db"] > 20.0
 
 
-class _Slow:
-    """An odometry that takes ``seconds`` a frame (frames arrive faster than it can take them)."""
-
-    def __init__(self, odo, seconds):
-        self.odo, self.seconds = odo, seconds
-
-    def process(self, frame):
-        time.sleep(self.seconds)
-        return self.odo.process(frame)
-
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
-
-
 def test_real_time_playback_drops_frames_the_odometry_cannot_take(room, tmp_path):
     result, metrics, *_ = _in_thread(lambda: _run(
         room, tmp_path, "system.mode=realtime", "system.playback_speed=1", "mapping.mapper.final_iterations=0",
-        "system.eval_photo_slam=false", odometry_wrapper=lambda o: _Slow(o, 0.1)), timeout=120)
+        "system.eval_photo_slam=false", odometry_wrapper=lambda o: SlowOdometry(o, 0.1)), timeout=120)
     # 30 fps playback, 100 ms a frame: about two of every three frames are dropped, as by a live camera
     assert result.frames_read == 24
     assert result.frames_processed + result.frames_dropped == 24

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mgso.config import Config
-from mgso.geometry import sim3_exp, sim3_inverse, sim3_log, so3_log
+from mgso.geometry import sim3_exp, sim3_inverse, sim3_log, sim3_to_parts, so3_log
 from mgso.io.trajectory import Trajectory
 from mgso.mapping.messages import (KeyframeMessage, LoopCorrection, PointsMessage, PoseUpdate,
                                    sim3_apply_to_pose)
@@ -104,10 +104,6 @@ class LoopStats:
                 "rejected_total": int(sum(self.rejected.values())), "graph_solves": self.graph_solves,
                 "seconds": self.seconds, "corrections_sent": self.corrections_sent, "error": self.error,
                 "loops": [dict(r.__dict__) for r in self.loops]}
-
-
-def _scale(S: np.ndarray) -> float:
-    return float(np.cbrt(np.linalg.det(S[:3, :3])))
 
 
 def _rigid_as_sim3(T: np.ndarray) -> np.ndarray:
@@ -226,7 +222,7 @@ class LoopCloser:
         if isinstance(msg, KeyframeMessage):
             C = self.correction_of(msg.keyframe_id)
             self._sent[msg.keyframe_id] = C
-            s = _scale(C)
+            s = sim3_to_parts(C)[2]
             return dataclasses.replace(msg, cam_to_world=sim3_apply_to_pose(C, msg.cam_to_world),
                                        idepths=np.asarray(msg.idepths) / s)
         if isinstance(msg, PoseUpdate):
@@ -445,7 +441,7 @@ class LoopCloser:
         out = []
         for k in old:
             Q = sim3_apply_to_pose(self._C.get(k, self._C_cur), self._odo[k])
-            if np.linalg.norm(Q[:3, 3] - P[:3, 3]) <= radius * _scale(self._C.get(kid, self._C_cur)):
+            if np.linalg.norm(Q[:3, 3] - P[:3, 3]) <= radius * sim3_to_parts(self._C.get(kid, self._C_cur))[2]:
                 if float(P[:3, 2] @ Q[:3, 2]) >= 0.5:
                     out.append(k)
         return out
@@ -479,13 +475,13 @@ class LoopCloser:
         current = new[kid]
         marg = {k: new[k] for k in order if k not in active and k != kid}
         delta = current @ sim3_inverse(C[kid])
-        R, t = delta[:3, :3] / _scale(delta), delta[:3, 3]
+        R, t, s = sim3_to_parts(delta)
         rec = LoopRecord(kid, cand, self._frame.get(kid, -1), self._frame.get(cand, -1), int(v.matches),
                          int(v.inliers), None if v.rmse is None else float(v.rmse),
                          None if v.scale is None else float(v.scale),
                          correction_translation=float(np.linalg.norm(t)),
                          correction_degrees=float(np.degrees(np.linalg.norm(so3_log(R)))),
-                         correction_scale=_scale(delta), graph_seconds=seconds)
+                         correction_scale=s, graph_seconds=seconds)
         self.stats.accepted += 1
         self.stats.loops.append(rec)
         log.info("loop closed: keyframe %d (frame %d) on keyframe %d (frame %d), %d inliers; the newest keyframe "

@@ -51,7 +51,7 @@ import numpy as np
 import warp as wp
 
 from mgso.config import OptimConfig
-from mgso.geometry import matrix_to_quat_wxyz
+from mgso.geometry import matrix_to_quat_wxyz, sim3_to_parts
 from mgso_kernels import adam as kadam
 from mgso_kernels import runtime
 
@@ -546,13 +546,10 @@ class GaussianMap:
             rows = np.flatnonzero(anchors == int(kid))
             if len(rows) == 0:
                 continue
-            S = np.asarray(S, dtype=np.float64)
-            sR = S[:3, :3]
-            s = float(np.cbrt(np.linalg.det(sR)))
+            R, t, s = sim3_to_parts(S)
             if not (np.isfinite(s) and s > 0):
                 raise ValueError(f"GaussianMap.transform_anchored: keyframe {kid}: not a Sim(3) (det {s ** 3:g})")
-            R = sR / s
-            means[rows] = means[rows] @ sR.T + S[:3, 3]
+            means[rows] = s * (means[rows] @ R.T) + t
             log_scales[rows] += math.log(s)
             quats[rows] = _quat_mul(matrix_to_quat_wxyz(R), quats[rows])
             moved += len(rows)

@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mgso.config import Config
-from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log
+from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log, sim3_to_parts
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.mapping.messages import (KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop,
                                    map_exposure, sim3_apply_to_pose)
@@ -431,7 +431,7 @@ class Mapper:
             if kid in self._odo_c2w:
                 self._odo_c2w[kid] = sim3_apply_to_pose(S, self._odo_c2w[kid])
             if view.depth_z is not None and len(view.depth_z):
-                view.set_depth_points(view.depth_uv, view.depth_z * float(np.cbrt(np.linalg.det(S[:3, :3]))))
+                view.set_depth_points(view.depth_uv, view.depth_z * sim3_to_parts(S)[2])
         self.stats.gaussians_moved += self.gmap.transform_anchored(msg.transforms)
 
     def _on_points(self, msg: PointsMessage) -> None:

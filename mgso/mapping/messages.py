@@ -34,7 +34,7 @@ from typing import Mapping, Union
 import numpy as np
 
 from mgso.camera import PinholeCamera
-from mgso.geometry import check_sim3, orthonormalize
+from mgso.geometry import check_sim3, orthonormalize, sim3_to_parts
 from mgso.mapping.seeding import KeyframeSeedInput, PointKind, _frozen_array as _frozen, check_points
 
 __all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "LoopCorrection", "Stop", "MapperMessage",
@@ -255,12 +255,10 @@ class PointsMessage:
 def sim3_apply_to_pose(S: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
     """A camera pose moved by a Sim(3) of the world: the camera's centre maps as a point, its axes turn by R (the
     result is rigid: a similarity changes the scale of the world, not of the camera)."""
-    S = np.asarray(S, dtype=np.float64)
-    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
-    R = S[:3, :3] / s
+    R, t, s = sim3_to_parts(S)
     out = np.eye(4)
     out[:3, :3] = orthonormalize(R @ cam_to_world[:3, :3])
-    out[:3, 3] = S[:3, :3] @ cam_to_world[:3, 3] + S[:3, 3]
+    out[:3, 3] = s * (R @ cam_to_world[:3, 3]) + t
     return out
 
 
