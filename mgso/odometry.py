@@ -714,8 +714,11 @@ class Odometry:
         first_to_new = tracked.initialize.first_to_new.copy()
         first_to_new[:3, 3] /= rescale
         # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
-        # the identity there, which fails at car speed)
-        n_frames = max(int(tracked.initialize.frames), 1)
+        # the identity there, which fails at car speed). Per frame of the source, not per frame the initialiser
+        # saw: in real time frames are dropped while the initialiser is slow, and the motion over the processed
+        # frames would overstate the next frame's step by the gap (issue 13: KITTI at 10 fps lost frames 3-8)
+        span = int(tracked.record.index) - int(first_rec.index)
+        n_frames = span if span >= 1 else max(int(tracked.initialize.frames), 1)
         self._init_rmse = float(tracked.initialize.rmse) if np.isfinite(tracked.initialize.rmse) else -1.0
         self._init_step = se3_exp(se3_log(se3_inverse(first_to_new)) / n_frames)
         pos = idepth > 0
