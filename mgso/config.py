@@ -703,7 +703,10 @@ class MapperConfig:
                                 "with their pose updates fit, so the odometry waits only when the mapper is hopelessly "
                                 "behind (each wait is counted and reported)")
     newest_probability: float = opt(0.2, "chance that a step trains on the newest keyframe (where the map is worst); "
-                                         "otherwise one of the least used keyframes (LeastUsedSampler)")
+                                         "otherwise the sampler's choice among all keyframes")
+    sampler: Literal["random", "least_used"] = opt(
+        "least_used", "which keyframe a step trains on besides the newest: random = uniform over all keyframes "
+                      "(NewestOrRandomSampler); least_used = one of the least used (LeastUsedSampler)")
     init: Literal["dso", "random"] = opt(
         "dso", "dso: seed Gaussians from DSO's points (MGSO); random: as many random points in the keyframe's "
                "frustum as DSO seeding would add there, depth uniform over its points' depth range (the comparison "
@@ -736,6 +739,7 @@ class MapperConfig:
         c.within(0, 1, "newest_probability")
         c.one_of(("odometry", "exposure_time", "none"), "exposure")
         c.one_of(("dso", "random"), "init")
+        c.one_of(("random", "least_used"), "sampler")
         c.done()
 
 

@@ -36,6 +36,9 @@ from types import MappingProxyType, SimpleNamespace
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mgso.observers import Observer  # noqa: E402
 
 
 def _mappingproxy(d: dict) -> MappingProxyType:
@@ -226,7 +229,10 @@ def _one(args) -> dict:
         odo = ReplayOdometry(rec)
         frames = [SimpleNamespace(index=r.index, timestamp=r.timestamp) for r in rec.frames]
     t_map = time.perf_counter()
-    system = System(odo, cfg, device=device)
+    watcher = ViewWatcher(args.watch_views) if args.watch_views else None
+    system = System(odo, cfg, device=device, observer=watcher)
+    if watcher is not None:
+        watcher.mapper = system.mapper
     result = system.run(frames)
     m = write_outputs(result, system.mapper, seq, cfg, out, odometry_name=odo.name)
     fig = {k: m.get(k) for k in FIGURES}
@@ -238,12 +244,59 @@ def _one(args) -> dict:
                       "rejected_visibility": int(sum(r.num_rejected_visibility for r in sr)),
                       "added": int(sum(r.num_added for r in sr)),
                       "added_first_keyframe": int(sr[0].num_added) if sr else 0}
+    fig["keyframe_psnr"] = _training_view_psnr(system.mapper)
+    if watcher is not None:
+        fig["watched_views"] = watcher.history
     mono = [r for r in m.get("render") or [] if r.get("protocol_key") == "monogs"]
     fig["psnr_per_frame"] = {f["frame"]: round(f["psnr_db"], 2) for f in mono[0]["frames"]} if mono else {}
     fig["wall_s"] = round(time.perf_counter() - t0, 1)
     fig["mapping_wall_s"] = round(time.perf_counter() - t_map, 1)
     fig["out"] = str(out)
     return fig
+
+
+def _view_psnr(mapper, v) -> float:
+    exp = (float(v.exposure[0]), float(v.exposure[1])) if np.any(v.exposure != 0.0) else None
+    r = np.clip(mapper.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0)
+    mse = float(np.mean((r.astype(np.float64) - v.image.astype(np.float64)) ** 2))
+    return round(10.0 * np.log10(1.0 / max(mse, 1e-12)), 2)
+
+
+class ViewWatcher(Observer):
+    """``--watch-views N``: after every keyframe the mapper takes, the PSNR of its first N training views (the
+    oldest keyframes) rendered from the map as it is then, with the step count, the map's size and the mapper's
+    densification totals: when and by what an early view's fit is lost."""
+
+    def __init__(self, n: int):
+        self.n = int(n)
+        self.mapper = None
+        self.history: list = []
+
+    def on_map_updated(self, u) -> None:
+        m = self.mapper
+        if m is None or not len(m.views):
+            return
+        ids = sorted(m.views.ids())[: self.n]
+        d = m.stats.densify
+        self.history.append({"keyframe": int(u.keyframe_id), "steps": int(u.steps), "gaussians": int(u.num_gaussians),
+                             "psnr": {int(i): _view_psnr(m, m.views[i]) for i in ids},
+                             "densify": dict(d)})
+
+
+def _training_view_psnr(mapper) -> dict:
+    """The final map's PSNR on its own training views (the keyframes, at their map poses, full resolution, with the
+    view's exposure): high here and low on the evaluated frames between them means the map fits its views and not
+    the space between (overfitting); low here too means the views disagree (the map cannot fit them all)."""
+    if mapper is None or not len(mapper.views):
+        return {}
+    per = {}
+    for v in mapper.views:
+        exp = (float(v.exposure[0]), float(v.exposure[1])) if np.any(v.exposure != 0.0) else None
+        r = np.clip(mapper.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0)
+        mse = float(np.mean((r.astype(np.float64) - v.image.astype(np.float64)) ** 2))
+        per[int(v.view_id)] = round(10.0 * np.log10(1.0 / max(mse, 1e-12)), 2)
+    vals = np.array(list(per.values()))
+    return {"mean_db": round(float(vals.mean()), 2), "per_view": per}
 
 
 def main(argv=None) -> int:
@@ -255,6 +308,8 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=int, default=1, help="divide the image size (2: 320x240 for 7-Scenes)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="setting (repeatable)")
     ap.add_argument("--tag", default="default", help="names the output folder of this variant")
+    ap.add_argument("--watch-views", type=int, default=0, metavar="N",
+                    help="after every keyframe, the PSNR of the first N training views (diagnostic; costs renders)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "mgso" / "odometry-recordings"))
     ap.add_argument("--out", default="/tmp/mgso-profile-mapping")
     ap.add_argument("--one", help=argparse.SUPPRESS)
@@ -272,7 +327,8 @@ def main(argv=None) -> int:
     for p in paths:
         for src in args.source or ["dso"]:
             cmd = [sys.executable, __file__, "--one", p, "--source", src, "--device", args.device, "--downscale",
-                   str(args.downscale), "--tag", args.tag, "--cache", args.cache, "--out", args.out]
+                   str(args.downscale), "--tag", args.tag, "--cache", args.cache, "--out", args.out,
+                   "--watch-views", str(args.watch_views)]
             for s in args.set:
                 cmd += ["--set", s]
             r = subprocess.run(cmd, capture_output=True, text=True)

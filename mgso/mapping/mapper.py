@@ -62,7 +62,7 @@ from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gau
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
 from mgso.mapping.trainer import StepResult, Trainer, TrainStep
-from mgso.mapping.views import LeastUsedSampler, TrainView, ViewSet
+from mgso.mapping.views import LeastUsedSampler, NewestOrRandomSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
 __all__ = ["Mapper", "MapperStats", "MapperError", "MapUpdate", "MapState"]
@@ -99,6 +99,7 @@ class MapperStats:
     loop_corrections: int = 0               # LoopCorrection messages applied
     gaussians_moved: int = 0                # Gaussians moved by them (each time it moved)
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
+                                                   "pruned_opacity": 0, "pruned_world": 0, "pruned_screen": 0,
                                                    "skipped_capacity": 0, "opacity_resets": 0,
                                                    "clamped_aspect": 0})
     seed_results: list = field(default_factory=list)   # SeedResult per seeding, in order
@@ -177,7 +178,8 @@ class Mapper:
         self.gmap = GaussianMap(mc.capacity, mc.sh_degree, device=device, optim=mc.optim)
         self.device = self.gmap.device
         self.views = ViewSet()
-        self.sampler = LeastUsedSampler(self.cfg.newest_probability, seed=seed)
+        sampler = NewestOrRandomSampler if self.cfg.sampler == "random" else LeastUsedSampler
+        self.sampler = sampler(self.cfg.newest_probability, seed=seed)
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
         if self.cfg.refine_every > 0:
             densify = dataclasses.replace(densify, refine_every=self.cfg.refine_every)
@@ -572,6 +574,9 @@ class Mapper:
             d["cloned"] += f.cloned
             d["split"] += f.split
             d["pruned"] += f.pruned
+            d["pruned_opacity"] += f.pruned_opacity
+            d["pruned_world"] += f.pruned_world
+            d["pruned_screen"] += f.pruned_screen
             d["skipped_capacity"] += f.skipped_capacity
             d["clamped_aspect"] += f.clamped_aspect
             d["opacity_resets"] += int(f.opacity_reset)

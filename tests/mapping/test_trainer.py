@@ -13,7 +13,8 @@ from mgso.mapping.fit import split_frames
 from mgso.mapping.gaussian_map import SH_C0, GaussianMap
 from mgso.mapping.init import gaussians_from_points, knn_mean_distance, random_frustum_points
 from mgso.mapping.trainer import TrainStep, Trainer
-from mgso.mapping.views import LeastUsedSampler, RandomEpochSampler, TrainView, ViewSet, downsample_2x2
+from mgso.mapping.views import (LeastUsedSampler, NewestOrRandomSampler, RandomEpochSampler, TrainView, ViewSet,
+                               downsample_2x2)
 from mgso_kernels.loss import L1SSIMLoss
 from mgso_kernels.splat import Rasterizer, make_camera
 
@@ -129,6 +130,15 @@ def test_samplers():
     views[13].uses = 1
     assert {lu.next_view(views) for _ in range(10)} == {13}
     assert LeastUsedSampler(newest_probability=1.0).next_view(views) == 20
+    # the newest with its probability, otherwise uniform over all views whatever their uses
+    nr = NewestOrRandomSampler(newest_probability=0.25, seed=1)
+    picks = np.array([nr.next_view(views) for _ in range(4000)])
+    share = {vid: float(np.mean(picks == vid)) for vid in views.ids()}
+    assert abs(share[20] - (0.25 + 0.75 / 5)) < 0.03                    # 0.40
+    assert all(abs(share[v] - 0.75 / 5) < 0.03 for v in (10, 11, 13, 14))   # 0.15 each, 13's fewer uses or not
+    assert NewestOrRandomSampler(newest_probability=1.0).next_view(views) == 20
+    with pytest.raises(ValueError, match="newest_probability"):
+        NewestOrRandomSampler(newest_probability=1.5)
 
 
 def test_split_frames_holds_out_every_fifth():
