@@ -17,7 +17,8 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
   keyframes) unless the run was interrupted, and stop.
 
 Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
-:class:`~mgso.mapping.views.LeastUsedSampler` (least used keyframes, the newest more often), Gaussian-pyramid levels
+:class:`~mgso.mapping.views.NewestOrRandomSampler` (the newest keyframe, otherwise any; ``mapping.mapper.sampler``
+``least_used``: :class:`~mgso.mapping.views.LeastUsedSampler`), Gaussian-pyramid levels
 (``mapping.train.pyramid_levels``) and densification / pruning by the strategy (``mapping.densify``).
 
 **Exposure.** Each view's exposure ``(a', b')`` (the loss compares ``exp(a') render + b'`` with the keyframe) follows
@@ -185,6 +186,8 @@ class Mapper:
             densify = dataclasses.replace(densify, refine_every=self.cfg.refine_every)
         if self.cfg.prune_opacity > 0:
             densify = dataclasses.replace(densify, prune_opacity=self.cfg.prune_opacity)
+        if self.cfg.grow_grad2d > 0:
+            densify = dataclasses.replace(densify, grow_grad2d=self.cfg.grow_grad2d)
         step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
         self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
                                train_step=step, seed=seed)
@@ -594,7 +597,7 @@ class Mapper:
         return done
 
     def refine(self, iterations: int) -> int:
-        """The final refinement: ``iterations`` steps over all keyframes (the sampler's least-used choice)."""
+        """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice)."""
         t0 = time.perf_counter()
         done = self.train(iterations)
         self.stats.final_steps += done

@@ -337,6 +337,7 @@ def test_the_mappers_prune_threshold_replaces_densifys(wp_device, seq, cam):
     counts = {}
     for prune in (0.05, 0.0):
         mp = Mapper(_cfg(f"mapping.mapper.prune_opacity={prune}", "mapping.mapper.refine_every=10",
+                         "mapping.mapper.grow_grad2d=0",           # densify's threshold: clones to prune
                          "mapping.densify.refine_start_step=0", "mapping.mapper.iterations_per_keyframe=10",
                          "mapping.seeding.init_opacity=0.03"), device=wp_device)
         assert mp.trainer.train_step.strategy.cfg.prune_opacity == (prune or 0.005)
@@ -364,3 +365,20 @@ def test_random_sampler_keeps_training_the_first_keyframes(wp_device, seq, cam):
         uses[sampler] = mp.views[0].uses
     # measured: random 13 of 40 steps (8 while it was the only view), least_used 8 (its own steps only)
     assert uses["least_used"] <= 9 and uses["random"] >= 11, uses
+
+
+def test_the_mappers_grow_threshold_replaces_densifys(wp_device, seq, cam):
+    """mapping.mapper.grow_grad2d is the mapper's clone/split threshold (0.0008 by default); 0 leaves mapping.densify's
+    3DGS threshold (0.0002): the negative control grows more of the same map."""
+    grown = {}
+    for grow in (0.0008, 0.0):
+        mp = Mapper(_cfg(f"mapping.mapper.grow_grad2d={grow}", "mapping.mapper.refine_every=10",
+                         "mapping.densify.refine_start_step=0", "mapping.mapper.iterations_per_keyframe=30"),
+                    device=wp_device)
+        assert mp.trainer.train_step.strategy.cfg.grow_grad2d == (grow or 0.0002)
+        for i in (0, 4, 8):
+            mp.submit(_kf(seq, cam, i))
+            mp.process_pending()
+        d = mp.stats.densify
+        grown[grow] = d["cloned"] + d["split"]
+    assert grown[0.0] > 1.5 * grown[0.0008], grown             # measured 566 against 299 split
