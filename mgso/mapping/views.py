@@ -331,33 +331,21 @@ class LeastUsedSampler:
         ids = views.ids()
         if self.rng.random() < self.newest_probability:
             return ids[-1]
+        return self._other(views, ids)
+
+    def _other(self, views: ViewSet, ids: list[int]) -> int:
         uses = np.array([views[i].uses for i in ids])
         least = np.flatnonzero(uses == uses.min())
         return ids[int(least[self.rng.integers(len(least))])]
 
 
 @dataclass
-class NewestOrRandomSampler:
+class NewestOrRandomSampler(LeastUsedSampler):
     """The newest view with probability ``newest_probability``, otherwise one drawn uniformly from all views (the
     newest included): every view keeps being trained as long as the map grows (MonoGS trains its window and random
     older keyframes at every mapping step). :class:`LeastUsedSampler` with a fixed number of steps a keyframe gives
     the newest view every step until it has as many uses as the others, so an old view is not trained again before
     the final refinement and the map forgets it (docs/mapping.md)."""
 
-    newest_probability: float = 0.2
-    seed: int = 0
-    rng: np.random.Generator = field(init=False, repr=False)
-
-    def __post_init__(self):
-        if not 0.0 <= self.newest_probability <= 1.0:
-            raise ValueError(f"newest_probability must be in [0, 1], got {self.newest_probability}")
-        self.rng = np.random.default_rng(self.seed)
-
-    def next_view(self, views: ViewSet) -> int:
-        if len(views) == 0:
-            raise ValueError("next_view: the view set is empty")
-        ids = views.ids()
-        if self.rng.random() < self.newest_probability:
-            return ids[-1]
+    def _other(self, views: ViewSet, ids: list[int]) -> int:
         return ids[int(self.rng.integers(len(ids)))]
-
