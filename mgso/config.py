@@ -579,7 +579,6 @@ class DensifyConfig:
         c.ge(1, "refine_every")  # step % refine_every
         c.within(0, 1, "reset_opacity_value", open_lo=True, open_hi=True)  # an opacity (its logit is stored)
         c.within(0, 1, "prune_opacity", open_hi=True)
-        c.ge(0, "grow_grad2d")
         c.one_of(("grad", "absgrad", "absgs"), "grad_mode")
         c.gt(0, "grow_grad2d", "grow_grad2d_abs", "absgs_split_grad2d", "prune_scale3d")
         c.ge(2, "split_children")  # a split into one is no split
