@@ -367,10 +367,17 @@ SIGINT_SCRIPT = textwrap.dedent("""
 """)
 
 
+def _default_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_sigint_in_a_subprocess_writes_outputs(room, tmp_path):
+    # SIGINT restored to its default in the child: a suite started in the background by a non-interactive shell
+    # (`bash .ci/run &`) inherits SIGINT ignored, Python then installs no KeyboardInterrupt handler, and the run
+    # went on into its 100,000 refinement steps (the test timed out twice so)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-c", SIGINT_SCRIPT, str(room), str(tmp_path)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_default_sigint)
     try:
         line = proc.stdout.readline()
         assert line.strip() == "running", proc.stderr.read()
