@@ -46,7 +46,6 @@ def _mappingproxy(d: dict) -> MappingProxyType:
 
 
 copyreg.pickle(MappingProxyType, lambda m: (_mappingproxy, (dict(m),)))   # PoseUpdate's read-only mappings
-sys.path.insert(0, str(ROOT))
 
 FIGURES = ("ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db", "ssim_monogs",
            "num_gaussians", "map_size_mb", "keyframes", "mapping_iterations_per_s")
@@ -256,10 +255,12 @@ def _one(args) -> dict:
 
 
 def _view_psnr(mapper, v) -> float:
+    """The map's PSNR on training view ``v`` at its map pose, full resolution, with the view's exposure."""
+    from mgso.eval.render_metrics import psnr
+
     exp = (float(v.exposure[0]), float(v.exposure[1])) if np.any(v.exposure != 0.0) else None
     r = np.clip(mapper.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0)
-    mse = float(np.mean((r.astype(np.float64) - v.image.astype(np.float64)) ** 2))
-    return round(10.0 * np.log10(1.0 / max(mse, 1e-12)), 2)
+    return round(psnr(r, v.image), 2)
 
 
 class ViewWatcher(Observer):
@@ -289,12 +290,7 @@ def _training_view_psnr(mapper) -> dict:
     the space between (overfitting); low here too means the views disagree (the map cannot fit them all)."""
     if mapper is None or not len(mapper.views):
         return {}
-    per = {}
-    for v in mapper.views:
-        exp = (float(v.exposure[0]), float(v.exposure[1])) if np.any(v.exposure != 0.0) else None
-        r = np.clip(mapper.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0)
-        mse = float(np.mean((r.astype(np.float64) - v.image.astype(np.float64)) ** 2))
-        per[int(v.view_id)] = round(10.0 * np.log10(1.0 / max(mse, 1e-12)), 2)
+    per = {int(v.view_id): _view_psnr(mapper, v) for v in mapper.views}
     vals = np.array(list(per.values()))
     return {"mean_db": round(float(vals.mean()), 2), "per_view": per}
 

@@ -182,12 +182,9 @@ class Mapper:
         sampler = NewestOrRandomSampler if self.cfg.sampler == "random" else LeastUsedSampler
         self.sampler = sampler(self.cfg.newest_probability, seed=seed)
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
-        if self.cfg.refine_every > 0:
-            densify = dataclasses.replace(densify, refine_every=self.cfg.refine_every)
-        if self.cfg.prune_opacity > 0:
-            densify = dataclasses.replace(densify, prune_opacity=self.cfg.prune_opacity)
-        if self.cfg.grow_grad2d > 0:
-            densify = dataclasses.replace(densify, grow_grad2d=self.cfg.grow_grad2d)
+        # the mapper's own densification settings, where set (0: mapping.densify's, what `mgso fit` uses)
+        own = {k: getattr(self.cfg, k) for k in ("refine_every", "prune_opacity", "grow_grad2d")}
+        densify = dataclasses.replace(densify, **{k: v for k, v in own.items() if v > 0})
         step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
         self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
                                train_step=step, seed=seed)

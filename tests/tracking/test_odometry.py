@@ -167,12 +167,11 @@ def test_bad_input_is_a_reported_loss_with_recovery(wp_device, seq160, seq_jump,
         assert ate.rmse < 0.05, ate.summary()
 
 
-@pytest.mark.parametrize("every", [2, 3])
-def test_initialisers_motion_is_per_source_frame_when_frames_are_dropped(wp_device, seq160, every):
+def test_initialisers_motion_is_per_source_frame_when_frames_are_dropped(wp_device, seq160):
     """In real time frames are dropped while the initialiser is slow (KITTI at 10 fps: frames 3-8, issue 13). The
     first tracked frame's constant-motion guess is the initialiser's motion per frame of the source, not per frame
-    it saw: feeding every ``every``-th frame until the initialisation, the guess matches the true step of the next
-    frame as it does when no frame is dropped (dividing by the frames seen made it ``every`` times too long: 2.15x
+    it saw: feeding every 2nd or 3rd frame until the initialisation, the guess matches the true step of the next
+    frame as it does when no frame is dropped (dividing by the frames seen made it 2-3 times too long: 2.15x
     and 3.38x measured before the fix)."""
     k = seq160.intrinsics
     T = seq160.cam_to_world
@@ -193,9 +192,10 @@ def test_initialisers_motion_is_per_source_frame_when_frames_are_dropped(wp_devi
         return guess / np.linalg.norm(T[i + 1, :3, 3] - T[i, :3, 3])
 
     baseline = guess_over_truth(1)        # nothing dropped (measured 1.03)
-    dropped = guess_over_truth(every)     # measured 1.08 (every 2nd), 1.13 (every 3rd)
     assert 0.8 < baseline < 1.25
-    assert abs(dropped / baseline - 1.0) < 0.25, (baseline, dropped)
+    for every in (2, 3):                  # measured 1.08 (every 2nd), 1.13 (every 3rd)
+        dropped = guess_over_truth(every)
+        assert abs(dropped / baseline - 1.0) < 0.25, (every, baseline, dropped)
 
 
 def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
