@@ -37,6 +37,11 @@ class Observer:
     def on_points_marginalized(self, points: Any) -> None:
         """Points left the window for good (the DSO point cloud grows)."""
 
+    def on_loop_closed(self, correction: Any) -> None:
+        """Loop closure moved keyframes (a :class:`~mgso.mapping.messages.LoopCorrection`: each keyframe's Sim(3)
+        from the world it had to the corrected one). Messages before this one were in the old world, those after
+        it are in the corrected one; the odometry's own frame results stay in its world."""
+
     def on_map_updated(self, stats: Any) -> None:
         """The Gaussian map trained / densified; ``stats`` says how."""
 
@@ -83,6 +88,9 @@ class ObserverList(Observer):
 
     def on_points_marginalized(self, points):
         self._call("on_points_marginalized", points)
+
+    def on_loop_closed(self, correction):
+        self._call("on_loop_closed", correction)
 
     def on_map_updated(self, stats):
         self._call("on_map_updated", stats)

@@ -369,6 +369,7 @@ class System:
             corr = loop.poll()
             if corr is not None:
                 self.mapper.submit(corr)
+                self.observer.on_loop_closed(corr)
         if not self.realtime:
             self.mapper.process_pending()
 
@@ -502,13 +503,16 @@ class System:
             if loop is not None:
                 loop.observe(msg, final=True)
                 msg = loop.correct(msg)
-            if isinstance(msg, PoseUpdate):
-                self._pose_updates += 1
+            if isinstance(msg, PoseUpdate):            # observers see the end of the stream too (a viewer's
+                self._pose_updates += 1                # final keyframe poses and the window's last points)
+                self.observer.on_window_optimized(msg)
             elif isinstance(msg, PointsMessage):
                 self.cloud.add(raw)
+                self.observer.on_points_marginalized(msg)
             elif isinstance(msg, KeyframeMessage):
                 self._keyframes += 1
                 self._keyframe_frames.append(msg.frame_index)
+                self.observer.on_keyframe(msg)
             self.mapper.submit(msg)
         if loop is not None:
             if interrupted:
@@ -516,6 +520,7 @@ class System:
             corr = loop.finish()
             if corr is not None:
                 self.mapper.submit(corr)
+                self.observer.on_loop_closed(corr)
         self.mapper.stop(refine=not interrupted)
 
 

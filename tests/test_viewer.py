@@ -303,3 +303,36 @@ def test_the_watched_frames_of_a_live_source_still_read_as_live_to_the_player():
     def plain(frames):
         yield from frames
     assert not Player(plain(Live()), speed=1.0).live
+
+
+def test_a_loop_correction_moves_what_came_before_it_only():
+    """on_loop_closed moves the keyframes the viewer has and, in the viewer thread, the DSO points that arrived
+    before it by their host keyframe's Sim(3); points that arrive after it are in the corrected world already and
+    stay; a keyframe the correction does not name stays (the negative controls)."""
+    from types import SimpleNamespace
+
+    from mgso.geometry import se3_exp
+    from mgso.mapping.messages import LoopCorrection, PointsMessage, sim3_apply_to_pose
+
+    v = V.LiveViewer(port=0)
+    T7, T8 = se3_exp([0.1, 0, 0, 0, 0.2, 0]), se3_exp([0, 0.3, 0, 0.1, 0, 0])
+    for kid, T in ((7, T7), (8, T8)):
+        v.on_keyframe(SimpleNamespace(keyframe_id=kid, cam_to_world=T, frame_index=kid, camera=None))
+    rng = np.random.default_rng(0)
+    before, after, other = rng.normal(size=(3, 5, 3))
+    v.on_points_marginalized(PointsMessage(before, np.zeros((5, 3)), host_keyframe_id=7))
+    v.on_points_marginalized(PointsMessage(other, np.zeros((5, 3)), host_keyframe_id=8))
+    S = np.eye(4)
+    S[:3, :3] = 0.8 * se3_exp([0, 0, 0, 0.3, 0, 0])[:3, :3]
+    S[:3, 3] = [0.5, -0.2, 0.1]
+    v.on_loop_closed(LoopCorrection({7: S}, loop=1))
+    v.on_points_marginalized(PointsMessage(after, np.zeros((5, 3)), host_keyframe_id=7))
+    np.testing.assert_allclose(v._kf_poses[7], sim3_apply_to_pose(S, T7))
+    assert v._kf_poses[8] is T8 and v.loops == 1
+    v._merge_points()
+    v._apply_loops()
+    np.testing.assert_allclose(v._cloud_p[0], before @ S[:3, :3].T + S[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(v._cloud_p[1], other, atol=1e-6)
+    np.testing.assert_allclose(v._cloud_p[2], after, atol=1e-6)
+    v._apply_loops()                                   # applied once
+    np.testing.assert_allclose(v._cloud_p[0], before @ S[:3, :3].T + S[:3, 3], atol=1e-5)

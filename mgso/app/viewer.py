@@ -30,6 +30,8 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from mgso.geometry import matrix_to_quat_wxyz
+from mgso.io.trajectory import Trajectory
+from mgso.mapping.messages import sim3_apply_to_pose
 from mgso.observers import Observer
 
 __all__ = ["ViewerError", "ViewerScene", "LiveViewer", "open_run", "require_viser", "INSTALL_HINT", "FRAME_HZ",
@@ -368,6 +370,9 @@ class LiveViewer(Observer):
         self._kf_frame: dict[int, int] = {}
         self._camera = None                       # the keyframes' pinhole camera
         self._points: list = []                   # PointsMessages not yet merged by the viewer thread
+        self._closer = None                       # the system's LoopCloser (attach): frame poses into its world
+        self._loop_events: list = []              # (LoopCorrection, PointsMessages before it), on_loop_closed
+        self.loops = 0
         self._times: deque = deque(maxlen=32)     # arrival times of the newest frames (frames per second)
         self.frames = 0
         self.keyframes = 0
@@ -381,6 +386,9 @@ class LiveViewer(Observer):
         self._cloud_p: list[np.ndarray] = []
         self._cloud_c: list[np.ndarray] = []
         self._cloud_n = 0
+        self._cloud_msg: list[int] = []           # the PointsMessage (index in _points) of each cloud part
+        self._loops_applied = 0
+        self._path: tuple = (0, 0, np.zeros((0, 3)), np.zeros(0))    # (poses, loops, positions, times) corrected
         self._snap = None
         self._prev_snap = None
         self._steps_per_s = 0.0
@@ -408,6 +416,7 @@ class LiveViewer(Observer):
     def attach(self, system) -> None:
         """The running :class:`~mgso.system.System`: its mapper answers the viewer's snapshot and render requests."""
         self._mapper = getattr(system, "mapper", None)
+        self._closer = getattr(system, "loop", None)
         # deterministic mode: the mapper is this thread's, between frames; while the run is paused its safe point is
         # reached from here so that the paused view still gets its map copies and renders
         self._serve_while_paused = (not getattr(system, "realtime", True)) and hasattr(self._mapper, "safe_point")
@@ -486,6 +495,16 @@ class LiveViewer(Observer):
     def on_points_marginalized(self, msg) -> None:
         self._points.append(msg)
 
+    def on_loop_closed(self, correction) -> None:
+        # the keyframes' poses move now (a few hundred 4x4 products, once a loop); the DSO points and the frames'
+        # path in the viewer thread (_apply_loops, _frame_path)
+        for kid, S in correction.transforms.items():
+            T = self._kf_poses.get(kid)
+            if T is not None:
+                self._kf_poses[kid] = sim3_apply_to_pose(S, T)
+        self.loops += 1
+        self._loop_events.append((correction, len(self._points)))
+
     def on_map_updated(self, stats) -> None:
         self.num_gaussians = int(getattr(stats, "num_gaussians", self.num_gaussians))
 
@@ -507,6 +526,7 @@ class LiveViewer(Observer):
                 continue
             try:
                 self._merge_points()
+                self._apply_loops()
                 if self.scene.clients() == 0:
                     continue           # nothing is drawn for nobody: no map copies asked, nothing pushed
                 self.push_frame()
@@ -524,11 +544,51 @@ class LiveViewer(Observer):
     def _merge_points(self) -> None:
         """Take the PointsMessages that arrived since the last call (the callbacks only append references)."""
         n = len(self._points)
-        for msg in self._points[self._cloud_n:n]:
+        for i, msg in enumerate(self._points[self._cloud_n:n], start=self._cloud_n):
             if len(msg):
                 self._cloud_p.append(np.asarray(msg.points, np.float32))
                 self._cloud_c.append(np.asarray(msg.colors, np.float32))
+                self._cloud_msg.append(i)
         self._cloud_n = n
+
+    def _apply_loops(self) -> None:
+        """Move the DSO points that arrived before each new loop correction by their host keyframe's Sim(3) (the
+        points that came after it are in the corrected world already); after :meth:`_merge_points`, which has
+        merged every message a correction counted."""
+        events = self._loop_events[self._loops_applied:]
+        for corr, before in events:
+            tf = corr.transforms
+            for j, i in enumerate(self._cloud_msg):
+                if i >= before:
+                    break
+                S = tf.get(self._points[i].host_keyframe_id)
+                if S is not None:
+                    self._cloud_p[j] = (self._cloud_p[j] @ S[:3, :3].T.astype(np.float32)
+                                        + S[:3, 3].astype(np.float32))
+            if self.scene is not None:
+                self.scene.pushed["cloud_parts"] = None       # push the whole cloud again
+            self._gt_at = 0                                    # and the ground truth, aligned to the new path
+        self._loops_applied += len(events)
+
+    def _frame_path(self) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (N, 3), timestamps (N,)) of every frame with a pose, in the map's world: the odometry's
+        poses moved by loop closure's correction of their time (recomputed after a loop; new frames appended)."""
+        poses = self._poses[:]                     # a list of references (the callbacks append to the original)
+        n, loops, pos, ts = self._path
+        if len(poses) == n and loops == self._loops_applied:
+            return pos, ts
+        start = n if loops == self._loops_applied else 0
+        new = poses[start:]
+        t_new = np.array([t for t, _ in new], dtype=np.float64)
+        if self._closer is not None and self._closer.corrected and new:
+            Ts = self._closer.correct_trajectory(Trajectory(t_new, np.stack([T for _, T in new]))).cam_to_world
+            p_new = Ts[:, :3, 3]
+        else:
+            p_new = np.array([T[:3, 3] for _, T in new]).reshape(-1, 3)
+        if start:
+            p_new, t_new = np.concatenate([pos, p_new]), np.concatenate([ts, t_new])
+        self._path = (len(poses), self._loops_applied, p_new, t_new)
+        return p_new, t_new
 
     def _frame_lines(self) -> list[str]:
         r = self._last
@@ -552,8 +612,7 @@ class LiveViewer(Observer):
             return
         self._pushed_frame = r.index
         sc.pushed["frames"] += 1
-        poses = self._poses[:]                     # a list of references (the callbacks append to the original)
-        pos = np.array([T[:3, 3] for _, T in poses]) if poses else np.zeros((0, 3))
+        pos, _ = self._frame_path()
         sc.update_scale(pos)
         sc.set_path("trajectory", pos)
         cam = self._camera
@@ -563,10 +622,13 @@ class LiveViewer(Observer):
         if f is not None:     # the image the odometry tracked (gray: its colour may not have been made)
             sc.set_frame_image(f.gray, f"frame {r.index}: {status}", hi=255.0)
         if r.cam_to_world is not None:
+            T = r.cam_to_world
+            if self._closer is not None and self._closer.corrected:
+                T = self._closer.correct_trajectory(Trajectory(np.array([r.timestamp]), T[None])).cam_to_world[0]
             color = _COLORS["current"] if status != "lost" else (120, 120, 120)
-            sc.set_frustum("/current/camera", r.cam_to_world, fov, aspect, color, scale=1.5 * sc.scale)
+            sc.set_frustum("/current/camera", T, fov, aspect, color, scale=1.5 * sc.scale)
             if sc.follow.value:
-                sc.follow_camera(r.cam_to_world)
+                sc.follow_camera(T)
         for kid, T in list(self._kf_poses.items()):
             if self._pushed_kf.get(kid) is T:
                 continue
@@ -599,10 +661,9 @@ class LiveViewer(Observer):
             sc.pushed["cloud_parts"] = len(self._cloud_p)
         gt = self.groundtruth
         if gt is not None and len(self._poses) >= 3 and len(self._poses) != self._gt_at:
-            poses = self._poses[:]
-            self._gt_at = len(poses)
-            al = _align_groundtruth(np.array([t for t, _ in poses]), np.array([T[:3, 3] for _, T in poses]),
-                                    gt.timestamps, gt.positions)
+            pos, ts = self._frame_path()
+            self._gt_at = len(pos)
+            al = _align_groundtruth(ts, pos, gt.timestamps, gt.positions)
             if al is not None:
                 sc.set_path("groundtruth", al)
 

@@ -13,7 +13,9 @@ from mgso.app.full import write_outputs
 from mgso.config import load_config
 from mgso.io import open_sequence
 from mgso.io.ply import read_gaussians_ply
-from mgso.io.trajectory import read_tum
+from mgso.eval import compute_ate
+from mgso.io.trajectory import Trajectory, read_tum
+from mgso.observers import Observer, ObserverList
 from mgso.oracle import OracleOdometry
 from mgso.system import System
 
@@ -31,11 +33,17 @@ def loop_folder():
     return synthetic.cached_sequence_folder(**LOOP_SEQ)
 
 
-def _run(folder, out_dir, *over, oracle=None, frames=None):
+def _run(folder, out_dir, *over, oracle=None, frames=None, viewer=None):
     cfg = load_config(None, [*BASE, *over])
     seq = open_sequence(str(folder), config=cfg.input)
     odo = OracleOdometry.from_sequence(seq, **(oracle or ORACLE))
-    system = System(odo, cfg)
+    obs = None
+    if viewer is not None:
+        viewer.in_step = _ViewerInStep(viewer)
+        obs = ObserverList([viewer, viewer.in_step])
+    system = System(odo, cfg, observer=obs)
+    if viewer is not None:
+        viewer.attach(system)                 # as `mgso run --viewer` does
     it = seq.frames() if frames is None else (f for i, f in enumerate(seq.frames()) if i < frames)
     result = system.run(it)
     metrics = write_outputs(result, system.mapper, seq, cfg, out_dir, odometry_name=odo.name)
@@ -43,15 +51,40 @@ def _run(folder, out_dir, *over, oracle=None, frames=None):
     return result, metrics, system
 
 
+class _ViewerInStep(Observer):
+    """A live viewer (not started: no server) whose thread's work is done after every frame, as if it kept up:
+    the points merged, the loop corrections applied, the frames' path brought up to date (its cache)."""
+
+    def __init__(self, viewer):
+        self.viewer = viewer
+        self.cache_error = 0.0               # the cached path against the whole path corrected anew, each frame
+
+    def on_frame(self, result) -> None:
+        v = self.viewer
+        v._merge_points()
+        v._apply_loops()
+        pos, ts = v._frame_path()
+        if v._closer is not None and v._closer.corrected:
+            raw = Trajectory(ts, np.stack([T for _, T in v._poses]))
+            self.cache_error = max(self.cache_error, float(np.abs(v._closer.correct_trajectory(raw).positions
+                                                                  - pos).max()))
+
+
 @pytest.fixture(scope="module")
 def loop_runs(loop_folder, tmp_path_factory):
-    on = _run(loop_folder, tmp_path_factory.mktemp("loop-on"))
+    try:
+        from mgso.app.viewer import LiveViewer
+
+        viewer = LiveViewer(port=0)
+    except Exception:  # noqa: BLE001 - viser is an extra; the viewer's test skips without it
+        viewer = None
+    on = _run(loop_folder, tmp_path_factory.mktemp("loop-on"), viewer=viewer)
     off = _run(loop_folder, tmp_path_factory.mktemp("loop-off"), "loop.enabled=false")
-    return on, off
+    return on, off, viewer
 
 
 def test_a_loop_with_drift_is_closed_and_corrects_trajectory_and_map(loop_runs):
-    (res, m, system), (res_off, m_off, _) = loop_runs
+    (res, m, system), (res_off, m_off, _), _ = loop_runs
     lp = m["loop"]
     # measured (2026-12-02): 3 loops accepted (keyframes 19-21 on keyframes 0-1), ATE 0.0695 -> 0.0225 m, PSNR
     # (MonoGS protocol) 23.58 -> 24.05 dB
@@ -70,7 +103,7 @@ def test_a_loop_with_drift_is_closed_and_corrects_trajectory_and_map(loop_runs):
 
 
 def test_corrected_outputs_are_written(loop_runs, loop_folder):
-    (res, m, system), (_, m_off, _) = loop_runs
+    (res, m, system), (_, m_off, _), _ = loop_runs
     out = m["out"]
     assert "trajectory_odometry.txt" in m["written"] and "trajectory_odometry.txt" not in m_off["written"]
     corrected, odo = read_tum(out / "trajectory.txt"), read_tum(out / "trajectory_odometry.txt")
@@ -90,7 +123,7 @@ def test_the_point_cloud_moves_with_its_keyframes(loop_runs, loop_folder):
     corrected pose at the integer pixel the oracle selected it at (a point moved twice, or not at all, does not)."""
     from mgso.geometry import se3_inverse
 
-    (res, m, system), _ = loop_runs
+    (res, m, system), _, _ = loop_runs
     cam = open_sequence(str(loop_folder), config=load_config().input).calibration.output
     corrected, _, hosts = res.cloud.arrays()
     kf = {round(t, 9): T for t, T in zip(res.keyframe_trajectory.timestamps, res.keyframe_trajectory.cam_to_world)}
@@ -103,6 +136,41 @@ def test_the_point_cloud_moves_with_its_keyframes(loop_runs, loop_folder):
         assert np.abs(uv - np.round(uv)).max() < 1e-3, h
         moved += int(not np.allclose(system.loop.correction_of(int(h)), np.eye(4)))
     assert moved > 0                      # some hosts were corrected
+
+
+def test_the_live_viewer_follows_the_loop(loop_runs, loop_folder):
+    """What a live viewer shows after the loops is the corrected run: its frames' path is the corrected trajectory
+    (the odometry's own ends centimetres away: the negative control), its keyframe frusta the corrected keyframes,
+    its DSO points the corrected point cloud."""
+    (res, m, system), _, viewer = loop_runs
+    if viewer is None:
+        pytest.skip('the viewer needs viser: pip install "mgso[viewer]" (or "[test]")')
+    assert viewer.loops == m["loop"]["corrections_sent"] >= 1
+    viewer._merge_points()
+    viewer._apply_loops()
+    pos, ts = viewer._frame_path()              # brought up to date frame by frame during the run (its cache)
+    raw = Trajectory(np.array([t for t, _ in viewer._poses]), np.stack([T for _, T in viewer._poses]))
+    np.testing.assert_allclose(ts, raw.timestamps)
+    np.testing.assert_allclose(pos, system.loop.correct_trajectory(raw).positions, atol=1e-9)
+    gt = open_sequence(str(loop_folder), config=load_config().input).groundtruth
+    at = np.repeat(np.eye(4)[None], len(pos), axis=0)
+    at[:, :3, 3] = pos                                                  # the ATE takes positions only
+    shown = compute_ate(Trajectory(ts, at), gt, align="sim3", max_diff=0.01).rmse
+    tracked = compute_ate(raw, gt, align="sim3", max_diff=0.01).rmse
+    # measured: the path shown 0.0225 m (as trajectory.txt), the odometry's own poses 0.0695 m (the control);
+    # the path kept up to date frame by frame equal to the whole path corrected anew (0.0)
+    assert shown == pytest.approx(m["ate_all_frames_m"], rel=1e-6)
+    assert tracked == pytest.approx(m["ate_odometry_all_frames_m"], rel=0.05) and shown < 0.5 * tracked
+    assert viewer.in_step.cache_error < 1e-9
+    kf = {round(t, 9): T for t, T in zip(res.keyframe_trajectory.timestamps, res.keyframe_trajectory.cam_to_world)}
+    moved = 0
+    for kid, T in viewer._kf_poses.items():
+        want = kf[round(system.loop._time[kid], 9)]
+        np.testing.assert_allclose(T, want, atol=1e-6)
+        moved += int(not np.allclose(system.loop.correction_of(kid), np.eye(4)))
+    assert moved > 0 and len(viewer._kf_poses) == len(kf)
+    points, _, _ = res.cloud.arrays()
+    np.testing.assert_allclose(np.concatenate(viewer._cloud_p), points, atol=1e-4)
 
 
 def test_without_a_revisit_nothing_is_accepted_and_nothing_changes(loop_folder, tmp_path):
