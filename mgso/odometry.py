@@ -793,19 +793,46 @@ class Odometry:
         except KeyError:
             return self.keyframes[keyframe_id].cam_to_world
 
-    def _track_coarse(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
-        self._swap_reference()
-        cfg = self.config.tracking
-        ref = self.tracker.reference
-        ref_c2w = self._ref_cam_to_world(ref.keyframe_id)
-        before = [f for f in self.frames[-8:-1] if f.status != FrameStatus.DUPLICATE]  # repeats tell no motion
+    def _motion_prior(self, rec: FrameRecord, *, per_source_frame: bool = True):
+        """``(prev, last, prelast)``: the record before ``rec`` and the two poses whose motion DSO assumes again
+        for ``rec`` (``None`` where there are none in this segment). ``per_source_frame``: when the source dropped
+        frames the odometry never saw (real time: the player drops what arrives while the odometry is busy), the
+        motion is scaled to the gaps, ``prelast`` moved so that ``last``'s step from it covers as many source frames
+        as ``rec``'s from ``last`` (DSO's constant motion, per frame of the camera rather than per frame processed).
+        Repeated frames (skipped as duplicates) count as no time, as before; with nothing dropped every gap is one
+        frame and nothing is scaled, so the deterministic mode is unchanged."""
+        recent = self.frames[-8:]                          # rec is the last
+        before = [f for f in recent[:-1] if f.status != FrameStatus.DUPLICATE]  # repeats tell no motion
         prev = before[-1] if before else None
         prev2 = before[-2] if len(before) >= 2 else None
         last = prev.cam_to_world if prev is not None and prev.pose_valid and prev.segment == self.segment else None
         prelast = (prev2.cam_to_world if prev2 is not None and prev2.pose_valid and prev2.segment == self.segment
                    else None)
+        old_steps = None
         if last is not None and prelast is None and self._init_step is not None:
             prelast = last @ se3_inverse(self._init_step)  # right after initialisation: its mean motion
+            old_steps = 1                                  # per source frame (_start_window)
+        elif prelast is not None:
+            old_steps = self._source_steps(recent, prev2, prev)
+        if per_source_frame and last is not None and old_steps is not None:
+            ratio = self._source_steps(recent, prev, rec) / old_steps
+            if ratio != 1.0:
+                step = se3_inverse(prelast) @ last
+                prelast = last @ se3_inverse(se3_exp(ratio * se3_log(step)))
+        return prev, last, prelast
+
+    @staticmethod
+    def _source_steps(recent, a: FrameRecord, b: FrameRecord) -> int:
+        """Frames of the source from ``a`` to ``b``, the repeated frames between them not counted."""
+        dups = sum(1 for f in recent if a.index < f.index < b.index and f.status == FrameStatus.DUPLICATE)
+        return max(int(b.index) - int(a.index) - dups, 1)
+
+    def _track_coarse(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
+        self._swap_reference()
+        cfg = self.config.tracking
+        ref = self.tracker.reference
+        ref_c2w = self._ref_cam_to_world(ref.keyframe_id)
+        prev, last, prelast = self._motion_prior(rec)
         hyps = motion_hypotheses(ref_c2w, last, prelast, rotations=cfg.coarse_rotation_hypotheses,
                                  rotation_delta=cfg.coarse_rotation_delta)
         aff0 = prev.affine if (prev is not None and prev.pose_valid) else (0.0, 0.0)

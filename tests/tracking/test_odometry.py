@@ -7,6 +7,7 @@ import pytest
 from mgso import synthetic
 from mgso.config import Config, apply_overrides
 from mgso.eval import compute_ate
+from mgso.geometry import se3_inverse
 from mgso.io.sequence import Frame
 from mgso.observers import Observer
 from mgso.odometry import FrameStatus, LossReason, Odometry, geometry_for
@@ -196,6 +197,48 @@ def test_initialisers_motion_is_per_source_frame_when_frames_are_dropped(wp_devi
     for every in (2, 3):                  # measured 1.08 (every 2nd), 1.13 (every 3rd)
         dropped = guess_over_truth(every)
         assert abs(dropped / baseline - 1.0) < 0.25, (every, baseline, dropped)
+
+
+def test_constant_motion_is_per_source_frame_when_frames_are_dropped(wp_device, seq160):
+    """In real time the player drops the frames that arrive while the odometry is busy, so the gap between two
+    tracked frames varies. DSO's constant-motion guess (the last step again) is scaled to the gap in source frames:
+    after a gap of 4 it guesses 4 steps, after a gap of 1 that follows it one. The negative control, run: the
+    unscaled guess (the step before, as it was) is a quarter and four times the true step (measured: scaled
+    1.06 / 1.13 / 1.04 of the true step with no gap, after the gap of 4 and after the gap of 1 that follows it;
+    unscaled 1.06 / 0.28 / 4.15)."""
+    k = seq160.intrinsics
+    T = seq160.cam_to_world
+    frames = frames_of(seq160)
+    cfg = Config()
+    odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg)
+    seen = {}
+    prior = odo._motion_prior
+
+    def spy(rec, **kw):
+        out = prior(rec)
+        seen[rec.index] = (out, prior(rec, per_source_frame=False))
+        return out
+
+    odo._motion_prior = spy
+    i = 0
+    while odo.process(frames[i]).status != FrameStatus.INITIALIZED:
+        i += 1
+    feed = list(range(i + 1, i + 7)) + [i + 10, i + 11]             # a gap of 4, then of 1
+    for j in feed:
+        r = odo.process(frames[j])
+        assert r.status == FrameStatus.TRACKED, (j, r.status)
+    s = np.linalg.norm(r.cam_to_world[:3, 3]) / np.linalg.norm(T[j, :3, 3] - T[0, :3, 3])    # the odometry's scale
+
+    def guess_over_truth(j, which):
+        (_, last, prelast) = seen[j][which]
+        step = np.linalg.norm((se3_inverse(prelast) @ last)[:3, 3]) / s
+        return step / np.linalg.norm(T[j, :3, 3] - T[feed[feed.index(j) - 1], :3, 3])
+
+    ratios = {j: (guess_over_truth(j, 0), guess_over_truth(j, 1)) for j in (i + 5, i + 10, i + 11)}
+    for j, (scaled, unscaled) in ratios.items():
+        assert 0.75 < scaled < 1.3, (j, ratios)
+    assert ratios[i + 5][0] == ratios[i + 5][1]                      # no gap: nothing scaled
+    assert ratios[i + 10][1] < 0.4 and ratios[i + 11][1] > 2.5       # the old guess: a quarter, then 4x
 
 
 def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
