@@ -11,6 +11,16 @@ the loop closer alone on recordings of the DSO odometry; prints one JSON line.
 
     python profiles/loop.py                                   # the synthetic loop and the shared 7-Scenes excerpt
     python profiles/loop.py ../shared/data/kitti00_0-159 --no-synthetic --set loop.prefilter_keep=30
+    python profiles/loop.py --out-and-back --no-synthetic    # the 7-Scenes excerpt out on its even frames, back on
+                                                             # its odd ones: a revisit of every place (real images)
+
+``--out-and-back`` (7-Scenes layout only) makes, under ``--work`` (default /tmp/mgso-out-and-back), a folder of
+symbolic links to each sequence's files, nothing copied: frames 0, 2, 4, ... of the recording, then its odd frames
+backwards (..., 5, 3, 1), numbered 0, 1, 2, ... (played at 30 frames/s: the camera goes out and comes back over the
+same path at twice its speed, with the same ground truth). The shared excerpt never comes back to a place closely
+enough to verify a loop (docs/loop.md); this one does at every place on the way back, with images that are the
+neighbours of the ones seen on the way out (a thirtieth of a second apart), not the same images. The folder is an
+ordinary 7-Scenes sequence: ``profiles/mapping.py``, ``profiles/dso_reference.py`` and ``mgso run`` take it too.
 """
 
 from __future__ import annotations
@@ -107,6 +117,29 @@ def recording(path: str, args) -> dict:
     return out
 
 
+def out_and_back(src: str | Path, work: str | Path) -> Path:
+    """The out-and-back folder of the 7-Scenes-layout sequence ``src`` under ``work`` (links, made once)."""
+    import re
+
+    src = Path(src).resolve()
+    pat = re.compile(r"frame-(\d+)\.color\.(png|jpg|jpeg)", re.IGNORECASE)
+    numbers = sorted(int(m.group(1)) for m in (pat.fullmatch(p.name) for p in src.iterdir()) if m)
+    if not numbers:
+        raise SystemExit(f"profiles/loop.py: {src}: --out-and-back takes a 7-Scenes layout (frame-XXXXXX.color.*)")
+    order = [n for n in numbers if n % 2 == 0] + [n for n in reversed(numbers) if n % 2 == 1]
+    dst = Path(work) / f"{src.name}-out-and-back"
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in src.iterdir():                                          # calibration and other shared files
+        if not f.name.startswith("frame-") and not (dst / f.name).exists():
+            (dst / f.name).symlink_to(f)
+    for new, old in enumerate(order):
+        for f in src.glob(f"frame-{old:06d}.*"):
+            link = dst / f.name.replace(f"frame-{old:06d}", f"frame-{new:06d}", 1)
+            if not link.exists():
+                link.symlink_to(f)
+    return dst
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("paths", nargs="*", help="sequences for the recordings part (default: the shared 7-Scenes "
@@ -119,6 +152,9 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=1000)
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "mgso" / "odometry-recordings"))
+    ap.add_argument("--out-and-back", action="store_true",
+                    help="replay each sequence out on its even frames and back on its odd ones (7-Scenes layout)")
+    ap.add_argument("--work", default="/tmp/mgso-out-and-back", help="where --out-and-back makes its folders")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import warp as wp
@@ -132,6 +168,8 @@ def main(argv=None) -> int:
         root = shared_data_dir()
         if root is not None and (root / "7scenes_redkitchen_0-499").is_dir():
             paths = [str(root / "7scenes_redkitchen_0-499")]
+    if args.out_and_back:
+        paths = [str(out_and_back(p, args.work)) for p in paths]
     result: dict = {"profile": "loop", "settings": args.set}
     if not args.no_synthetic:
         result["synthetic"] = synthetic(args)
