@@ -490,6 +490,10 @@ class _LiveFrames:
             return
         self._done = True
         self._closed.set()
+        if self._started and not self._src.end_reason:
+            # closed by another thread while this iteration was between frames: it ends at its next __next__
+            # without waiting in _next_raw, which would have said so
+            self._src.end_reason = "stopped"
         self._src._end_iteration()
 
     def __del__(self):

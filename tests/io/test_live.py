@@ -266,6 +266,20 @@ def test_close_from_another_thread_ends_a_waiting_iteration(clip):
     src.close()
 
 
+def test_a_close_between_two_frames_still_says_stopped(clip):
+    """The consumer's thread may be between two frames (making the last one) when another thread closes the
+    iteration: the next ``__next__`` ends it without waiting in the source, and ``end_reason`` must still say
+    ``stopped`` (it said nothing, '', and the test above failed now and then on a loaded machine)."""
+    src = _src(clip, live_timeout_s=600.0)
+    it = src.frames()
+    first = next(it)
+    it.close()                      # as from another thread, while this one is between frames
+    with pytest.raises(StopIteration):
+        next(it)
+    assert first.index == 0 and src.end_reason == "stopped"
+    src.close()
+
+
 def test_the_player_does_not_pace_a_live_source_and_counts_both_drops(clip):
     """Player (system.py): a live source is played at the device's pace whatever the speed (no second pacing on top),
     newest frame wins, and the frames the source itself replaced are in read and dropped."""
