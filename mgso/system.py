@@ -345,31 +345,38 @@ class System:
         self._keyframe_frames: list[int] = []
         self._pose_updates = 0
 
+    def _send(self, msg, final: bool = False) -> None:
+        """One odometry message to the loop closer, the counters, the observers and the mapper, in that order
+        (``final``: one of ``odometry.finish()``'s)."""
+        raw = msg                            # the odometry's world (the DSO cloud is corrected at the end)
+        if self.loop is not None:
+            self.loop.observe(msg, final=final)
+            msg = self.loop.correct(msg)     # the map's (the same object until a loop moved something)
+        if isinstance(msg, KeyframeMessage):
+            self._keyframes += 1
+            self._keyframe_frames.append(msg.frame_index)
+            self.observer.on_keyframe(msg)
+        elif isinstance(msg, PoseUpdate):
+            self._pose_updates += 1
+            self.observer.on_window_optimized(msg)
+        elif isinstance(msg, PointsMessage):
+            self.cloud.add(raw)
+            self.observer.on_points_marginalized(msg)
+        else:
+            raise TypeError(f"the odometry emitted {type(msg).__name__}, not a mapper message")
+        self.mapper.submit(msg)
+
+    def _send_correction(self, corr) -> None:
+        """A loop's correction (from ``LoopCloser.poll`` / ``finish``; ``None``: none) to the mapper and observers."""
+        if corr is not None:
+            self.mapper.submit(corr)
+            self.observer.on_loop_closed(corr)
+
     def _dispatch(self, messages) -> None:
-        loop = self.loop
         for msg in messages:
-            raw = msg                        # the odometry's world (the DSO cloud is corrected at the end)
-            if loop is not None:
-                loop.observe(msg)
-                msg = loop.correct(msg)      # the map's (the same object until a loop moved something)
-            if isinstance(msg, KeyframeMessage):
-                self._keyframes += 1
-                self._keyframe_frames.append(msg.frame_index)
-                self.observer.on_keyframe(msg)
-            elif isinstance(msg, PoseUpdate):
-                self._pose_updates += 1
-                self.observer.on_window_optimized(msg)
-            elif isinstance(msg, PointsMessage):
-                self.cloud.add(raw)
-                self.observer.on_points_marginalized(msg)
-            else:
-                raise TypeError(f"the odometry emitted {type(msg).__name__}, not a mapper message")
-            self.mapper.submit(msg)
-        if loop is not None:
-            corr = loop.poll()
-            if corr is not None:
-                self.mapper.submit(corr)
-                self.observer.on_loop_closed(corr)
+            self._send(msg)
+        if self.loop is not None:
+            self._send_correction(self.loop.poll())
         if not self.realtime:
             self.mapper.process_pending()
 
@@ -497,30 +504,13 @@ class System:
             log.exception("stopping the mapper after a failure")
 
     def _dispatch_final(self, final, interrupted: bool) -> None:
+        for msg in final:                    # observers see the end of the stream too (a viewer's final keyframe
+            self._send(msg, final=True)      # poses and the window's last points)
         loop = self.loop
-        for msg in final:
-            raw = msg
-            if loop is not None:
-                loop.observe(msg, final=True)
-                msg = loop.correct(msg)
-            if isinstance(msg, PoseUpdate):            # observers see the end of the stream too (a viewer's
-                self._pose_updates += 1                # final keyframe poses and the window's last points)
-                self.observer.on_window_optimized(msg)
-            elif isinstance(msg, PointsMessage):
-                self.cloud.add(raw)
-                self.observer.on_points_marginalized(msg)
-            elif isinstance(msg, KeyframeMessage):
-                self._keyframes += 1
-                self._keyframe_frames.append(msg.frame_index)
-                self.observer.on_keyframe(msg)
-            self.mapper.submit(msg)
         if loop is not None:
             if interrupted:
                 loop.close()              # the loops not yet solved are dropped; those found are kept
-            corr = loop.finish()
-            if corr is not None:
-                self.mapper.submit(corr)
-                self.observer.on_loop_closed(corr)
+            self._send_correction(loop.finish())
         self.mapper.stop(refine=not interrupted)
 
 

@@ -119,11 +119,10 @@ def recording(path: str, args) -> dict:
 
 def out_and_back(src: str | Path, work: str | Path) -> Path:
     """The out-and-back folder of the 7-Scenes-layout sequence ``src`` under ``work`` (links, made once)."""
-    import re
+    from mgso.io.sevenscenes import _COLOR      # the reader's own pattern of a colour image's name
 
     src = Path(src).resolve()
-    pat = re.compile(r"frame-(\d+)\.color\.(png|jpg|jpeg)", re.IGNORECASE)
-    numbers = sorted(int(m.group(1)) for m in (pat.fullmatch(p.name) for p in src.iterdir()) if m)
+    numbers = sorted(int(m.group(1)) for m in (_COLOR.fullmatch(p.name) for p in src.iterdir()) if m)
     if not numbers:
         raise SystemExit(f"profiles/loop.py: {src}: --out-and-back takes a 7-Scenes layout (frame-XXXXXX.color.*)")
     order = [n for n in numbers if n % 2 == 0] + [n for n in reversed(numbers) if n % 2 == 1]

@@ -580,15 +580,19 @@ class LiveViewer(Observer):
         start = n if loops == self._loops_applied else 0
         new = poses[start:]
         t_new = np.array([t for t, _ in new], dtype=np.float64)
-        if self._closer is not None and self._closer.corrected and new:
-            Ts = self._closer.correct_trajectory(Trajectory(t_new, np.stack([T for _, T in new]))).cam_to_world
-            p_new = Ts[:, :3, 3]
-        else:
-            p_new = np.array([T[:3, 3] for _, T in new]).reshape(-1, 3)
+        p_new = (self._in_map_world(t_new, np.stack([T for _, T in new]))[:, :3, 3] if new
+                 else np.zeros((0, 3)))
         if start:
             p_new, t_new = np.concatenate([pos, p_new]), np.concatenate([ts, t_new])
         self._path = (len(poses), self._loops_applied, p_new, t_new)
         return p_new, t_new
+
+    def _in_map_world(self, timestamps: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
+        """Frame poses (N, 4, 4) of the odometry moved into the map's world by loop closure's correction of their
+        time (the poses themselves until a loop has moved anything)."""
+        if self._closer is None or not self._closer.corrected:
+            return cam_to_world
+        return self._closer.correct_trajectory(Trajectory(timestamps, cam_to_world)).cam_to_world
 
     def _frame_lines(self) -> list[str]:
         r = self._last
@@ -622,9 +626,7 @@ class LiveViewer(Observer):
         if f is not None:     # the image the odometry tracked (gray: its colour may not have been made)
             sc.set_frame_image(f.gray, f"frame {r.index}: {status}", hi=255.0)
         if r.cam_to_world is not None:
-            T = r.cam_to_world
-            if self._closer is not None and self._closer.corrected:
-                T = self._closer.correct_trajectory(Trajectory(np.array([r.timestamp]), T[None])).cam_to_world[0]
+            T = self._in_map_world(np.array([r.timestamp]), r.cam_to_world[None])[0]
             color = _COLORS["current"] if status != "lost" else (120, 120, 120)
             sc.set_frustum("/current/camera", T, fov, aspect, color, scale=1.5 * sc.scale)
             if sc.follow.value:
