@@ -208,6 +208,74 @@ def with_true_poses(rec: Recording, gt, local_scale: bool = False) -> Recording:
                      rec.name + " with true poses")
 
 
+EXTRA_VIEW_ID = 10_000_000      # extra views' ids: this + the frame's index (never a keyframe id of the recording)
+
+
+def with_extra_views(rec: Recording, seq, per_interval: int) -> Recording:
+    """``rec`` with up to ``per_interval`` tracked frames between two keyframe messages sent to the mapper as
+    training views too (issue 12: "training views beyond keyframes"), evenly spaced, without points (they seed
+    nothing). Each is anchored to the latest keyframe at its time: its pose is that keyframe's pose times the
+    relative pose at tracking time, and it moves when the window moves that keyframe. Frames the MonoGS protocol
+    evaluates (every 5th frame with a pose) are never chosen, so both arms are evaluated on the same frames."""
+    from mgso.eval import MONOGS, select_frames
+    from mgso.mapping.messages import KeyframeMessage, PoseUpdate
+
+    with_pose = {round(float(t), 6) for t in rec.trajectory.timestamps}   # the evaluation's frames: the final path's
+    evaluated = set(select_frames(MONOGS, [r.index for r in rec.frames if round(float(r.timestamp), 6) in with_pose]))
+
+    # pass 1: the intervals' candidates (tracked, not a keyframe, not an evaluated frame)
+    chosen: set[int] = set()
+    cand: list[int] = []
+    for k, r in enumerate(rec.frames):
+        if any(isinstance(m, KeyframeMessage) for m in r.messages):
+            if cand:
+                pick = np.linspace(0, len(cand) - 1, per_interval + 2)[1:-1] if len(cand) > per_interval else \
+                    np.arange(len(cand))
+                chosen.update(cand[int(round(p))] for p in pick)
+            cand = []
+        elif r.status == "tracked" and r.cam_to_world is not None and r.index not in evaluated:
+            cand.append(k)
+    # pass 2: the stream with the extra views
+    kf_pose: dict[int, np.ndarray] = {}
+    anchored: dict[int, list[tuple[int, np.ndarray]]] = {}   # keyframe id -> [(view id, keyframe-to-frame)]
+    latest: KeyframeMessage | None = None
+
+    def fix(msgs):
+        nonlocal latest
+        out = []
+        for m in msgs:
+            if isinstance(m, KeyframeMessage):
+                kf_pose[m.keyframe_id] = m.cam_to_world
+                latest = m
+                out.append(m)
+            elif isinstance(m, PoseUpdate):
+                poses = dict(m.cam_to_world)
+                for kid, T in m.cam_to_world.items():
+                    kf_pose[kid] = T
+                    for vid, rel in anchored.get(kid, ()):
+                        poses[vid] = T @ rel
+                out.append(PoseUpdate(poses, affine=dict(m.affine)))
+            else:
+                out.append(m)
+        return tuple(out)
+
+    frames = []
+    for k, r in enumerate(rec.frames):
+        msgs = fix(r.messages)
+        if k in chosen and latest is not None:
+            T_kf = kf_pose[latest.keyframe_id]
+            rel = np.linalg.inv(T_kf) @ r.cam_to_world
+            vid = EXTRA_VIEW_ID + r.index
+            anchored.setdefault(latest.keyframe_id, []).append((vid, rel))
+            img = seq.load(r.index).rgb
+            msgs = msgs + (KeyframeMessage(vid, r.index, r.timestamp, img, latest.camera, T_kf @ rel,
+                                           np.zeros((0, 2)), np.zeros(0), affine=r.affine, exposure_ms=r.exposure_ms,
+                                           segment=latest.segment, mask=latest.mask),)
+        frames.append(dataclasses.replace(r, messages=msgs))
+    return Recording(frames, list(fix(rec.final)), rec.trajectory, rec.keyframe_trajectory,
+                     rec.name + f" with {len(chosen)} extra views")
+
+
 # ------------------------------------------------------------------------------------------------ run
 def _one(args) -> dict:
     import warp as wp
@@ -246,6 +314,8 @@ def _one(args) -> dict:
             if seq.groundtruth is None:
                 return {"skipped": "no ground truth"}
             rec = with_true_poses(rec, seq.groundtruth, local_scale=args.source == "dso-gtpose-local")
+        if args.extra_views:
+            rec = with_extra_views(rec, seq, args.extra_views)
         odo = ReplayOdometry(rec)
         frames = [SimpleNamespace(index=r.index, timestamp=r.timestamp) for r in rec.frames]
     t_map = time.perf_counter()
@@ -327,6 +397,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tag", default="default", help="names the output folder of this variant")
     ap.add_argument("--watch-views", type=int, default=0, metavar="N",
                     help="after every keyframe, the PSNR of the first N training views (diagnostic; costs renders)")
+    ap.add_argument("--extra-views", type=int, default=0, metavar="N",
+                    help="replayed sources: up to N tracked frames between two keyframes also become training views "
+                         "(never an evaluated frame; pair with a smaller mapping.mapper.iterations_per_keyframe for "
+                         "the same number of steps)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "mgso" / "odometry-recordings"))
     ap.add_argument("--out", default="/tmp/mgso-profile-mapping")
     ap.add_argument("--one", help=argparse.SUPPRESS)
@@ -345,7 +419,7 @@ def main(argv=None) -> int:
         for src in args.source or ["dso"]:
             cmd = [sys.executable, __file__, "--one", p, "--source", src, "--device", args.device, "--downscale",
                    str(args.downscale), "--tag", args.tag, "--cache", args.cache, "--out", args.out,
-                   "--watch-views", str(args.watch_views)]
+                   "--watch-views", str(args.watch_views), "--extra-views", str(args.extra_views)]
             for s in args.set:
                 cmd += ["--set", s]
             r = subprocess.run(cmd, capture_output=True, text=True)

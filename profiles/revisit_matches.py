@@ -101,7 +101,8 @@ def main(argv=None) -> int:
                 good = [m for m, n in (x for x in cv2.BFMatcher(norm).knnMatch(di, dj, k=2) if len(x) == 2)
                         if m.distance < 0.75 * n.distance]
             if good:
-                e = _sampson(F, np.array([ki[g.queryIdx].pt for g in good]), np.array([kj[g.trainIdx].pt for g in good]))
+                a = np.array([ki[g.queryIdx].pt for g in good])
+                e = _sampson(F, a, np.array([kj[g.trainIdx].pt for g in good]))
                 row[name] = {"matches": len(good), "consistent": int((e < args.epipolar_px).sum()),
                              "median_px": round(float(np.median(e)), 2)}
             else:
