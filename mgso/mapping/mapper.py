@@ -14,10 +14,11 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
 - :class:`~mgso.mapping.messages.LoopCorrection`: loop closure moved keyframes: move their views, depth points and
   the Gaussians anchored to them by each keyframe's Sim(3);
 - :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
-  keyframes) unless the run was interrupted, and stop.
+  keyframes, chosen as while running) unless the run was interrupted, and stop.
 
 Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
-:class:`~mgso.mapping.views.NewestOrRandomSampler` (the newest keyframe, otherwise any; ``mapping.mapper.sampler``
+:class:`~mgso.mapping.views.NewestOrRandomSampler` (the newest keyframe with ``mapping.mapper.newest_probability``,
+0 by default, otherwise any, uniformly; ``mapping.mapper.sampler``
 ``least_used``: :class:`~mgso.mapping.views.LeastUsedSampler`), Gaussian-pyramid levels
 (``mapping.train.pyramid_levels``) and densification / pruning by the strategy (``mapping.densify``).
 
