@@ -405,6 +405,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="/tmp/mgso-profile-mapping")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.extra_views < 0 or args.watch_views < 0:
+        ap.error("--extra-views and --watch-views take a count >= 0")
     if args.one:
         args.source = (args.source or ["dso"])[0]
         print(json.dumps(_one(args)))
