@@ -35,6 +35,7 @@ def main(argv=None) -> int:
     import cv2
 
     from mgso.config import load_config
+    from mgso.geometry import hat, rotation_angle
     from mgso.io import open_sequence
 
     data = Path(os.environ.get("MGSO_DATA", ROOT.parent / "shared" / "data"))
@@ -64,8 +65,7 @@ def main(argv=None) -> int:
         return np.linalg.inv(P[j]) @ P[i]
 
     def dist_deg(T):
-        c = np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)
-        return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(c)))
+        return float(np.linalg.norm(T[:3, 3])), float(np.degrees(rotation_angle(T[:3, :3])))
 
     pairs = []
     for j in range(0, len(seq), args.step):
@@ -89,8 +89,7 @@ def main(argv=None) -> int:
     def measure(i, j) -> dict:
         T = rel(i, j)
         R, t = T[:3, :3], T[:3, 3]
-        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-        F = Ki.T @ tx @ R @ Ki
+        F = Ki.T @ hat(t) @ R @ Ki
         d, a = dist_deg(T)
         row = {"frames": [i, j], "distance_m": round(d, 3), "angle_deg": round(a, 1)}
         for name, (det, norm) in dets.items():
