@@ -1,6 +1,7 @@
 """``mgso run`` on a live stream (docs/live.md): an HTTP MJPEG server in this process plays the synthetic room to a
 ``mgso run http://127.0.0.1:PORT/stream.mjpg`` subprocess, which reads it through OpenCV's FFmpeg as it would an IP
-camera. Checked: SIGTERM writes every output and exits 143; a stream that stops sending ends the run after
+camera. Checked: SIGTERM writes every output and exits 143 without the final refinement; the first Ctrl-C ends the
+stream with it (exit 0), a second one cuts it short (130); a stream that stops sending ends the run after
 ``input.live_timeout_s`` with the outputs written (a bounded run ends by its limit instead: the negative control);
 a stream that does not open, or one without a calibration, is one line; the live settings (real time forced, no
 evaluation that reads frames back) and the limits of ``--max-frames`` / ``--duration``."""
@@ -150,8 +151,65 @@ def test_sigterm_ends_a_live_run_with_every_output_and_exit_143(room, tmp_path):
     assert "Traceback" not in err and "mgso run: SIGTERM: stopped after" in err
     metrics = _check_outputs(out, interrupted=True)
     assert metrics["interrupted"] is True and metrics["frames"]["processed"] >= 15
+    assert metrics["mapper"]["final_steps"] == 0                     # SIGTERM stops at once: no refinement
+    assert metrics["live"]["end_reason"] == "stopped"
     cfg = (out / "config.yaml").read_text()
     assert "mode: realtime" in cfg and "live_timeout_s" in cfg
+
+
+def _wait_for(proc, path: Path, cond, what: str, timeout: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            err = path.read_text() if path.is_file() else ""
+            pytest.fail(f"the run ended or stalled before {what}: {err[-2000:]}")
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("twice", [False, True])
+def test_ctrl_c_ends_a_live_stream_and_a_second_one_cuts_the_refinement(room, tmp_path, twice):
+    """Ctrl-C is how a live camera is ended: the first one ends the stream as its end (the odometry finishes, the map
+    gets its whole final refinement, every output, exit 0). A second one, once the refinement runs, cuts it short
+    (exit 130, the steps made counted). SIGTERM above is the negative control: no refinement at all."""
+    frames, calib = room
+    server = MjpegServer(frames, fps=15.0, loop=True)
+    out = tmp_path / "run"
+    final = 100000 if twice else 10        # long enough to be cut for certain; short enough to finish
+    err_path = tmp_path / "stderr.txt"
+    with open(err_path, "w") as err_fh:
+        proc = subprocess.Popen([sys.executable, "-c", CLI, "run", server.url, "--calib", str(calib), "--out",
+                                 str(out), *SMALL_MAP, "--set", f"mapping.mapper.final_iterations={final}"],
+                                stdout=subprocess.PIPE, stderr=err_fh, text=True,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        try:
+            _wait_for(proc, err_path, lambda: _rows(out / "frames.csv") >= 15, "15 frames")
+            proc.send_signal(signal.SIGINT)
+            if twice:
+                _wait_for(proc, err_path, lambda: "final refinement:" in err_path.read_text(), "the refinement")
+                time.sleep(1.0)
+                proc.send_signal(signal.SIGINT)
+            so, _ = _finish(proc)
+        finally:
+            server.close()
+    err = err_path.read_text()
+    assert "Traceback" not in err
+    assert "Ctrl-C: the live stream ends here" in err
+    assert "input ended by Ctrl-C" in so
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["live"]["end_reason"] == "interrupt" and metrics["live"]["captured"] == metrics["frames"]["read"]
+    steps = metrics["mapper"]["final_steps"]
+    if twice:
+        assert proc.returncode == 130, err[-3000:]
+        assert "mgso run: SIGINT: stopped after" in err
+        _check_outputs(out, interrupted=True)
+        assert metrics["interrupted"] is True and 0 < steps < final
+    else:
+        # 0, or 1 when no frame got a pose (a loaded machine may drop the frames the initialiser needed)
+        assert proc.returncode == 0 or (proc.returncode == 1 and "no frame got a pose" in err), err[-3000:]
+        _check_outputs(out)
+        assert metrics["interrupted"] is False and steps == final
+        assert metrics["frames"]["processed"] >= 15
 
 
 # ------------------------------------------------------------------------------------------------ stalls

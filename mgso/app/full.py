@@ -41,7 +41,7 @@ METRICS_KEYS = (
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
-    "protocols", "loop", "ate_odometry_all_frames_m",
+    "protocols", "loop", "ate_odometry_all_frames_m", "live",
 )
 
 
@@ -319,6 +319,8 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "loop": None if result.loop is None else result.loop.as_dict(),
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
+        # a live source: frames captured, replaced at the source, the timestamps' clock, why the input ended
+        "live": seq.end_info() if getattr(seq, "live", False) else None,
         "protocols": {
             "ate": "RMSE of positions after Sim(3) Umeyama alignment (evo_ape -as), on all frames with a pose and on "
                    "keyframes",

@@ -4,7 +4,8 @@ was done; the exit code says which (docs/architecture.md, README "Exit codes").
 
 - :func:`stop_signals` (around the work): SIGTERM and SIGHUP raise :class:`Terminated`, a ``KeyboardInterrupt``,
   so every ``except KeyboardInterrupt`` of the core (the system's frame loop, the mapper's final refinement) treats
-  them as Ctrl-C.
+  them as Ctrl-C. On a live source the first Ctrl-C only ends the stream (``end_input``): a camera has no other
+  end, and a run so ended is finished as at the end of a recording.
 - :func:`deferred_signals` (around writing the files that must exist): a signal is remembered, not raised; the
   block finishes its files.
 - :func:`stop_signals` again around the evaluation after the essential files: a signal raises, the evaluation
@@ -19,7 +20,7 @@ import logging
 import signal
 import threading
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 __all__ = ["Terminated", "StopState", "stop_signals", "deferred_signals", "exit_code_for"]
 
@@ -85,10 +86,19 @@ def _handlers(handler) -> Iterator[None]:
 
 
 @contextmanager
-def stop_signals(state: StopState) -> Iterator[StopState]:
-    """SIGINT, SIGTERM and SIGHUP raise (``KeyboardInterrupt`` / :class:`Terminated`) and are recorded."""
+def stop_signals(state: StopState, end_input: Callable[[], bool] | None = None) -> Iterator[StopState]:
+    """SIGINT, SIGTERM and SIGHUP raise (``KeyboardInterrupt`` / :class:`Terminated`) and are recorded.
+
+    ``end_input``: a live source's :meth:`~mgso.io.live.LiveSource.end`. Ctrl-C is how a live stream is ended, so
+    the first SIGINT while it delivers only ends the input (nothing raised or recorded: the run finishes as at the
+    end of a recording, final refinement and exit code 0 included); a SIGINT after that, and SIGTERM or SIGHUP at any
+    time, stop as above."""
 
     def handler(signum, frame):
+        if signum == signal.SIGINT and end_input is not None and state.signum is None and end_input():
+            log.warning("Ctrl-C: the live stream ends here; the odometry finishes and the map gets its final "
+                        "refinement before the outputs are written (Ctrl-C again cuts the refinement short)")
+            return
         state.record(signum)
         if signum == signal.SIGINT:
             raise KeyboardInterrupt

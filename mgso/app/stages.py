@@ -184,6 +184,12 @@ def _check_frames(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     summary.conclude(state)
 
 
+def _end_input(seq):
+    """A live source's :meth:`~mgso.io.live.LiveSource.end`, which the first Ctrl-C calls (docs/live.md), else
+    ``None``."""
+    return seq.end if getattr(seq, "live", False) else None
+
+
 def _record(state: StopState, exc: BaseException) -> None:
     """A KeyboardInterrupt that did not come through our handler (raised by a frame source, a test): count it."""
     if state.signum is None:
@@ -216,7 +222,7 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     done: set[int] = set()
     track_ms, map_ms = [], []   # of tracked frames (a FrameResult a frame would hold 2 KB: profiles/memory.py)
     try:
-        with stop_signals(state), progress(_total(seq), "track") as bar:
+        with stop_signals(state, _end_input(seq)), progress(_total(seq), "track") as bar:
             for frame in seq.frames(on_unreadable=bad):
                 r = odo.process(frame)
                 frame_log.add(frame_row(r))
@@ -364,7 +370,7 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
         if hasattr(obs, "watch"):
             frames = obs.watch(frames)
     try:
-        with stop_signals(state):
+        with stop_signals(state, _end_input(seq)):
             result = system.run(frames, info=seq.describe())
     except SystemRunError as exc:
         result = exc.result

@@ -137,7 +137,8 @@ class LiveSource:
     ``live_duration_s``, ``width``/``height``/``rectify`` as for any input.
 
     Iterate :meth:`frames` (one iteration at a time); :attr:`captured`, :attr:`dropped` count frames; after the
-    iteration :attr:`end_reason` says why it ended (``timeout``, ``max_frames``, ``duration``, ``stopped``)."""
+    iteration :attr:`end_reason` says why it ended (``timeout``, ``max_frames``, ``duration``, ``interrupt``: the run's
+    :meth:`end` on the first Ctrl-C, ``stopped``)."""
 
     layout = "live"
     live = True
@@ -234,7 +235,7 @@ class LiveSource:
         n_pace = 0
         old_level = _quiet_opencv()
         try:
-            while not self._stop.is_set():
+            while not self._stop.is_set() and not self._ended:
                 if self.pace_fps is not None:
                     if t_pace is None:
                         t_pace = time.monotonic()
@@ -315,9 +316,10 @@ class LiveSource:
                     return None
                 if self._ended:
                     self.end_reason = self._ended
-                    log.info("%s: %s reached: the end of the input", self.what,
-                             f"input.live_max_frames={self.config.live_max_frames}" if self._ended == "max_frames"
-                             else f"input.live_duration_s={self.config.live_duration_s}")
+                    if self._ended != "interrupt":
+                        log.info("%s: %s reached: the end of the input", self.what,
+                                 f"input.live_max_frames={self.config.live_max_frames}" if self._ended == "max_frames"
+                                 else f"input.live_duration_s={self.config.live_duration_s}")
                     return None
                 idle = time.monotonic() - self._last_capture
                 if idle >= timeout:
@@ -327,6 +329,17 @@ class LiveSource:
                                 self.captured)
                     return None
                 self._cond.wait(min(0.1, timeout - idle))
+
+    def end(self) -> bool:
+        """End the stream here, as a limit would (``end_reason`` ``interrupt``): the iteration stops within 0.1 s
+        and the run finishes as at the end of its input, final refinement included. Returns whether this ended a
+        stream that was delivering; ``False`` when it had already ended or was not started (a caller then stops the
+        run its usual way). Safe from a signal handler: it only sets a flag that the capture thread and the consumer
+        poll, and takes no lock (the handler may run while this thread holds one)."""
+        if not self._iterating or self._thread is None or self._ended or self._stop.is_set() or self.end_reason:
+            return False
+        self._ended = "interrupt"
+        return True
 
     def _frame(self, index: int, ts: float, raw: np.ndarray) -> Frame:
         w, h = self.calibration.input_size
@@ -402,6 +415,12 @@ class LiveSource:
             "live_max_frames": self.config.live_max_frames, "live_duration_s": self.config.live_duration_s,
         }
 
+    def end_info(self) -> dict:
+        """What ``metrics.json`` keeps of the capture: frames captured, replaced at the source, the clock of the
+        timestamps and why the input ended (:attr:`end_reason`)."""
+        return {"captured": self.captured, "dropped_at_source": self.dropped, "clock": self.clock.source,
+                "end_reason": self.end_reason or None}
+
     def end_message(self) -> str:
         """One line: how many frames came, how many the source itself dropped, and why the input ended."""
         c = self.config
@@ -409,6 +428,8 @@ class LiveSource:
                           "delivering",
                "max_frames": f"the limit of {c.live_max_frames} frames (input.live_max_frames, --max-frames)",
                "duration": f"the limit of {c.live_duration_s:g} s (input.live_duration_s, --duration)",
+               "interrupt": "Ctrl-C (the first one ends a live stream as its end; a second cuts the final "
+                            "refinement short)",
                "stopped": "stopped by the run (a signal, an error or the end of the work)"}.get(self.end_reason,
                                                                                               "not ended")
         return (f"live source {self.what}: {self.captured} frames captured, {self.dropped} replaced at the source "
