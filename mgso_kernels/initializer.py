@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import sample_dI
+from .image import finite, sample_dI
 from .photometric import PATTERN, huber_weight, in_margins, vec8f
 
 __all__ = [
@@ -160,7 +160,7 @@ def accumulate_init_system(offset: int,
             s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
             rl = ref_color[i, k]
             ok = in_margins(ku, kv, params.width, params.height, INIT_BORDER_LO, INIT_BORDER_HI) and nid > 0.0
-            ok = ok and wp.isfinite(s[0]) and wp.isfinite(rl)
+            ok = ok and finite(s[0]) and finite(rl)
             all_ok = all_ok and ok
             i0 = wp.where(ok, s[0], 0.0)
             gx = wp.where(ok, s[1], 0.0)
@@ -199,7 +199,7 @@ def accumulate_init_system(offset: int,
             h6 += J[6] * J
             h7 += J[7] * J
             gp += rr * J
-        good_new = good and all_ok and e_pt <= params.max_energy and wp.isfinite(e_pt)
+        good_new = good and all_ok and e_pt <= params.max_energy and finite(e_pt)
         # regularised inverse-depth terms (DSO: only for the points that stay good)
         idd = wp.float64(idn)
         jb8 = wp.float64(jr)

@@ -44,7 +44,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import bilinear_inside, sample_dI, sample_dI_bilin_derivative
+from .image import bilinear_inside, finite3, sample_dI, sample_dI_bilin_derivative
 
 __all__ = [
     "PATTERN_NP", "PATTERN_SIZE", "PATTERN", "PATTERN_PADDING", "HUBER_TH", "OUTLIER_TH", "OUTLIER_TH_SUM_COMPONENT",
@@ -219,7 +219,7 @@ def sample_pattern_pixel(cu: float, cv: float, i: int, idepth: float, RKi: wp.ma
     inside = in_margins(kk[0], kk[1], cam.width, cam.height, lo, hi)
     inside = inside and bilinear_inside(kk[0], kk[1], cam.width, cam.height) and nrm[2] > 0.0
     s = sample_dI(dI_t, kk[0], kk[1])
-    return nrm, s, inside and wp.isfinite(s)
+    return nrm, s, inside and finite3(s)
 
 
 @wp.func
@@ -273,7 +273,7 @@ def photometric_residual(u: float, v: float, idepth: float, host_color: float, h
         out.status = STATUS_OOB
         return out
     s = sample_dI(dI_t, ku, kv)
-    if not wp.isfinite(s):
+    if not finite3(s):
         out.status = STATUS_OOB
         return out
     gx = s[1]
@@ -364,7 +364,7 @@ def extract_patterns_kernel(offset: int,
             s = sample_dI_bilin_derivative(dI_h, x, y)
         else:
             ok = 0
-        if not wp.isfinite(s):
+        if not finite3(s):
             ok = 0
             s = wp.vec3(0.0)
         color[i, k] = s[0]

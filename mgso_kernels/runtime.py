@@ -244,8 +244,8 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     ``recorded``: a dict the caller owns, for a kernel launched again and again with the same arrays (an iterative
     solver's workspace): the chunks' launches are recorded once (``wp.launch(record_cmd=True)``) and later calls with
     the same arrays only set the other inputs (structs, scalars) before launching, 17 us against 69 us for a full
-    launch of the tracker's 13 arguments. The entries keep their arrays alive (so an ``id`` is never reused while
-    cached); the dict is cleared when it reaches 16 entries.
+    launch of the tracker's 13 arguments. The entries keep their kernel and arrays alive (so an ``id`` is never
+    reused while cached); the dict is cleared when it reaches 16 entries.
     """
     device = device or device_of(*inputs)
     if dim <= 0:
@@ -258,14 +258,15 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     parts = 1 if not is_cpu else max(1, min(n, dim // max(1, min_chunk)))
     ranges = split_ranges(dim, parts, align)
     if recorded is not None and not record_tape:
-        key = (kernel.key, str(device), tuple(ranges),
+        # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key
+        key = (id(kernel), kernel.key, str(device), tuple(ranges),
                tuple(id(a) if isinstance(a, wp.array) else None for a in inputs))
         entry = recorded.get(key)
         if entry is None:
             if len(recorded) >= 16:
                 recorded.clear()
             cmds = _record(kernel, ranges, inputs, device)
-            recorded[key] = (cmds, [a for a in inputs if isinstance(a, wp.array)])
+            recorded[key] = (cmds, [kernel, *(a for a in inputs if isinstance(a, wp.array))])
         else:
             cmds = entry[0]
             for i, a in enumerate(inputs):

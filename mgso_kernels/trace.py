@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import bilinear_inside, sample_dI, sample_intensity
+from .image import bilinear_inside, finite, sample_dI, sample_intensity
 from .photometric import PATTERN, huber_weight
 
 __all__ = [
@@ -149,7 +149,7 @@ def trace_points_kernel(offset: int,
     dist = float(0.0)
     u_max = float(0.0)
     v_max = float(0.0)
-    max_known = wp.isfinite(id_max)
+    max_known = finite(id_max)
     if max_known:
         p_max = pr + kt * id_max
         u_max = p_max[0] / p_max[2]
@@ -204,7 +204,7 @@ def trace_points_kernel(offset: int,
         u_max = u_min + params.max_pix_search * dx
         v_max = v_min + params.max_pix_search * dy
         dist = params.max_pix_search
-    if not (wp.isfinite(dx) and wp.isfinite(dy)):
+    if not (finite(dx) and finite(dy)):
         trace_uv[i] = wp.vec2(-1.0, -1.0)
         pixel_interval[i] = 0.0
         status[i] = ST_OOB
@@ -233,7 +233,7 @@ def trace_points_kernel(offset: int,
             y = pty + r10 * px + r11 * py
             if bilinear_inside(x, y, w, h):
                 hit = sample_intensity(dI_t, x, y)
-                if wp.isfinite(hit):
+                if finite(hit):
                     r = hit - (aff[0] * color[i, k] + aff[1])
                     hw = huber_weight(r, params.huber_th)
                     e += hw * r * r * (2.0 - hw)
@@ -273,7 +273,7 @@ def trace_points_kernel(offset: int,
             y = best_v + r10 * px + r11 * py
             if bilinear_inside(x, y, w, h):
                 hit3 = sample_dI(dI_t, x, y)
-                if wp.isfinite(hit3[0]):
+                if finite(hit3[0]):
                     r = hit3[0] - (aff[0] * color[i, k] + aff[1])
                     dres = dx * hit3[1] + dy * hit3[2]
                     hw = huber_weight(r, params.huber_th)
@@ -292,7 +292,7 @@ def trace_points_kernel(offset: int,
         else:
             step = -bb / H
             step = wp.clamp(step, -0.5, 0.5)
-            if not wp.isfinite(step):
+            if not finite(step):
                 step = 0.0
             u_bak = best_u
             v_bak = best_v
@@ -330,7 +330,7 @@ def trace_points_kernel(offset: int,
         hi = tmp
     idepth_min[i] = lo  # DSO stores them before checking (a bad interval makes the next trace OOB)
     idepth_max[i] = hi
-    if not (wp.isfinite(lo) and wp.isfinite(hi)) or hi < 0.0:
+    if not (finite(lo) and finite(hi)) or hi < 0.0:
         trace_uv[i] = wp.vec2(-1.0, -1.0)
         pixel_interval[i] = 0.0
         status[i] = ST_OUTLIER

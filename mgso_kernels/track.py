@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import bilinear_inside, sample_dI
+from .image import bilinear_inside, finite, sample_dI
 from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gradient_weight, huber_weight,
                           in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f)
 
@@ -156,8 +156,8 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                 inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
                 inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
                 s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
-                finite = wp.isfinite(s[0])  # DSO checks the intensity only
-                ok = front and inside and finite
+                good_sample = finite(s[0])  # DSO checks the intensity only
+                ok = front and inside and good_sample
                 hc = ref_color[i, k] - pair.b_h
                 r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
                 ar = wp.abs(r)

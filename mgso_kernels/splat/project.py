@@ -27,6 +27,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import Camera
+from ..image import finite
 from .common import ALPHA_MIN, cutoff_r2, vec6, vec8
 
 wp.set_module_options({"enable_backward": False})
@@ -142,7 +143,7 @@ def project_gaussians(
     J = ewa_jacobian(pc, cam)
     cv = cov2d_of(J, covc, eps2d)
     det = cv[0] * cv[2] - cv[1] * cv[1]
-    if not (det > 0.0) or not wp.isfinite(det):
+    if not (det > 0.0) or not finite(det):
         return
     if antialiased != 0:
         det_raw = (cv[0] - eps2d) * (cv[2] - eps2d) - cv[1] * cv[1]

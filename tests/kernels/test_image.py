@@ -153,3 +153,29 @@ def test_bilinear_sampling_matches_twin_and_checks_bounds(wp_device, rng):
     assert np.allclose(val[0], dI[7, 12], atol=1e-4)
     val, _ = kimg.sample_points(dI_w, np.array([[12, 7]], np.float32), bilin_derivative=True)
     assert np.allclose(val[0], [img[7, 12], img[7, 13] - img[7, 12], img[8, 12] - img[7, 12]], atol=1e-3)
+
+
+@wp.kernel
+def _finite_kernel(x: wp.array(dtype=float), v: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.int32),
+                   out3: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    out[i] = wp.where(kimg.finite(x[i]), 1, 0)
+    out3[i] = wp.where(kimg.finite3(v[i]), 1, 0)
+
+
+def test_inline_finite_is_isfinite(wp_device):
+    """``finite`` / ``finite3`` (``x - x == 0``, inlined; ``wp.isfinite`` is a call on the CPU) agree with
+    ``np.isfinite`` on NaN, +-inf, the largest and smallest floats, denormals and signed zeros."""
+    f32 = np.finfo(np.float32)
+    vals = np.array([0.0, -0.0, 1.0, -3.5, f32.max, -f32.max, f32.tiny, f32.tiny / 8, np.nan, np.inf, -np.inf],
+                    dtype=np.float32)
+    vecs = np.stack([np.roll(np.array([vals[i], 1.0, 2.0], np.float32), k)
+                     for i in range(len(vals)) for k in range(3)])
+    x = wp.array(np.repeat(vals, 3), dtype=float, device=wp_device)
+    v = wp.array(vecs, dtype=wp.vec3, device=wp_device)
+    out = wp.zeros(len(vecs), dtype=wp.int32, device=wp_device)
+    out3 = wp.zeros(len(vecs), dtype=wp.int32, device=wp_device)
+    wp.launch(_finite_kernel, dim=len(vecs), inputs=[x, v, out, out3], device=wp_device)
+    np.testing.assert_array_equal(out.numpy(), np.isfinite(np.repeat(vals, 3)).astype(np.int32))
+    np.testing.assert_array_equal(out3.numpy(), np.isfinite(vecs).all(axis=1).astype(np.int32))
+    assert out.numpy().sum() == 3 * 8 and out3.numpy().sum() == 3 * 8     # 8 finite values, 3 non-finite

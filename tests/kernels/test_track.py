@@ -118,6 +118,15 @@ def test_split_equals_single_and_energy_only_mode(wp_device, setup):
     assert np.array_equal(a.H, b.H) and np.array_equal(a.b, b.b) and a.energy == b.energy
     c = tk.track_system(uv, idepth, col, pair, cam, dI_tw, ws, with_system=False)
     assert np.all(c.H == 0) and c.energy == a.energy and c.num_inliers == a.num_inliers
+    # the same with the inputs kept as Warp arrays across calls (as the tracker does): the launches recorded for one
+    # variant of the kernel must not serve the other (they share Warp's kernel key)
+    uvw = wp.array(uv.astype(np.float32), dtype=wp.vec2, device=wp_device)
+    idw = wp.array(idepth.astype(np.float32), device=wp_device)
+    colw = wp.array(col.astype(np.float32), device=wp_device)
+    for with_system in (True, False, True):
+        e = tk.track_system(uvw, idw, colw, pair, cam, dI_tw, ws, threads=2, with_system=with_system)
+        assert np.array_equal(e.H, b.H) if with_system else np.all(e.H == 0)
+        assert e.energy == a.energy
     # a tighter cutoff saturates more residuals at the constant energy 2*9*cutoff - 81
     d = tk.track_system(uv, idepth, col, pair, cam, dI_tw, ws, cutoff_th=10.0)
     assert d.num_saturated > a.num_saturated and d.num_terms == a.num_terms
