@@ -124,6 +124,9 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     assert not system.mapper.running
     if in_process:      # the camera played once the process had started
         assert system.mapper._ready.is_set() and not system.mapper._proc.is_alive()
+        # its share of the cores while the camera ran, every core for the final refinement (the odometry is done)
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        assert system.mapper.threads == split_threads(0, 0, cores)[1] and st.final_threads == cores
     # the map that came back renders the room (a keyframe's own view, after 60 refinement steps)
     cam = seq.calibration.output
     img = system.mapper.render(cam, system.mapper.views[3].world_to_cam, exposure=system.mapper.view_exposure(3))

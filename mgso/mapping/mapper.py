@@ -92,6 +92,7 @@ class MapperStats:
     train_seconds: float = 0.0              # wall time inside training steps
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_seconds: float = 0.0
+    final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
     seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
     cpu_seconds: float | None = None        # CPU time of the mapper in real time (its process's, or its thread's)
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
@@ -214,6 +215,10 @@ class Mapper:
         # After an interrupt, keep applying messages until Stop arrives instead of ending when the queue looks empty
         # (the mapper's process: messages may still be in the pipe when the interrupt arrives).
         self.drain_until_stop = False
+        # CPU threads of the final refinement's kernel launches (None: as while running). The mapper's process
+        # runs on its share of the cores while the camera runs; after Stop the odometry has finished and waits,
+        # so the refinement takes every core (0).
+        self.final_threads: int | None = None
 
     # ------------------------------------------------------------------------------------------ queue
     @property
@@ -347,6 +352,11 @@ class Mapper:
 
     def _finish(self, msg: Stop) -> None:
         if msg.refine and not self._interrupt.is_set():
+            from mgso_kernels import runtime
+
+            if self.final_threads is not None:
+                runtime.set_cpu_threads(self.final_threads)
+            self.stats.final_threads = runtime.cpu_threads() if self.cfg.final_iterations > 0 else 0
             self.refine(self.cfg.final_iterations)
             # an interrupt during the refinement ends it early (train() checks it between steps)
             self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
