@@ -328,6 +328,7 @@ class System:
         self.realtime = config.system.mode == "realtime"
         sc = config.system
         self.odometry_threads: int | None = None
+        self._share_pending = False      # real time: the odometry on every core until the first keyframe
         if self.realtime and sc.mapper_process:
             self.odometry_threads, mapper_threads = split_threads(sc.odometry_threads, sc.mapper_threads)
             self.mapper: Mapper | MapperProcess = MapperProcess(
@@ -353,6 +354,9 @@ class System:
             self.loop.observe(msg, final=final)
             msg = self.loop.correct(msg)     # the map's (the same object until a loop moved something)
         if isinstance(msg, KeyframeMessage):
+            if self._share_pending:             # the mapper has work from now on: the odometry takes its share
+                self._share_pending = False
+                runtime.set_cpu_threads(self.odometry_threads)
             self._keyframes += 1
             self._keyframe_frames.append(msg.frame_index)
             self.observer.on_keyframe(msg)
@@ -394,8 +398,10 @@ class System:
             player = Player(frames, self.config.system.playback_speed)
             source: Iterable = player
             if self.odometry_threads is not None:      # the cores split with the mapper's process
+                # ... from the first keyframe on: until the initialiser succeeds the mapper has nothing to train,
+                # and the initialiser's frames on one core dropped 2-4 camera frames each at 640x480
                 threads_before = runtime.cpu_threads_setting()
-                runtime.set_cpu_threads(self.odometry_threads)
+                self._share_pending = True
             self.mapper.start()
         else:
             source = frames

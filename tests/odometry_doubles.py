@@ -15,3 +15,19 @@ class SlowOdometry:
 
     def __getattr__(self, name):
         return getattr(self.odo, name)
+
+
+class ThreadsSeenOdometry:
+    """An odometry that records the CPU threads its kernel launches would use at each frame."""
+
+    def __init__(self, odo):
+        self.odo, self.threads = odo, []
+
+    def process(self, frame):
+        from mgso_kernels import runtime
+
+        self.threads.append(runtime.cpu_threads())
+        return self.odo.process(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)

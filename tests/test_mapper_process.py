@@ -27,7 +27,7 @@ from mgso.observers import Observer
 from mgso.oracle import OracleOdometry
 from mgso.system import System, SystemRunError
 
-from odometry_doubles import SlowOdometry
+from odometry_doubles import SlowOdometry, ThreadsSeenOdometry
 
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
         "system.eval_photo_slam=false"]
@@ -133,6 +133,28 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     truth = np.asarray(seq[12].rgb, np.float32)
     psnr = -10 * np.log10(np.mean((np.clip(img, 0, 1) - truth) ** 2))
     assert psnr > 20.0
+
+
+def test_the_odometry_takes_every_core_until_the_mapper_has_a_keyframe(room):
+    """Until the first keyframe the mapper's process has nothing to train, so the odometry's launches use every core
+    (the initialiser's frames); from the first keyframe on, its share. The oracle's first frame is a keyframe."""
+    from mgso_kernels import runtime
+
+    seen = []
+
+    def wrap(odo):
+        seen.append(ThreadsSeenOdometry(odo))
+        return seen[0]
+
+    before = runtime.cpu_threads()
+    system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0.5", wrapper=wrap)
+    result = system.run(seq.frames())
+    threads = seen[0].threads
+    assert result.frames_processed == len(threads) == 24
+    assert threads[0] == before and set(threads[1:]) == {system.odometry_threads}
+    assert runtime.cpu_threads() == before                   # put back when the run ends
+    if before > 1:
+        assert system.odometry_threads < before
 
 
 def test_a_full_ring_and_queue_make_the_odometry_wait_and_lose_nothing(room):
