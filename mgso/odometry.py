@@ -362,6 +362,14 @@ class Odometry:
             r.messages = tuple(messages())
         return r
 
+    def load_kernels(self) -> None:
+        """Compile or load every kernel module the odometry launches, now: a real-time run calls it before the
+        camera plays, so that its first frames do not wait for Warp to compile (seconds a module when the kernel
+        cache is cold) and get dropped."""
+        from mgso_kernels import activation, image, initializer, photometric, select, trace, track, window
+
+        runtime.load_modules((image, photometric, select, initializer, track, trace, activation, window), self.device)
+
     # ------------------------------------------------------------------------------- the mapping thread
     def _process_split(self, frame) -> FrameResult:
         """:meth:`process` with ``map_thread``: track here, map on the mapping thread (initialiser frames and a loss:

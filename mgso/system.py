@@ -423,12 +423,17 @@ class System:
         t_loop = time.perf_counter()
         it = iter(source)
         try:
+            if self.realtime:            # a compile would drop the first frames: done before the camera plays
+                for part in (self.odometry, self.mapper):     # (a mapper's process loads its own before "ready")
+                    load_kernels = getattr(part, "load_kernels", None)
+                    if load_kernels is not None:
+                        load_kernels()
             wait_ready = getattr(self.mapper, "wait_ready", None)
             if wait_ready is not None:
                 # the mapper's process starts (imports, Warp) before the camera plays: its start-up would take the
                 # odometry's core while the first frames arrive
                 wait_ready()
-                t_loop = time.perf_counter()
+            t_loop = time.perf_counter()     # the camera plays from the first frame asked for
             for frame in it:
                 read += 1
                 t0 = time.perf_counter()

@@ -179,8 +179,8 @@ def plan_pyramid(width: int, height: int, camera: Pinhole | None = None, levels:
 def finite(x: float) -> bool:
     """``wp.isfinite`` inline: ``x - x == 0`` is false exactly for NaN and +-inf (IEEE, no fast-math on the CPU or
     in mgso's CUDA modules). On the CPU ``wp.isfinite`` is a call into Warp's runtime, and a call in a loop makes
-    the compiler keep every accumulator in memory around it (the coarse tracker's kernel: 51-52 -> 48-49 ns a residual,
-    profiles/track_kernels.py)."""
+    the compiler keep every accumulator in memory around it (the coarse tracker's kernel: 51-52 -> 48-49 ns a residual:
+    docs/window.md, "Where the tracker's kernel spends its time")."""
     return x - x == 0.0
 
 

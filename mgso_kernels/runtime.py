@@ -44,6 +44,7 @@ __all__ = [
     "split_ranges",
     "launch_split",
     "ensure_loaded",
+    "load_modules",
 ]
 
 log = logging.getLogger(__name__)
@@ -229,6 +230,14 @@ def split_ranges(dim: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
 def ensure_loaded(kernel: Any, device: str) -> None:
     """Compile/load a kernel's module on ``device`` now (on the calling thread), not inside a worker thread."""
     wp.load_module(kernel.module, device=device)
+
+
+def load_modules(modules: Sequence[Any], device: str) -> None:
+    """Compile (or load from the kernel cache) every kernel of ``modules`` (Python modules of kernels) on ``device``
+    now. Warp does it at a module's first launch otherwise: in real time that is the first frames, which a compile
+    of several seconds (a new install, a new Warp, an edited kernel) would drop."""
+    for m in modules:
+        wp.load_module(m, device=device)
 
 
 def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | None = None, *,

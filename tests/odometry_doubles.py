@@ -31,3 +31,20 @@ class ThreadsSeenOdometry:
 
     def __getattr__(self, name):
         return getattr(self.odo, name)
+
+
+class LoadOrderOdometry:
+    """An odometry with ``load_kernels`` that records, in order, when its kernels were loaded and each frame."""
+
+    def __init__(self, odo):
+        self.odo, self.events = odo, []
+
+    def load_kernels(self):
+        self.events.append("load")
+
+    def process(self, frame):
+        self.events.append("frame")
+        return self.odo.process(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)

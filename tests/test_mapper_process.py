@@ -27,7 +27,7 @@ from mgso.observers import Observer
 from mgso.oracle import OracleOdometry
 from mgso.system import System, SystemRunError
 
-from odometry_doubles import SlowOdometry, ThreadsSeenOdometry
+from odometry_doubles import LoadOrderOdometry, SlowOdometry, ThreadsSeenOdometry
 
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
         "system.eval_photo_slam=false"]
@@ -155,6 +155,48 @@ def test_the_odometry_takes_every_core_until_the_mapper_has_a_keyframe(room):
     assert runtime.cpu_threads() == before                   # put back when the run ends
     if before > 1:
         assert system.odometry_threads < before
+
+
+@pytest.mark.parametrize("mode", ["realtime", "deterministic"])
+def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkeypatch):
+    """A compile at the first frames would drop them: a real-time run loads the odometry's and the thread mapper's
+    kernel modules before the first frame (the mapper's process loads its own before it says it is ready); the
+    deterministic mode leaves it to the first launch. The two load_kernels leave every module they name loaded."""
+    import warp as wp
+
+    from mgso.odometry import Odometry
+    from mgso_kernels import runtime
+
+    loaded = []
+    real = runtime.load_modules
+    monkeypatch.setattr(runtime, "load_modules", lambda mods, dev: (loaded.append([m.__name__ for m in mods]),
+                                                                    real(mods, dev)))
+    seen = []
+
+    def wrap(odo):
+        seen.append(LoadOrderOdometry(odo))
+        return seen[0]
+
+    system, seq, _ = _system(room, f"system.mode={mode}", "system.playback_speed=0", "system.mapper_process=false",
+                             wrapper=wrap)
+    system.run(seq.frames())
+    ev = seen[0].events
+    assert ev.count("frame") == 24
+    if mode == "realtime":
+        assert ev[0] == "load" and ev.count("load") == 1
+        assert len(loaded) == 1 and "mgso_kernels.splat.raster_bwd" in loaded[0]   # the thread mapper's
+    else:
+        assert "load" not in ev and loaded == []
+    # what each load_kernels names is loaded afterwards (a module Warp has built has an exec)
+    cfg = load_config(None, BASE)
+    cam = seq.calibration.output
+    from mgso.odometry import geometry_for
+
+    Odometry(geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg), cfg).load_kernels()
+    system.mapper.load_kernels()
+    assert len(loaded) == (3 if mode == "realtime" else 2)
+    for name in loaded[-2] + loaded[-1]:
+        assert wp.get_module(name).execs, name
 
 
 def test_a_full_ring_and_queue_make_the_odometry_wait_and_lose_nothing(room):

@@ -236,6 +236,7 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, messages,
         mapper.safe_point_hook = hook
         mapper.drain_until_stop = True
         mapper.final_threads = 0          # the odometry has finished when Stop comes: every core refines
+        mapper.load_kernels()             # before "ready": the camera plays after it (a compile takes seconds)
         events.put(("ready",))
         mapper._thread = threading.current_thread()   # Mapper's real-time loop, run here in the main thread
         cpu0 = time.process_time()
