@@ -3,25 +3,34 @@
 import time
 
 
-class SlowOdometry:
-    """An odometry that takes ``seconds`` a frame (frames arrive faster than it can take them)."""
+class _Wrapped:
+    """Everything but what a subclass overrides goes to the wrapped odometry."""
 
-    def __init__(self, odo, seconds):
-        self.odo, self.seconds = odo, seconds
-
-    def process(self, frame):
-        time.sleep(self.seconds)
-        return self.odo.process(frame)
+    def __init__(self, odo):
+        self.odo = odo
 
     def __getattr__(self, name):
         return getattr(self.odo, name)
 
 
-class ThreadsSeenOdometry:
+class SlowOdometry(_Wrapped):
+    """An odometry that takes ``seconds`` a frame (frames arrive faster than it can take them)."""
+
+    def __init__(self, odo, seconds):
+        super().__init__(odo)
+        self.seconds = seconds
+
+    def process(self, frame):
+        time.sleep(self.seconds)
+        return self.odo.process(frame)
+
+
+class ThreadsSeenOdometry(_Wrapped):
     """An odometry that records the CPU threads its kernel launches would use at each frame."""
 
     def __init__(self, odo):
-        self.odo, self.threads = odo, []
+        super().__init__(odo)
+        self.threads = []
 
     def process(self, frame):
         from mgso_kernels import runtime
@@ -29,15 +38,13 @@ class ThreadsSeenOdometry:
         self.threads.append(runtime.cpu_threads())
         return self.odo.process(frame)
 
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
 
-
-class LoadOrderOdometry:
+class LoadOrderOdometry(_Wrapped):
     """An odometry with ``load_kernels`` that records, in order, when its kernels were loaded and each frame."""
 
     def __init__(self, odo):
-        self.odo, self.events = odo, []
+        super().__init__(odo)
+        self.events = []
 
     def load_kernels(self):
         self.events.append("load")
@@ -45,6 +52,3 @@ class LoadOrderOdometry:
     def process(self, frame):
         self.events.append("frame")
         return self.odo.process(frame)
-
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
