@@ -55,8 +55,9 @@ import os
 import resource
 import threading
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Iterator, Protocol, Sequence as TSequence
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence as TSequence
 
 import numpy as np
 
@@ -384,8 +385,14 @@ class System:
         if not self.realtime:
             self.mapper.process_pending()
 
-    def run(self, frames: Iterable, *, info: Any = None) -> SystemResult:
+    def run(self, frames: Iterable, *, info: Any = None, hold: Callable[[], Any] | None = None,
+            log_frame: Callable[[Any], None] | None = None) -> SystemResult:
         """Run over ``frames`` (``mgso.io.Frame`` objects, e.g. ``Sequence.frames()``) and stop the mapper.
+
+        ``log_frame(result)``: called with each frame's :class:`OdometryFrame` as it is counted (the application's
+        frames.csv row). ``hold``: a context manager factory around that bookkeeping (the count, the frame log,
+        ``log_frame``; not the observers, which may wait: a paused viewer), in which a stop signal must not land
+        (the application's ``StopState.held``: frames.csv's rows and the count agree however the run is stopped).
 
         Real-time mode plays them through a :class:`Player` at ``system.playback_speed`` times their rate.
         Returns a :class:`SystemResult` (:mod:`mgso.app.full` writes the files); raises :class:`SystemRunError` on an
@@ -406,7 +413,7 @@ class System:
         else:
             source = frames
         try:
-            return self._run(source, player)
+            return self._run(source, player, hold or nullcontext, log_frame)
         finally:
             if self.loop is not None:
                 self.loop.close()
@@ -416,7 +423,8 @@ class System:
             if close is not None:               # a mapper process left by an unexpected exit: no orphan
                 close()
 
-    def _run(self, source: Iterable, player: "Player | None") -> SystemResult:
+    def _run(self, source: Iterable, player: "Player | None", hold: Callable[[], Any],
+             log_frame: Callable[[Any], None] | None) -> SystemResult:
         interrupted = False
         error: Exception | None = None
         processed, read, odo_s = 0, 0, 0.0
@@ -440,8 +448,11 @@ class System:
                 r = self.odometry.process(frame)
                 dt = r.seconds if r.seconds > 0 else time.perf_counter() - t0
                 odo_s += dt
-                processed += 1
-                self.frame_log.add(r)
+                with hold():
+                    processed += 1
+                    self.frame_log.add(r)
+                    if log_frame is not None:
+                        log_frame(r)
                 self.observer.on_frame(r)
                 self._dispatch(r.messages)
         except KeyboardInterrupt:

@@ -369,3 +369,26 @@ def test_bad_settings_are_refused_by_info_and_the_check_stage(room, tmp_path, ca
     assert len(lines) == 2 and all(key in ln for ln in lines) and "Traceback" not in err, err
     assert not out.exists()                                  # refused before any output
     assert main(["run", str(room), "--out", str(out), "--stage", "check", "-q"]) == 0      # negative control
+
+
+@pytest.mark.parametrize("held", [True, False])
+def test_a_signal_inside_a_held_block_is_raised_when_the_block_ends(held):
+    """A frame's row in frames.csv and its count are written under StopState.held: a signal arriving between them
+    is raised once both are done (the flake this fixed: a SIGTERM between the two left 13 rows for 12 frames).
+    Negative control: without the hold it cuts the block in two."""
+    from contextlib import nullcontext
+
+    from mgso.app.signals import StopState, Terminated, stop_signals
+
+    state = StopState()
+    done = []
+    with pytest.raises(Terminated):
+        with stop_signals(state):
+            with state.held() if held else nullcontext():
+                done.append("row")
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(100):          # the handler runs at a bytecode boundary, within this loop
+                    time.sleep(0.001)
+                done.append("count")
+    assert done == (["row", "count"] if held else ["row"])
+    assert state.signum == signal.SIGTERM and state.count == 1

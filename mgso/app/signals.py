@@ -45,6 +45,21 @@ class StopState:
     def __init__(self):
         self.signum: int | None = None
         self.count = 0
+        self._hold = 0
+        self._pending: int | None = None
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """A block a stop signal must not cut in two (a frame's row in frames.csv and its count): a signal that
+        arrives inside it is raised (as :func:`stop_signals` raises it) when the block ends."""
+        self._hold += 1
+        try:
+            yield
+        finally:
+            self._hold -= 1
+            if self._hold == 0 and self._pending is not None:
+                signum, self._pending = self._pending, None
+                _raise(signum)
 
     def record(self, signum: int) -> None:
         if self.signum is None:
@@ -57,6 +72,12 @@ class StopState:
     @property
     def name(self) -> str:
         return _NAMES.get(self.signum, "") if self.signum is not None else ""
+
+
+def _raise(signum: int) -> None:
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise Terminated(signum)
 
 
 def _main_thread() -> bool:
@@ -100,9 +121,10 @@ def stop_signals(state: StopState, end_input: Callable[[], bool] | None = None) 
                         "refinement before the outputs are written (Ctrl-C again cuts the refinement short)")
             return
         state.record(signum)
-        if signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise Terminated(signum)
+        if state._hold:                 # raised when the held block ends (StopState.held)
+            state._pending = state._pending or signum
+            return
+        _raise(signum)
 
     with _handlers(handler):
         yield state

@@ -197,16 +197,6 @@ def _record(state: StopState, exc: BaseException) -> None:
 
 
 # ------------------------------------------------------------------------------------- tracking, odometry
-class _FrameLogObserver(Observer):
-    """``frames.csv``: a row per frame as it finishes."""
-
-    def __init__(self, writer: RunWriter):
-        self.log = writer.open_frame_log()
-
-    def on_frame(self, result) -> None:
-        self.log.add(frame_row(result))
-
-
 def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState) -> None:
     from mgso.odometry import FrameStatus, Odometry, geometry_for
     from mgso_kernels import runtime
@@ -225,12 +215,13 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
         with stop_signals(state, _end_input(seq)), progress(_total(seq), "track") as bar:
             for frame in seq.frames(on_unreadable=bad):
                 r = odo.process(frame)
-                frame_log.add(frame_row(r))
-                done.add(r.index)
-                if r.status == FrameStatus.TRACKED:
-                    track_ms.append(r.time_track_s * 1000)
-                    map_ms.append(r.time_map_s * 1000)
-                n += 1
+                with state.held():        # a signal here would leave a row without its count
+                    frame_log.add(frame_row(r))
+                    done.add(r.index)
+                    if r.status == FrameStatus.TRACKED:
+                        track_ms.append(r.time_track_s * 1000)
+                        map_ms.append(r.time_map_s * 1000)
+                    n += 1
                 bar.update(1)
     except KeyboardInterrupt as exc:
         _record(state, exc)
@@ -362,7 +353,8 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     bar = progress(_total(seq), f"{cfg.system.mode}")
     frame_bar = _FrameBar(bar)
     system = System(odometry, cfg, device=device,
-                    observer=ObserverList([frame_bar, _FrameLogObserver(writer), *observers]))
+                    observer=ObserverList([frame_bar, *observers]))
+    frame_log = writer.open_frame_log()
     frames = seq.frames(on_unreadable=bad)
     for obs in observers:      # a watcher (the live viewer) that asks the mapper for copies, sees the frames
         if hasattr(obs, "attach"):
@@ -371,7 +363,8 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
             frames = obs.watch(frames)
     try:
         with stop_signals(state, _end_input(seq)):
-            result = system.run(frames, info=seq.describe())
+            result = system.run(frames, info=seq.describe(), hold=state.held,
+                                log_frame=lambda r: frame_log.add(frame_row(r)))
     except SystemRunError as exc:
         result = exc.result
         summary.error = _error_text(exc.error)
