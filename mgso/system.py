@@ -534,7 +534,7 @@ class System:
                 loop.close()              # the loops not yet solved are dropped; those found are kept
             self._send_correction(loop.finish())
         steps = self.config.mapping.mapper.final_iterations
-        if not interrupted and steps > 0:     # minutes on a CPU: say what the wait is and how to cut it
+        if not interrupted and steps > 0 and self._keyframes:    # minutes on a CPU: say what and how to cut it
             log.info("final refinement: %d mapping steps over the %d keyframes (Ctrl-C cuts it short; the outputs are "
                      "written either way)", steps, self._keyframes)
         self.mapper.stop(refine=not interrupted)
