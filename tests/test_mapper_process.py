@@ -164,7 +164,7 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
     deterministic mode leaves it to the first launch. The two load_kernels leave every module they name loaded."""
     import warp as wp
 
-    from mgso.odometry import Odometry
+    from mgso.odometry import Odometry, geometry_for
     from mgso_kernels import runtime
 
     loaded = []
@@ -190,8 +190,6 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
     # what each load_kernels names is loaded afterwards (a module Warp has built has an exec)
     cfg = load_config(None, BASE)
     cam = seq.calibration.output
-    from mgso.odometry import geometry_for
-
     Odometry(geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg), cfg).load_kernels()
     system.mapper.load_kernels()
     assert len(loaded) == (3 if mode == "realtime" else 2)
