@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
@@ -38,6 +39,7 @@ __all__ = [
     "device_or_cpu",
     "device_of",
     "cpu_threads",
+    "available_cores",
     "set_cpu_threads",
     "cpu_threads_setting",
     "set_blas_threads",
@@ -163,10 +165,26 @@ def cpu_threads() -> int:
     """Number of threads CPU split launches use."""
     if _threads > 0:
         return _threads
+    return available_cores()
+
+
+_cores_seen = (-1e9, 1)  # (time.monotonic() of the last look, cores)
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity; all of them where there is none), looked up at most once a
+    second: every split launch asks, and ``sched_getaffinity`` is a system call (1 % of the odometry's CPU time on
+    7-Scenes when it was asked each time; py-spy, 2026-12-02), while a change of affinity (``taskset -p``) is rare."""
+    global _cores_seen
+    now = time.monotonic()
+    if now - _cores_seen[0] < 1.0:
+        return _cores_seen[1]
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        n = max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+        n = max(1, os.cpu_count() or 1)
+    _cores_seen = (now, n)
+    return n
 
 
 def cpu_threads_setting() -> int:
