@@ -1,13 +1,14 @@
 """Coarse tracker: DSO's depth-map construction and motion hypotheses, and on a synthetic sequence with true depths
 the recovered poses and affine brightness."""
 
+import cv2
 import numpy as np
 import pytest
 
 from mgso.config import TrackingConfig
 from mgso.geometry import make_pose, se3_exp, se3_inverse, se3_log, so3_exp
-from mgso.tracking.coarse_tracker import (CoarseTracker, coarse_depth_maps, make_tracking_reference,
-                                          motion_hypotheses)
+from mgso.tracking.coarse_tracker import (CoarseTracker, coarse_depth_maps, coarse_depth_points,
+                                          make_tracking_reference, motion_hypotheses)
 from mgso.tracking.pixel_selector import PixelSelector
 from mgso.window.window import Window
 from mgso_kernels.image import ImagePyramid, Pinhole, plan_pyramid
@@ -34,6 +35,73 @@ def test_depth_map_sums_and_dilation():
         assert wss[2][2 + dy, 2 + dx] > 0
     assert wss[2][3, 3] == 0
     assert ids[2][1, 6] / wss[2][1, 6] == pytest.approx(2.0)
+
+
+# the dense form the odometry used until 2026-12-02 (whole-image sums, dilation by OpenCV correlations): the
+# reference the per-pixel form must match bit for bit
+_DIAG_NEIGHBOURS = np.array([[1, 0, 1], [0, 0, 0], [1, 0, 1]], np.float32)  # DSO i+1+w, i-1-w, i+w-1, i-w+1
+_CROSS_NEIGHBOURS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
+
+
+def dense_depth_maps(geometry, uv: np.ndarray, idepth: np.ndarray,
+                      weight: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """DSO ``makeCoarseDepthL0`` on whole images: per level ``(idepth_sum [h, w], weight_sum [h, w])`` after splatting the points
+    ``uv [N, 2]`` (level-0 pixels, rounded) with ``idepth [N]`` and ``weight [N]``, summing 2x2 blocks down the
+    pyramid and one dilation pass per level (levels 0-1: mean of the diagonal neighbours with a depth; coarser: of
+    the 4-neighbours). A pixel's inverse depth is ``idepth_sum / weight_sum`` where ``weight_sum > 0``."""
+    w0, h0 = geometry.width, geometry.height
+    u = np.floor(uv[:, 0] + 0.5).astype(np.int64)
+    v = np.floor(uv[:, 1] + 0.5).astype(np.int64)
+    ok = (u >= 0) & (v >= 0) & (u < w0) & (v < h0) & np.isfinite(idepth) & (weight > 0)
+    flat = v[ok] * w0 + u[ok]
+    id_sum = np.bincount(flat, weights=(idepth[ok] * weight[ok]).astype(np.float64), minlength=w0 * h0)
+    w_sum = np.bincount(flat, weights=weight[ok].astype(np.float64), minlength=w0 * h0)
+    ids = [id_sum.reshape(h0, w0).astype(np.float32)]
+    wss = [w_sum.reshape(h0, w0).astype(np.float32)]
+    for lvl in range(1, geometry.levels):
+        wl, hl = geometry.level_size(lvl)
+        for lst in (ids, wss):
+            a = lst[-1][: 2 * hl, : 2 * wl]
+            lst.append(a[0::2, 0::2] + a[0::2, 1::2] + a[1::2, 0::2] + a[1::2, 1::2])
+    for lvl in range(geometry.levels):
+        idl, wsl = ids[lvl], wss[lvl]
+        hl, wl = idl.shape
+        if hl < 3 or wl < 3:
+            continue
+        # the neighbours' sums by one 3x3 correlation each (OpenCV; idepth_sum is 0 wherever weight_sum is)
+        kern = _DIAG_NEIGHBOURS if lvl < 2 else _CROSS_NEIGHBOURS
+        has = (wsl > 0).astype(np.float32)
+        corr = lambda a: cv2.filter2D(a, cv2.CV_32F, kern, borderType=cv2.BORDER_CONSTANT)  # noqa: E731
+        cnt, s_id, s_w = corr(has), corr(idl), corr(wsl)
+        fill = (wsl <= 0) & (cnt > 0)
+        fill[0, :] = fill[-1, :] = False
+        fill[:, 0] = fill[:, -1] = False
+        np.divide(s_id, cnt, out=idl, where=fill)
+        np.divide(s_w, cnt, out=wsl, where=fill)
+    return ids, wss
+
+
+
+@pytest.mark.parametrize("size,levels,n", [((1241, 376), 5, 2500), ((640, 480), 5, 2000), ((37, 23), 3, 60),
+                                           ((160, 120), 4, 3000)])
+def test_depth_points_match_the_dense_maps_bit_for_bit(size, levels, n):
+    w, h = size
+    geo = plan_pyramid(w, h, Pinhole(0.9 * w, 0.9 * w, w / 2, h / 2), levels=levels)
+    rng = np.random.default_rng(n)
+    uv = np.stack([rng.uniform(-3, w + 3, n), rng.uniform(-3, h + 3, n)], axis=1)
+    uv[: n // 4] = uv[n // 4: 2 * (n // 4)] + rng.uniform(-0.4, 0.4, (n // 4, 2))  # pixels with several points
+    idepth = rng.uniform(0.01, 2.0, n)
+    idepth[::37] = np.nan
+    weight = rng.uniform(0.0, 3.0, n)
+    weight[::29] = 0.0
+    ids_d, wss_d = dense_depth_maps(geo, uv, idepth, weight)
+    ids, wss = coarse_depth_maps(geo, uv, idepth, weight)
+    for lvl in range(levels):
+        assert np.count_nonzero(wss_d[lvl]) > 0
+        np.testing.assert_array_equal(ids[lvl].view(np.int32), ids_d[lvl].view(np.int32))
+        np.testing.assert_array_equal(wss[lvl].view(np.int32), wss_d[lvl].view(np.int32))
+    pix, _, wsum = coarse_depth_points(geo, uv, idepth, weight)[0]
+    assert np.all(np.diff(pix) > 0) and np.all(wsum > 0)
 
 
 def test_motion_hypotheses_order():
