@@ -214,3 +214,33 @@ def test_launchers_check_inputs(wp_device):
     with pytest.raises(ValueError, match="uv"):
         kw.linearize_window(params, win["keys"], win["pp"], win["pk"], win["uv"][:, :1], win["idepth"],
                             win["color"], win["weight"], {}, device=wp_device)
+
+
+def test_linearize_with_a_cache_sees_each_call_s_state():
+    """The optimiser passes one cache for all its iterations: the launch is recorded once and its key and inverse-
+    depth arrays refilled; each call must give what an uncached call gives at that state (bit for bit), and the
+    key sums the same bits as adding each block's partial row in order."""
+    rng = np.random.default_rng(5)
+    win = make_window(rng, nkf=4, npts=40)
+    dIs = [ref_img.gradients(texture(20 + i))[0] for i in range(win["nkf"])]
+    params = kw.make_window_params(CAM.fx, CAM.fy, CAM.cx, CAM.cy, W, H)
+    images = {i: wp.array(dIs[i], dtype=wp.vec3, device="cpu") for i in range(win["nkf"])}
+    args = (win["pp"], win["pk"], win["uv"])
+    rest = (win["color"], win["weight"], images)
+    cache: dict = {}
+    first = kw.linearize_window(params, win["keys"], *args, win["idepth"], *rest, pairs_per_block=3, cache=cache)
+    moved = [se3_exp(rng.normal(0, 0.003, 6)) @ T for T in win["w2c"]]
+    keys2 = keys_of(win["keylist"], moved, win["w2c0"], win["aff"])
+    idepth2 = win["idepth"] * rng.uniform(0.97, 1.03, len(win["idepth"])).astype(np.float32)
+    cached = kw.linearize_window(params, keys2, *args, idepth2, *rest, pairs_per_block=3, cache=cache)
+    fresh = kw.linearize_window(params, keys2, *args, idepth2, *rest, pairs_per_block=3)
+    assert not np.array_equal(first.hcd, fresh.hcd)  # the second state differs
+    for name in ("state", "energy", "hcd", "hdd", "bd", "key_H", "key_b"):
+        np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name), err_msg=name)
+    assert len(cache["recorded"]) == 1  # one recorded launch, replayed
+    # the key sums against np.add.at over the blocks' partial rows, in order
+    part = cache["partials"].numpy()[:cache["B"]]
+    kH = np.zeros((len(keys2), kw.NUM_KEY_SLOTS))
+    np.add.at(kH, cache["bkey"], part)
+    np.testing.assert_array_equal(cached.key_H.reshape(len(keys2), -1), kH[:, :100])
+    np.testing.assert_array_equal(cached.key_b, kH[:, 100:110])
