@@ -14,6 +14,13 @@ good), ``energy = sum w_h^2 hw r^2 (2 - hw)``, ``H_dd = sum hw w_h^2 J_d^2``, ``
 ``ok``). The caller (``mgso.tracking.immature_points.optimize_inverse_depths``) sums them per point and runs the
 Gauss-Newton iterations.
 
+Two sequential kernels pick which candidates become active (DSO ``activatePointsMT`` with its
+``CoarseDistanceMap``): :func:`distance_map` (DSO ``growDistBFS``: breadth-first steps from the active points, at
+level 1) and :func:`pick_spaced` (candidates in order, each taken when it is far enough from the points taken before
+it, the map then lowered around it by a stamp). Both are one thread, on the CPU: the order is the algorithm. In
+NumPy and OpenCV they were 5 % of the odometry's CPU time on KITTI (a dilation an image per step; a Python loop
+over the candidates).
+
 Twin: :mod:`mgso_kernels.reference.activation`.
 """
 
@@ -27,7 +34,8 @@ import warp as wp
 from . import runtime
 from .photometric import Intrinsics, huber_weight, make_intrinsics, sample_pattern_pixel
 
-__all__ = ["DepthParams", "make_depth_params", "DepthPairs", "point_depth_kernel", "point_depth_residuals"]
+__all__ = ["DepthParams", "make_depth_params", "DepthPairs", "point_depth_kernel", "point_depth_residuals",
+           "DISTANCE_STEPS", "DISTANCE_NONE", "distance_map", "pick_spaced"]
 
 wp.set_module_options({"enable_backward": False})
 
@@ -170,3 +178,107 @@ def point_depth_residuals(params: DepthParams, key_target: np.ndarray, key_R: np
                               arr(color, wp.float32, (8,)), arr(weight, wp.float32, (8,)), images, params,
                               out_ok, out_e, out_h, out_b], device, min_chunk=2048)
     return DepthPairs(out_ok.numpy().astype(bool), out_e.numpy(), out_h.numpy(), out_b.numpy())
+
+
+# ------------------------------------------------------------------------------------------ spacing of new points
+DISTANCE_STEPS = 40  # DSO growDistBFS: k < 40
+DISTANCE_NONE = 1000.0  # the distance of a pixel no step reached
+
+
+@wp.kernel
+def distance_map_kernel(seed_x: wp.array(dtype=wp.int32), seed_y: wp.array(dtype=wp.int32), steps: int,
+                        queue: wp.array2d(dtype=wp.int32),  # [2, h * w] scratch: this step's and the next's pixels
+                        dist: wp.array2d(dtype=float)):  # [h, w] in: DISTANCE_NONE everywhere; out: the steps
+    h = dist.shape[0]
+    w = dist.shape[1]
+    n = int(0)
+    for i in range(seed_x.shape[0]):
+        if dist[seed_y[i], seed_x[i]] != 0.0:
+            dist[seed_y[i], seed_x[i]] = 0.0
+            queue[0, n] = seed_y[i] * w + seed_x[i]
+            n += 1
+    cur = int(0)
+    for k in range(1, steps):
+        nxt = 1 - cur
+        m = int(0)
+        kf = float(k)
+        for q in range(n):
+            y = queue[cur, q] // w
+            x = queue[cur, q] - y * w
+            if x > 0 and y > 0 and x < w - 1 and y < h - 1:  # border pixels are reached but do not grow
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        # odd steps: the 8 neighbours; even steps: the 4 (an octagonal distance, as DSO)
+                        if (dx != 0 or dy != 0) and (k % 2 == 1 or dx == 0 or dy == 0):
+                            if dist[y + dy, x + dx] > kf:
+                                dist[y + dy, x + dx] = kf
+                                queue[nxt, m] = (y + dy) * w + x + dx
+                                m += 1
+        n = m
+        cur = nxt
+        if n == 0:
+            break
+
+
+@wp.kernel
+def pick_spaced_kernel(u: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.int32),
+                       jitter: wp.array(dtype=wp.float64), need: wp.array(dtype=wp.float64),
+                       stamp: wp.array2d(dtype=float),  # [2r+1, 2r+1] the distances from its centre
+                       dist: wp.array2d(dtype=float),  # [h, w] in/out: lowered around each point taken
+                       picked: wp.array(dtype=wp.int32)):  # [n] out: 1 where taken
+    h = dist.shape[0]
+    w = dist.shape[1]
+    r = stamp.shape[0] // 2
+    for j in range(u.shape[0]):
+        uj = u[j]
+        vj = v[j]
+        if uj >= 0 and vj >= 0 and uj < w and vj < h:
+            if wp.float64(dist[vj, uj]) + jitter[j] >= need[j]:
+                picked[j] = 1
+                for y in range(wp.max(vj - r, 0), wp.min(vj + r + 1, h)):
+                    for x in range(wp.max(uj - r, 0), wp.min(uj + r + 1, w)):
+                        s = stamp[y - vj + r, x - uj + r]
+                        if s < dist[y, x]:
+                            dist[y, x] = s
+
+
+def distance_map(seeds: np.ndarray, shape: tuple[int, int], steps: int = DISTANCE_STEPS) -> np.ndarray:
+    """DSO ``CoarseDistanceMap::makeDistanceMap``: ``[h, w]`` float32 breadth-first steps to the nearest seed (``seeds
+    [N, 2]`` integer ``(x, y)`` inside the image). Only the pixels reached in the previous step grow, by their 8
+    neighbours on odd steps and their 4 on even ones; pixels on the image border are reached but do not grow;
+    :data:`DISTANCE_NONE` beyond ``steps - 1`` steps. One thread on the CPU (0.2 ms at KITTI's level 1)."""
+    h, w = int(shape[0]), int(shape[1])
+    seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
+    if len(seeds) and (seeds.min() < 0 or np.any(seeds[:, 0] >= w) or np.any(seeds[:, 1] >= h)):
+        raise ValueError(f"distance_map: seeds outside the {w}x{h} image")
+    out = np.full((h, w), DISTANCE_NONE, np.float32)
+    if not len(seeds) or h < 1 or w < 1:
+        return out
+    dist = wp.array(out, dtype=float, device="cpu", copy=False)
+    wp.launch(distance_map_kernel, dim=1, device="cpu",
+              inputs=[wp.array(np.ascontiguousarray(seeds[:, 0], np.int32), dtype=wp.int32, device="cpu"),
+                      wp.array(np.ascontiguousarray(seeds[:, 1], np.int32), dtype=wp.int32, device="cpu"),
+                      int(steps), wp.empty((2, h * w), dtype=wp.int32, device="cpu"), dist])
+    return out
+
+
+def pick_spaced(u: np.ndarray, v: np.ndarray, jitter: np.ndarray, need: np.ndarray, stamp: np.ndarray,
+                dist: np.ndarray) -> np.ndarray:
+    """Candidates in order (``u, v [n]`` integer pixels of ``dist``, those outside it skipped): candidate ``j`` is
+    taken when ``dist[v, u] + jitter[j] >= need[j]`` (float64), and then ``dist = min(dist, stamp)`` on the stamp's
+    square around it, so later candidates see it. ``dist [h, w]`` float32 (C-contiguous) is updated in place.
+    Returns the taken ones ``[n]`` bool. One thread on the CPU."""
+    n = len(u)
+    if not (len(v) == len(jitter) == len(need) == n):
+        raise ValueError("pick_spaced: u, v, jitter and need must have one entry a candidate")
+    if dist.dtype != np.float32 or not dist.flags.c_contiguous or dist.ndim != 2:
+        raise ValueError("pick_spaced: dist must be a C-contiguous [h, w] float32 array")
+    if not n:
+        return np.zeros(0, bool)
+    picked = wp.zeros(n, dtype=wp.int32, device="cpu")
+    f = lambda a, dt, nt: wp.array(np.ascontiguousarray(a, nt), dtype=dt, device="cpu")  # noqa: E731
+    wp.launch(pick_spaced_kernel, dim=1, device="cpu",
+              inputs=[f(u, wp.int32, np.int32), f(v, wp.int32, np.int32), f(jitter, wp.float64, np.float64),
+                      f(need, wp.float64, np.float64), f(stamp, float, np.float32),
+                      wp.array(dist, dtype=float, device="cpu", copy=False), picked])
+    return picked.numpy().astype(bool)

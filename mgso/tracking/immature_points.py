@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
-import cv2
 
-from mgso_kernels.activation import make_depth_params, point_depth_residuals
+from mgso_kernels.activation import DISTANCE_STEPS, make_depth_params, pick_spaced, point_depth_residuals
+from mgso_kernels.activation import distance_map as _distance_map
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 from mgso_kernels.trace import TraceParams, TraceStatus, host_target_projection, make_trace_params, trace_points
 
@@ -125,38 +125,14 @@ def trace_immature_points(window: Window, pyramid, world_to_cam: np.ndarray, aff
 
 
 # ------------------------------------------------------------------------------------------- distance map
-_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-_SQUARE = np.ones((3, 3), np.uint8)
-MAX_BFS_STEPS = 40  # DSO growDistBFS: k < 40; unreached pixels stay at 1000
+MAX_BFS_STEPS = DISTANCE_STEPS  # DSO growDistBFS: k < 40; unreached pixels stay at 1000
 
 
 def distance_map(seeds: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """DSO ``CoarseDistanceMap::makeDistanceMap``: ``[h, w]`` float32 breadth-first steps to the nearest seed
-    (``seeds [N, 2]`` integer ``(x, y)``). As DSO's ``growDistBFS``: only the pixels reached in the previous step
-    grow, by their 8 neighbours on odd steps and their 4 neighbours on even ones (an octagonal distance); pixels on
-    the image border are reached but do not grow; 1000 beyond 39 steps. Each step is one OpenCV dilation of the
-    frontier (uint8 masks; ~1 ms a map at KITTI's level 1, scipy's binary dilation took ~120 ms)."""
-    h, w = shape
-    out = np.full((h, w), 1000.0, np.float32)
-    reached = np.zeros((h, w), np.uint8)
-    if len(seeds):
-        reached[seeds[:, 1], seeds[:, 0]] = 1
-    if not reached.any():
-        return out
-    out[reached.astype(bool)] = 0.0
-    interior = np.zeros((h, w), np.uint8)
-    interior[1:h - 1, 1:w - 1] = 1
-    frontier = reached.copy()
-    for k in range(1, MAX_BFS_STEPS):
-        grown = cv2.dilate(cv2.bitwise_and(frontier, interior), _SQUARE if k % 2 else _CROSS,
-                           borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        new = cv2.bitwise_and(grown, cv2.bitwise_not(reached) & 1)
-        if not cv2.countNonZero(new):
-            break
-        out[new.view(bool)] = k
-        cv2.bitwise_or(reached, new, dst=reached)
-        frontier = new
-    return out
+    (``seeds [N, 2]`` integer ``(x, y)``): :func:`mgso_kernels.activation.distance_map` (DSO's ``growDistBFS``, one
+    thread on the CPU)."""
+    return _distance_map(seeds, shape, MAX_BFS_STEPS)
 
 
 def distance_stamp(radius: int) -> np.ndarray:
@@ -348,7 +324,6 @@ class PointActivator:
                & ((im.idepth_max + im.idepth_min) > 0) & ~delete)
         flagged_host = window.flagged_[im.host]
         delete |= ~can & ~delete & (flagged_host | (st == TraceStatus.OOB))
-        radius = self._stamp.shape[0] // 2
         for hs in window.order:
             if hs == newest:
                 continue
@@ -369,15 +344,9 @@ class PointActivator:
             delete[idx[~inside]] = True
             # the distance map only shrinks while points are taken (np.minimum below): a point that fails against
             # the map as it is now fails at its turn too, so only the others are visited, in order
-            maybe = inside & (dmap[np.where(inside, v, 0), np.where(inside, u, 0)] + frac >= dist_th * typ)
-            for j in np.flatnonzero(maybe).tolist():
-                uj, vj = u[j], v[j]
-                if dmap[vj, uj] + frac[j] >= dist_th * typ[j]:
-                    cand.append(idx[j])
-                    y0, y1 = max(vj - radius, 0), min(vj + radius + 1, h1)
-                    x0, x1 = max(uj - radius, 0), min(uj + radius + 1, w1)
-                    sub = self._stamp[y0 - vj + radius:y1 - vj + radius, x0 - uj + radius:x1 - uj + radius]
-                    np.minimum(dmap[y0:y1, x0:x1], sub, out=dmap[y0:y1, x0:x1])
+            # in order, each taken when far enough from those taken before it (the map lowered around each)
+            taken = pick_spaced(np.where(inside, u, -1), v, frac, dist_th * typ.astype(np.float64), self._stamp, dmap)
+            cand.extend(idx[taken].tolist())
         cand = np.asarray(cand, dtype=np.int64)
         activated = 0
         if len(cand):

@@ -1,13 +1,16 @@
 """NumPy twin of :mod:`mgso_kernels.activation`: each pair's inverse-depth residual sums, one pair and one pattern
-pixel at a time in float64 (slow and obvious)."""
+pixel at a time in float64, DSO's breadth-first distance map and the spaced pick as their loops (slow and
+obvious)."""
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 
 from .photometric import PATTERN
 
-__all__ = ["point_depth_residuals"]
+__all__ = ["point_depth_residuals", "distance_map", "pick_spaced"]
 
 
 def point_depth_residuals(cam: dict, key_target, key_R, key_t, key_aff, pair_point, pair_key, uv, idepth, color,
@@ -53,3 +56,46 @@ def point_depth_residuals(cam: dict, key_target, key_R, key_t, key_aff, pair_poi
             out["ok"][j] = True
             out["energy"][j], out["hdd"][j], out["bd"][j] = e, h, b
     return out
+
+
+def distance_map(seeds, shape, steps: int = 40) -> np.ndarray:
+    """DSO ``growDistBFS`` written as its loops (odd steps 8-neighbours, even steps 4-neighbours; border pixels do
+    not grow; 1000 where no step reached)."""
+    h, w = shape
+    d = np.full((h, w), 1000.0, np.float32)
+    q = deque()
+    for x, y in np.asarray(seeds).reshape(-1, 2).tolist():
+        d[y, x] = 0
+        q.append((x, y))
+    for k in range(1, steps):
+        nq = deque()
+        nb = [(1, 0), (-1, 0), (0, 1), (0, -1)]
+        if k % 2 == 1:
+            nb += [(1, 1), (-1, 1), (-1, -1), (1, -1)]
+        for x, y in q:
+            if x == 0 or y == 0 or x == w - 1 or y == h - 1:
+                continue
+            for dx, dy in nb:
+                if d[y + dy, x + dx] > k:
+                    d[y + dy, x + dx] = k
+                    nq.append((x + dx, y + dy))
+        q = nq
+    return d
+
+
+def pick_spaced(u, v, jitter, need, stamp, dist) -> np.ndarray:
+    """Each candidate in order: taken when ``dist[v, u] + jitter >= need``, then ``dist`` lowered to the stamp around
+    it (in place). Candidates outside ``dist`` are skipped."""
+    h, w = dist.shape
+    r = stamp.shape[0] // 2
+    picked = np.zeros(len(u), bool)
+    for j in range(len(u)):
+        uj, vj = int(u[j]), int(v[j])
+        if not (0 <= uj < w and 0 <= vj < h):
+            continue
+        if float(dist[vj, uj]) + float(jitter[j]) >= float(need[j]):
+            picked[j] = True
+            for y in range(max(vj - r, 0), min(vj + r + 1, h)):
+                for x in range(max(uj - r, 0), min(uj + r + 1, w)):
+                    dist[y, x] = min(dist[y, x], stamp[y - vj + r, x - uj + r])
+    return picked

@@ -1,7 +1,6 @@
 """Immature points on a synthetic sequence with true poses: creation and trace (all hosts in one launch), the
 inverse-depth Gauss-Newton of activation, DSO's distance map, and activation keeping the active points spread."""
 
-from collections import deque
 
 import numpy as np
 import pytest
@@ -13,39 +12,44 @@ from mgso.tracking.immature_points import (PointActivator, distance_map, distanc
 from mgso.tracking.pixel_selector import PixelSelector
 from mgso.window.window import ResidualState, Window
 from mgso_kernels.image import ImagePyramid, Pinhole, plan_pyramid
+from mgso_kernels.activation import pick_spaced
+from mgso_kernels.reference import activation as ref_activation
 from mgso_kernels.trace import TraceStatus
 from tracking_helpers import gray_of
 
 
-def bfs_distance(seeds, h, w, steps=40):
-    """DSO ``growDistBFS`` written as its loops (odd steps 8-neighbours, even steps 4-neighbours; border pixels do
-    not grow)."""
-    d = np.full((h, w), 1000.0)
-    q = deque()
-    for x, y in seeds:
-        d[y, x] = 0
-        q.append((x, y))
-    for k in range(1, steps):
-        nq = deque()
-        nb = [(1, 0), (-1, 0), (0, 1), (0, -1)]
-        if k % 2 == 1:
-            nb += [(1, 1), (-1, 1), (-1, -1), (1, -1)]
-        for x, y in q:
-            if x == 0 or y == 0 or x == w - 1 or y == h - 1:
-                continue
-            for dx, dy in nb:
-                if d[y + dy, x + dx] > k:
-                    d[y + dy, x + dx] = k
-                    nq.append((x + dx, y + dy))
-        q = nq
-    return d
-
-
-def test_distance_map_equals_dso_bfs(rng):
-    h, w = 40, 50
-    seeds = np.stack([rng.integers(1, w - 1, 6), rng.integers(1, h - 1, 6)], axis=1)
-    np.testing.assert_array_equal(distance_map(seeds, (h, w)), bfs_distance(seeds, h, w))
+@pytest.mark.parametrize("h,w,n", [(40, 50, 6), (31, 77, 1), (60, 45, 40), (5, 5, 2)])
+def test_distance_map_equals_dso_bfs(rng, h, w, n):
+    seeds = np.stack([rng.integers(0, w, n), rng.integers(0, h, n)], axis=1)  # border seeds too
+    seeds = np.concatenate([seeds, seeds[:1]])  # a repeated seed
+    got = distance_map(seeds, (h, w))
+    np.testing.assert_array_equal(got, ref_activation.distance_map(seeds, (h, w)))
+    assert got.dtype == np.float32 and got.max() >= 2
     np.testing.assert_array_equal(distance_map(np.zeros((0, 2), np.int64), (h, w)), np.full((h, w), 1000.0))
+    with pytest.raises(ValueError, match="outside"):
+        distance_map(np.array([[w, 0]]), (h, w))
+
+
+def test_pick_spaced_equals_its_loop(rng):
+    """The activation's spacing: candidates in order, each against the points taken before it."""
+    h, w, n = 50, 70, 400
+    seeds = np.stack([rng.integers(1, w - 1, 10), rng.integers(1, h - 1, 10)], axis=1)
+    stamp = distance_stamp(6)
+    u = rng.integers(-3, w + 3, n)
+    v = rng.integers(-3, h + 3, n)
+    jitter = rng.uniform(0, 1, n)
+    need = 3.0 * rng.choice([1, 2, 4], n).astype(np.float64)
+    d_kernel = distance_map(seeds, (h, w))
+    d_twin = d_kernel.copy()
+    taken = pick_spaced(u, v, jitter, need, stamp, d_kernel)
+    np.testing.assert_array_equal(taken, ref_activation.pick_spaced(u, v, jitter, need, stamp, d_twin))
+    np.testing.assert_array_equal(d_kernel, d_twin)
+    assert 20 < taken.sum() < n // 2  # some taken, most turned away by the ones before them
+    # the order matters: each taken point lowered the map for the later ones (none taken is farther than need
+    # from every earlier one, by the twin's own map); taken alone, every inside candidate with room passes
+    alone = np.array([pick_spaced(u[j:j + 1], v[j:j + 1], jitter[j:j + 1], need[j:j + 1], stamp,
+                                  distance_map(seeds, (h, w)))[0] for j in range(n)])
+    assert alone.sum() > taken.sum() and np.all(alone[taken])
 
 
 def window_of(seq, frames):
