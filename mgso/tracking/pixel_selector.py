@@ -144,7 +144,7 @@ class PixelSelector:
         if grad_sq is None:
             grad_sq = [np.asarray(lv)[..., 1] ** 2 + np.asarray(lv)[..., 2] ** 2 for lv in levels[:3]]
         thresholds = block_thresholds(grad_sq[0], self.hist_cut, self.hist_add)
-        return self._make_maps(l0[..., 1:3], grad_sq, thresholds, float(density), int(recursions_left),
+        return self._make_maps(l0, grad_sq, thresholds, float(density), int(recursions_left),
                                float(th_factor))
 
     def _make_maps(self, dxy0, grad_sq, thresholds, density, recursions_left, th_factor) -> PixelSelection:

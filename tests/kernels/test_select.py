@@ -32,6 +32,10 @@ def test_kernel_equals_twin(wp_device, pot, th_factor, use_dirs):
     want = ref.select_map(dxy, g, ths, pot, *dirs, th_factor=th_factor, use_directions=use_dirs)
     np.testing.assert_array_equal(got, want)
     assert np.count_nonzero(got == 1) > 20
+    # the pyramid's (I, dx, dy) read in place gives the same map
+    dI0 = np.concatenate([rng.uniform(0, 255, (h, w, 1)).astype(np.float32), dxy], axis=2)
+    np.testing.assert_array_equal(ks.select_map(dI0, g, ths, pot, *dirs, th_factor=th_factor,
+                                                use_directions=use_dirs, device=wp_device), want)
     if th_factor > 1.5:
         assert np.count_nonzero(got >= 2) > 0
 
