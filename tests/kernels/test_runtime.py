@@ -1,3 +1,6 @@
+import signal
+import threading
+
 import numpy as np
 import pytest
 import warp as wp
@@ -117,3 +120,66 @@ def test_the_device_is_passed_not_a_module_default(wp_device, monkeypatch):
     parts = [odo.window, odo.tracker, odo.initializer, odo.selector, odo.back_end]
     assert all(getattr(p, "device", wp_device) == wp_device for p in parts)
     assert odo.selector.device == wp_device and None not in calls      # nothing fell back to the CPU rule
+
+
+class _Chunk:
+    """A stand-in for a recorded launch: records the thread it ran on, may fail."""
+
+    def __init__(self, fail=False, wait=None):
+        self.fail, self.wait, self.thread = fail, wait, None
+
+    def launch(self):
+        if self.wait is not None:
+            self.wait.wait(5)
+        self.thread = threading.get_ident()
+        if self.fail:
+            raise RuntimeError("chunk failed")
+
+
+def test_split_chunks_run_on_workers_and_their_errors_reach_the_caller():
+    chunks = [_Chunk() for _ in range(3)]
+    assert runtime._run(chunks) == 3
+    me = threading.get_ident()
+    assert chunks[0].thread == me and {c.thread for c in chunks[1:]}.isdisjoint({me})
+    assert chunks[1].thread != chunks[2].thread
+    with pytest.raises(RuntimeError, match="chunk failed"):
+        runtime._run([_Chunk(), _Chunk(fail=True)])
+    again = [_Chunk(), _Chunk()]  # the workers are still usable after a chunk's error
+    assert runtime._run(again) == 2 and again[1].thread not in (None, me)
+    # two threads launching at once each use their own workers (the odometry's tracking and mapping threads)
+    gate = threading.Event()
+    slow = [_Chunk(), _Chunk(wait=gate)]
+    other = threading.Thread(target=runtime._run, args=(slow,))
+    other.start()
+    fast = [_Chunk(), _Chunk()]
+    runtime._run(fast)  # does not wait for the other thread's held chunk
+    assert fast[1].thread is not None and slow[1].thread is None
+    gate.set()
+    other.join(5)
+    assert slow[1].thread is not None and slow[1].thread != fast[1].thread
+
+
+def test_a_split_launch_interrupted_while_waiting_drops_its_workers():
+    """A signal's exception while the caller waits for a worker: that worker may still be running its chunk, so
+    it is not handed the next launch (which would then be waited for by a stale release)."""
+    gate = threading.Event()
+    held = _Chunk(wait=gate)
+    runtime._run([_Chunk(), _Chunk()])
+    before = runtime._local.workers[0]
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.2)
+        with pytest.raises(KeyboardInterrupt):
+            runtime._run([_Chunk(), held])
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    assert held.thread is None  # still held when the caller gave up
+    after = [_Chunk(), _Chunk()]
+    assert runtime._run(after) == 2 and after[1].thread is not None
+    assert runtime._local.workers[0] is not before  # new workers
+    gate.set()
