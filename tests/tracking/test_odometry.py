@@ -241,6 +241,35 @@ def test_constant_motion_is_per_source_frame_when_frames_are_dropped(wp_device, 
     assert ratios[i + 10][1] < 0.4 and ratios[i + 11][1] > 2.5       # the old guess: a quarter, then 4x
 
 
+def test_the_speed_check_is_per_source_frame_when_frames_are_dropped(wp_device, seq160, monkeypatch):
+    """The loss check's speed bound (``lost_max_speed_factor`` x the segment's typical step) compares steps per frame
+    of the source: after a stall in real time (a frame that tries every motion hypothesis, ~300 ms at 640x480) the
+    camera has moved as many frames' worth as were dropped, which is no jump. Here a gap of 8 frames with the bound
+    at 3x: tracked; the negative control, the step between tracked frames as it was, loses the frame (measured:
+    'jump')."""
+    k = seq160.intrinsics
+    frames = frames_of(seq160)
+    cfg = apply_overrides(Config(), ["tracking.lost_max_speed_factor=3.0"])
+
+    def feed(per_source):
+        odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, observer=Recorder())
+        if not per_source:
+            monkeypatch.setattr(odo, "_step_per_source_frame",
+                                lambda c2w: float(np.linalg.norm(c2w[:3, 3] - odo._prev_pose()[:3, 3])))
+        i = 0
+        while odo.process(frames[i]).status != FrameStatus.INITIALIZED:
+            i += 1
+        out = [odo.process(frames[j]) for j in list(range(i + 1, i + 8)) + [i + 15, i + 16]]
+        return odo, out
+
+    odo, out = feed(True)
+    assert [r.status for r in out] == [FrameStatus.TRACKED] * len(out) and odo.num_lost == 0
+    old, out_old = feed(False)
+    assert out_old[-2].status == FrameStatus.LOST and old.num_lost == 1
+    assert [e.reason for e in old.observer.lost] == [LossReason.JUMP]
+    assert [r.status for r in out_old[:-2]] == [FrameStatus.TRACKED] * 7
+
+
 def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
     """``map_thread=True`` (DSO's split, issue 13): keyframes after the initialisation are made on the odometry's
     mapping thread while the caller tracks on; every frame still gets a pose, the map's messages all arrive (one
