@@ -369,6 +369,8 @@ class Odometry:
         from mgso_kernels import activation, image, initializer, photometric, select, trace, track, window
 
         runtime.load_modules((image, photometric, select, initializer, track, trace, activation, window), self.device)
+        if self.device != "cpu":  # the activation's spacing kernels run on the CPU whatever the device
+            runtime.load_modules((activation,), "cpu")
 
     # ------------------------------------------------------------------------------- the mapping thread
     def _process_split(self, frame) -> FrameResult:

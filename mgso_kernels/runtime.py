@@ -328,9 +328,10 @@ def _record(kernel: Any, ranges: list[tuple[int, int]], inputs: Sequence[Any], d
 
 
 class _Worker:
-    """A thread that runs one chunk of a split launch at a time, handed over by two locks: 38 us of CPU a split
-    launch of two chunks against 75 us through a ``ThreadPoolExecutor`` (its future and queue are Python objects
-    both threads take the interpreter lock for; measured 2026-12-02 on the 2-core machine, a kernel of 3.7 us)."""
+    """A thread that runs one chunk of a split launch at a time, handed over by two locks: 22 us of CPU a split
+    launch of two chunks against 49 us through a ``ThreadPoolExecutor`` (its future and queue are Python objects
+    both threads take the interpreter lock for; medians of six rounds on the 2-core machine, 2026-12-02, a kernel
+    whose two chunks take 3.7 us on one thread)."""
 
     def __init__(self) -> None:
         self._go = threading.Lock()

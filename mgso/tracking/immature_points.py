@@ -342,8 +342,6 @@ class PointActivator:
             typ = im.type[idx]
             inside = (u > 0) & (u < w1) & (v > 0) & (v < h1)
             delete[idx[~inside]] = True
-            # the distance map only shrinks while points are taken (np.minimum below): a point that fails against
-            # the map as it is now fails at its turn too, so only the others are visited, in order
             # in order, each taken when far enough from those taken before it (the map lowered around each)
             taken = pick_spaced(np.where(inside, u, -1), v, frac, dist_th * typ.astype(np.float64), self._stamp, dmap)
             cand.extend(idx[taken].tolist())
