@@ -98,7 +98,8 @@ class LossReason(str, Enum):
     NO_HYPOTHESIS = "no_hypothesis"  # no motion hypothesis converged within the checks
     RESIDUAL = "residual"  # RMSE above lost_rmse_factor x the reference's first RMSE
     INLIERS = "inliers"  # too few reference points within the cutoff
-    JUMP = "jump"  # moved farther from the reference than lost_max_translation x its median depth
+    JUMP = "jump"  # farther from the reference than lost_max_translation x its median depth, or faster than
+    # lost_max_speed_factor x the segment's typical step (both per frame of the source)
 
 
 @dataclass
@@ -318,6 +319,7 @@ class Odometry:
         self.segment = 0
         self.initialized = False
         self.num_lost = 0
+        self.losses: list[TrackingLost] = []  # every tracking loss, in order (metrics.json lists them)
         self._ref_lock = threading.Lock()
         self._pending_reference: TrackingReference | None = None
         self._last_good: FrameRecord | None = None  # last reliably tracked frame (chaining segments)
@@ -919,6 +921,7 @@ class Odometry:
                           f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f})")
         log.warning(ev.message)
         self.num_lost += 1
+        self.losses.append(ev)
         rec.status = FrameStatus.LOST
         self.observer.on_tracking_lost(ev)
         self._end_segment()

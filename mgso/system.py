@@ -192,6 +192,8 @@ class SystemResult:
     loop: LoopStats | None = None       # loop closure's counts (None: loop.enabled false)
     odometry_trajectory: Trajectory | None = None           # the odometry's own poses when a loop corrected them
     odometry_keyframe_trajectory: Trajectory | None = None
+    tracking_losses: list = field(default_factory=list)    # the odometry's TrackingLost events, in order
+    segments: int = 1                                       # tracking segments (a loss starts a new one)
 
     @property
     def mapper_cpu_share(self) -> float | None:
@@ -510,7 +512,8 @@ class System:
             mapper_in=("process" if isinstance(self.mapper, MapperProcess) else "thread") if self.realtime
             else "caller", cpu_seconds=time.process_time() - self._cpu0,
             loop=None if self.loop is None else self.loop.stats, odometry_trajectory=odo_traj,
-            odometry_keyframe_trajectory=odo_kf)
+            odometry_keyframe_trajectory=odo_kf, tracking_losses=list(getattr(self.odometry, "losses", ())),
+            segments=int(getattr(self.odometry, "segment", 0)) + 1)
         self.observer.on_sequence_end(result)
         if error is not None:
             raise SystemRunError(result, error) from error

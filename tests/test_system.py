@@ -504,6 +504,43 @@ def test_full_stage_runs_dso_and_the_mapper_end_to_end(tmp_path):
     assert read_gaussians_ply(tmp_path / "map.ply").means.shape[0] == metrics["num_gaussians"]
 
 
+def test_a_tracking_loss_is_in_metrics_and_the_summary(tmp_path, monkeypatch):
+    """A frame of noise in the middle of a full run with the DSO odometry: the loss (frame, reason, figures) is in
+    metrics.json, the run has two segments, and the printed summary says so; a clean run lists none (the metrics
+    of test_full_stage_runs_dso_and_the_mapper_end_to_end's sequence without the noise)."""
+    from mgso.app.stages import run_sequence
+    from mgso.app.writer import RunWriter
+
+    folder = synthetic.cached_sequence_folder(num_frames=60, width=128, height=96, seed=0)
+    cfg = load_config(None, [*BASE, "output.plot=false", "system.eval_photo_slam=false",
+                             "mapping.mapper.final_iterations=5"])
+
+    def run(out, noise_at=None):
+        seq = open_sequence(str(folder), config=cfg.input)
+        frames = seq.frames
+
+        def noisy(*a, **k):
+            for f in frames(*a, **k):
+                if f.index == noise_at:
+                    f.gray = np.random.default_rng(3).uniform(0, 255, f.gray.shape).astype(np.float32)
+                yield f
+
+        monkeypatch.setattr(seq, "frames", noisy)
+        s = run_sequence(seq, cfg, RunWriter(out), stage="full")
+        return s, json.loads((out / "metrics.json").read_text())
+
+    s, m = run(tmp_path / "noisy", noise_at=40)
+    assert s.ok and m["segments"] == 2 and m["frames"]["tracking_lost"] == 1
+    (loss,) = m["tracking_losses"]
+    assert loss["frame"] == 40 and loss["segment"] == 0
+    assert loss["reason"] in ("residual", "inliers", "no_hypothesis"), loss
+    assert loss["rmse"] is None or loss["rmse"] > 0
+    assert any("1 tracking loss)" in line for line in s.messages), s.messages
+    s, m = run(tmp_path / "clean")
+    assert m["segments"] == 1 and m["frames"]["tracking_lost"] == 0 and m["tracking_losses"] == []
+    assert not any("tracking loss" in line for line in s.messages)
+
+
 def test_dso_keyframe_messages_carry_the_frames_valid_mask(wp_device):
     """Pixels undistortion had no source for (Frame.valid False) are left out of the map's loss: the DSO odometry
     puts them in every KeyframeMessage's mask. Frames without a mask give none (negative control)."""

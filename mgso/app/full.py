@@ -41,7 +41,7 @@ METRICS_KEYS = (
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
-    "protocols", "loop", "ate_odometry_all_frames_m", "live",
+    "protocols", "loop", "ate_odometry_all_frames_m", "live", "segments", "tracking_losses",
 )
 
 
@@ -173,6 +173,12 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
     writer.write_with("report.png", lambda p: plot_report(p, data))
 
 
+def _finite(x) -> float | None:
+    """A float for metrics.json, ``None`` when not finite (JSON has no NaN)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
 def _headline(f: dict) -> list[str]:
     """The text panel of report.png: the headline figures of metrics.json."""
     def num(v, fmt):
@@ -182,7 +188,9 @@ def _headline(f: dict) -> list[str]:
     size = f"{f['image_size'][0]}x{f['image_size'][1]}" if f.get("image_size") else "?"
     lines = [f"{f['odometry'] or 'odometry'} + map, {f['mode']} mode, {size}, device {f['device']}",
              f"frames: {fr['processed']} processed of {fr['read']} read, {fr['dropped']} dropped, "
-             f"{fr['without_pose']} without pose; keyframes: {kf['sent']} ({kf['in_map']} in the map)"]
+             f"{fr['without_pose']} without pose"
+             + (f", tracking lost {fr['tracking_lost']}x" if fr.get("tracking_lost") else "")
+             + f"; keyframes: {kf['sent']} ({kf['in_map']} in the map)"]
     if f["ate_all_frames_m"] is None:
         lines.append("ATE: no ground truth")
     else:
@@ -294,7 +302,14 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "end_to_end_fps": result.end_to_end_fps,
         "frames": {"read": result.frames_read, "processed": result.frames_processed,
                    "dropped": result.frames_dropped, "unreadable": int(frames_unreadable),
-                   "without_pose": result.frames_lost, "in_trajectory": len(result.trajectory)},
+                   "without_pose": result.frames_lost, "in_trajectory": len(result.trajectory),
+                   "tracking_lost": len(result.tracking_losses)},
+        "segments": result.segments,
+        # each loss: the frame, why (docs/tracking.md "Tracking loss"), its figures; a new segment starts after it
+        "tracking_losses": [{"frame": e.frame_index, "timestamp": e.timestamp, "segment": e.segment,
+                             "reason": getattr(e.reason, "value", str(e.reason)), "rmse": _finite(e.rmse),
+                             "first_rmse": _finite(e.first_rmse), "inlier_ratio": _finite(e.inlier_ratio)}
+                            for e in result.tracking_losses],
         "keyframes": {"sent": result.keyframes, "in_map": len(mapper.views),
                       "in_trajectory": len(result.keyframe_trajectory)},
         "mode": result.mode,

@@ -385,8 +385,10 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
         m.append(f"stopped after {result.frames_processed} frames: the outputs are of what was done"
                  + (f" (evaluation {metrics['evaluation']})" if metrics["evaluation"] != "done" else ""))
     unread = f", {len(bad)} unreadable" if len(bad) else ""
+    n_lost = len(result.tracking_losses)
+    lost = f", {n_lost} tracking loss{'es' if n_lost != 1 else ''}" if n_lost else ""
     m.append(f"{result.frames_processed} frames ({result.frames_dropped} dropped, {result.frames_lost} without "
-             f"pose{unread}), {result.keyframes} keyframes, {metrics['num_gaussians']} Gaussians "
+             f"pose{unread}{lost}), {result.keyframes} keyframes, {metrics['num_gaussians']} Gaussians "
              f"({metrics['map_size_mb']:.1f} MB as PLY), peak memory {metrics['peak_memory_mb']:.0f} MB")
     m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s, mapping {metrics['mapping_iterations_per_s']:.2f} "
              f"it/s ({result.mapper.steps} steps), end to end {metrics['end_to_end_fps']:.2f} frames/s "
