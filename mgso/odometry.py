@@ -99,7 +99,7 @@ class LossReason(str, Enum):
     RESIDUAL = "residual"  # RMSE above lost_rmse_factor x the reference's first RMSE
     INLIERS = "inliers"  # too few reference points within the cutoff
     JUMP = "jump"  # farther from the reference than lost_max_translation x its median depth, or faster than
-    # lost_max_speed_factor x the segment's typical step (both per frame of the source)
+    # lost_max_speed_factor x the segment's typical step (per frame of the source)
 
 
 @dataclass

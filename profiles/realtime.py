@@ -1,7 +1,8 @@
 """Profile the real-time mode as a user runs it: ``mgso run SEQ --realtime`` (a recorded sequence played at its frame
 rate), once per variant, each in its own process; prints **one JSON line**.
 
-Per sequence and variant: frames read, tracked (processed) and dropped, the fraction tracked, keyframes sent and in
+Per sequence and variant: frames read, tracked (processed) and dropped, the fraction tracked, the tracking losses
+(frame and reason), keyframes sent and in
 the map, mapping steps while the camera ran and in the final refinement, the mapper's share of the CPU, tracking and
 end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue waits, and the wall time. The variants
 (default ``process`` and ``thread``) differ only by their settings, measured one after the other on the same
@@ -57,6 +58,7 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "frames_read": read, "frames_tracked": fr.get("processed"), "frames_dropped": fr.get("dropped"),
         "tracked_fraction": round(fr.get("processed", 0) / read, 4) if read else None,
         "frames_without_pose": fr.get("without_pose"),
+        "tracking_losses": [f"{x['frame']}:{x['reason']}" for x in m.get("tracking_losses") or []],
         "keyframes_sent": m.get("keyframes", {}).get("sent"), "keyframes_in_map": m.get("keyframes", {}).get("in_map"),
         "mapping_steps_running": st.get("steps", 0) - st.get("final_steps", 0),
         "mapping_steps_final": st.get("final_steps"), "queue_waits": st.get("queue_waits"),
