@@ -3,9 +3,9 @@ rate), once per variant, each in its own process; prints **one JSON line**.
 
 Per sequence and variant: frames read, tracked (processed) and dropped, the fraction tracked, the tracking losses
 (frame and reason), keyframes sent and in the map, mapping steps while the camera ran and in the final refinement,
-the mapper's share of the CPU, tracking and end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue waits, and the wall time. The variants
-(default ``process`` and ``thread``) differ only by their settings, measured one after the other on the same
-machine: compare the ratios in one run, not figures of different days.
+the mapper's share of the CPU, tracking and end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue
+waits, and the wall time. The variants (default ``process`` and ``thread``) differ only by their settings, measured
+one after the other on the same machine: compare the ratios in one run, not figures of different days.
 
 ``--deterministic``: also the deterministic run given the same number of mapping steps a keyframe as the real-time
 run of the first variant made while the camera ran (``iterations_per_keyframe = steps / keyframes``), for the PSNR
