@@ -44,11 +44,12 @@ _CROSS_NEIGHBOURS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
 
 
 def dense_depth_maps(geometry, uv: np.ndarray, idepth: np.ndarray,
-                      weight: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """DSO ``makeCoarseDepthL0`` on whole images: per level ``(idepth_sum [h, w], weight_sum [h, w])`` after splatting the points
-    ``uv [N, 2]`` (level-0 pixels, rounded) with ``idepth [N]`` and ``weight [N]``, summing 2x2 blocks down the
-    pyramid and one dilation pass per level (levels 0-1: mean of the diagonal neighbours with a depth; coarser: of
-    the 4-neighbours). A pixel's inverse depth is ``idepth_sum / weight_sum`` where ``weight_sum > 0``."""
+                     weight: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """DSO ``makeCoarseDepthL0`` on whole images: per level ``(idepth_sum [h, w], weight_sum [h, w])`` after
+    splatting the points ``uv [N, 2]`` (level-0 pixels, rounded) with ``idepth [N]`` and ``weight [N]``, summing 2x2
+    blocks down the pyramid and one dilation pass per level (levels 0-1: mean of the diagonal neighbours with a
+    depth; coarser: of the 4-neighbours). A pixel's inverse depth is ``idepth_sum / weight_sum`` where
+    ``weight_sum > 0``."""
     w0, h0 = geometry.width, geometry.height
     u = np.floor(uv[:, 0] + 0.5).astype(np.int64)
     v = np.floor(uv[:, 1] + 0.5).astype(np.int64)
@@ -79,7 +80,6 @@ def dense_depth_maps(geometry, uv: np.ndarray, idepth: np.ndarray,
         np.divide(s_id, cnt, out=idl, where=fill)
         np.divide(s_w, cnt, out=wsl, where=fill)
     return ids, wss
-
 
 
 @pytest.mark.parametrize("size,levels,n", [((1241, 376), 5, 2500), ((640, 480), 5, 2000), ((37, 23), 3, 60),

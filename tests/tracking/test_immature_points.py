@@ -1,7 +1,6 @@
 """Immature points on a synthetic sequence with true poses: creation and trace (all hosts in one launch), the
 inverse-depth Gauss-Newton of activation, DSO's distance map, and activation keeping the active points spread."""
 
-
 import numpy as np
 import pytest
 
