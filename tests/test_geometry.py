@@ -153,3 +153,32 @@ def test_single_pose_paths_equal_the_batched_ones():
         T1 = g.se3_exp(xi)
         np.testing.assert_allclose(T1, g.se3_exp(xi[None])[0], rtol=1e-13, atol=1e-14)
         np.testing.assert_allclose(g.se3_log(T1), g.se3_log(T1[None])[0], rtol=1e-9, atol=1e-11)
+
+
+def _so3_log_array_form(R):
+    """so3_log as it was written with NumPy calls on each 3x3 (until 2026-12-02): the scalar form must give the same
+    bits (the odometry's deterministic runs are compared bit for bit)."""
+    out = np.empty((len(R), 3))
+    for i, r in enumerate(R):
+        cos_t = np.clip((np.trace(r) - 1.0) * 0.5, -1.0, 1.0)
+        theta = np.arccos(cos_t)
+        if theta < 1e-4:
+            out[i] = g.vee(r) * (1.0 + theta * theta / 6.0)
+        elif np.pi - theta < 1e-3:
+            out[i] = g.so3_log(r)  # the near-pi branch is the same code in both
+        else:
+            out[i] = g.vee(r) * (theta / np.sin(theta))
+    return out
+
+
+def test_so3_log_scalar_form_gives_the_array_form_s_bits(rng):
+    w = np.concatenate([rng.normal(0, 1.0, (3000, 3)), rng.normal(0, 1e-5, (500, 3)),   # general, near 0
+                        rng.normal(0, 0.05, (500, 3))])
+    axis = rng.normal(0, 1, (200, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    w = np.concatenate([w, axis * (np.pi - rng.uniform(0, 2e-3, (200, 1)))])          # near pi
+    R = g.orthonormalize(g.so3_exp(w)) + rng.normal(0, 1e-12, (len(w), 3, 3))          # round-off off SO(3)
+    got = g.so3_log(R)
+    np.testing.assert_array_equal(got.view(np.int64), _so3_log_array_form(R).view(np.int64))
+    well = np.linalg.norm(w, axis=1) < 2.5  # (towards pi the log is ill-conditioned)
+    np.testing.assert_allclose(g.so3_exp(got[well]), R[well], atol=1e-9)
