@@ -318,7 +318,6 @@ class Odometry:
         self.keyframes: dict[int, KeyframeRecord] = {}
         self.segment = 0
         self.initialized = False
-        self.num_lost = 0
         self.losses: list[TrackingLost] = []  # every tracking loss, in order (metrics.json lists them)
         self._ref_lock = threading.Lock()
         self._pending_reference: TrackingReference | None = None
@@ -363,6 +362,11 @@ class Odometry:
         if self.emit_messages:
             r.messages = tuple(messages())
         return r
+
+    @property
+    def num_lost(self) -> int:
+        """How many times tracking was lost (each started a new segment)."""
+        return len(self.losses)
 
     def load_kernels(self) -> None:
         """Compile or load every kernel module the odometry launches, now: a real-time run calls it before the
@@ -920,7 +924,6 @@ class Odometry:
                           tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
                           f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f})")
         log.warning(ev.message)
-        self.num_lost += 1
         self.losses.append(ev)
         rec.status = FrameStatus.LOST
         self.observer.on_tracking_lost(ev)

@@ -173,12 +173,6 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
     writer.write_with("report.png", lambda p: plot_report(p, data))
 
 
-def _finite(x) -> float | None:
-    """A float for metrics.json, ``None`` when not finite (JSON has no NaN)."""
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
 def _headline(f: dict) -> list[str]:
     """The text panel of report.png: the headline figures of metrics.json."""
     def num(v, fmt):
@@ -305,10 +299,11 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
                    "without_pose": result.frames_lost, "in_trajectory": len(result.trajectory),
                    "tracking_lost": len(result.tracking_losses)},
         "segments": result.segments,
-        # each loss: the frame, why (docs/tracking.md "Tracking loss"), its figures; a new segment starts after it
+        # each loss: the frame, why (docs/tracking.md "Tracking loss"), its figures (non-finite ones become null in
+        # metrics_report); a new segment starts after it
         "tracking_losses": [{"frame": e.frame_index, "timestamp": e.timestamp, "segment": e.segment,
-                             "reason": getattr(e.reason, "value", str(e.reason)), "rmse": _finite(e.rmse),
-                             "first_rmse": _finite(e.first_rmse), "inlier_ratio": _finite(e.inlier_ratio)}
+                             "reason": getattr(e.reason, "value", str(e.reason)), "rmse": float(e.rmse),
+                             "first_rmse": float(e.first_rmse), "inlier_ratio": float(e.inlier_ratio)}
                             for e in result.tracking_losses],
         "keyframes": {"sent": result.keyframes, "in_map": len(mapper.views),
                       "in_trajectory": len(result.keyframe_trajectory)},
