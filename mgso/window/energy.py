@@ -48,6 +48,7 @@ import scipy.linalg
 
 from mgso_kernels import runtime
 from mgso_kernels import window as kw
+from mgso_kernels.photometric import affine_from_to
 
 from ..config import TrackingConfig, WindowConfig
 from ..geometry import hat, orthonormalize, se3_adjoint, se3_exp, se3_inverse, se3_log
@@ -133,6 +134,7 @@ class WindowProblem:
         self.K = window.capacity
         self.nf = 8 * self.K
         self.order = list(window.order)
+        self._order = np.asarray(self.order, dtype=np.int64)
         self.points = np.arange(a.n) if points is None else np.asarray(points, np.int64)
         rs = a.res_state[self.points]
         mask = np.isin(rs, [int(x) for x in states])
@@ -186,21 +188,26 @@ class WindowProblem:
         """Project the keyframes' poses back onto SE(3): poses composed by the tracker drift off orthonormality
         (1e-3 after a few dozen frames), which would make ``log(T T0^-1)`` and its re-exponentiation disagree."""
         w = self.window
-        for s in self.order:
-            same = np.array_equal(w.world_to_cam_[s], w.world_to_cam_zero_[s])
-            w.world_to_cam_[s] = _rigid(w.world_to_cam_[s])
-            w.world_to_cam_zero_[s] = w.world_to_cam_[s] if same else _rigid(w.world_to_cam_zero_[s])
+        o = self._order
+        if len(o):
+            same = np.all(w.world_to_cam_[o] == w.world_to_cam_zero_[o], axis=(1, 2))
+            T = _rigid(w.world_to_cam_[o])
+            w.world_to_cam_[o] = T
+            w.world_to_cam_zero_[o] = np.where(same[:, None, None], T, _rigid(w.world_to_cam_zero_[o]))
 
     # ------------------------------------------------------------------------------------------- state
     def delta(self) -> np.ndarray:
         """``[8K]`` scaled frame state minus linearisation point (0 for free slots)."""
         w = self.window
         d = np.zeros(self.nf)
-        for s in self.order:
-            raw = np.zeros(8)
-            raw[:6] = se3_log(w.world_to_cam_[s] @ se3_inverse(w.world_to_cam_zero_[s]))
-            raw[6:] = w.affine_[s] - w.affine_zero_[s]
-            d[8 * s:8 * s + 8] = raw / frame_scale()
+        if self.order:
+            o = self._order
+            rel = w.world_to_cam_[o] @ se3_inverse(w.world_to_cam_zero_[o])
+            raw = np.empty((len(o), 8))
+            for i, T in enumerate(rel):  # one at a time: the batched log rounds differently in the last bit
+                raw[i, :6] = se3_log(T)
+            raw[:, 6:] = w.affine_[o] - w.affine_zero_[o]
+            d.reshape(self.K, 8)[o] = raw / frame_scale()
         return d
 
     def backup(self):
@@ -217,13 +224,15 @@ class WindowProblem:
     def apply_step(self, dx_c: np.ndarray, dx_d: np.ndarray) -> None:
         """Scaled frame step, applied as a left increment ``world_to_cam <- exp(dx) world_to_cam`` (to first order
         DSO's ``state + step`` in the linearisation point's tangent, without a log of the pose), and inverse-depth
-        step."""
+        step. The keyframes are moved all at once (NumPy's batched products and SVD give the per-slot bits)."""
         w = self.window
-        for s in self.order:
-            if not np.any(dx_c[8 * s:8 * s + 8]):
-                continue
-            raw = dx_c[8 * s:8 * s + 8] * frame_scale()
-            w.set_keyframe_state(s, _rigid(se3_exp(raw[:6]) @ w.world_to_cam_[s]), w.affine_[s] + raw[6:])
+        step = dx_c.reshape(self.K, 8)[self._order]
+        moved = np.any(step, axis=1)
+        if moved.any():
+            slots = self._order[moved]
+            raw = step[moved] * frame_scale()
+            E = np.stack([se3_exp(r[:6]) for r in raw])  # one at a time, as in delta()
+            w.set_keyframe_states(slots, _rigid(E @ w.world_to_cam_[slots]), w.affine_[slots] + raw[:, 6:])
         d = w.active.idepth[self.points].astype(np.float64)
         new = d + dx_d * SCALE_IDEPTH
         w.active.idepth[self.points] = np.where(new > 1e-6 * np.maximum(d, 1e-9), new, 0.5 * d)
@@ -235,7 +244,8 @@ class WindowProblem:
         hs, gs = self._key_host, self._key_target
         T = w.world_to_cam_[gs] @ se3_inverse(w.world_to_cam_[hs])
         T0 = w.world_to_cam_zero_[gs] @ se3_inverse(w.world_to_cam_zero_[hs])
-        a_rel = np.array([w.affine_rel(h, g)[0] for h, g in self.keylist])
+        af, ex = w.affine_.tolist(), w.exposure_.tolist()  # Python floats: Window.affine_rel, a tenth of its cost
+        a_rel = np.array([affine_from_to(*af[h], *af[g], ex[h], ex[g])[0] for h, g in self.keylist])
         aff = np.stack([a_rel, w.affine_[hs, 1], w.affine_[gs, 1]], axis=1).reshape(len(hs), 3)
         R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
         adj = np.zeros((len(hs), 6, 6))  # se3_adjoint(T0), (v, w) order
@@ -367,9 +377,10 @@ class WindowProblem:
 
 
 def _rigid(T: np.ndarray) -> np.ndarray:
+    """The pose(s) ``[..., 4, 4]`` with an orthonormal rotation and a last row ``(0, 0, 0, 1)``."""
     out = np.array(T, dtype=np.float64)
-    out[:3, :3] = orthonormalize(out[:3, :3])
-    out[3] = (0.0, 0.0, 0.0, 1.0)
+    out[..., :3, :3] = orthonormalize(out[..., :3, :3])
+    out[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
     return out
 
 

@@ -549,6 +549,16 @@ class Window:
         if affine is not None:
             self.affine_[slot] = affine
 
+    def set_keyframe_states(self, slots: np.ndarray, world_to_cam: np.ndarray, affine: np.ndarray) -> None:
+        """:meth:`set_keyframe_state` for several slots at once (``world_to_cam [k, 4, 4]``, ``affine [k, 2]``): the
+        same result, one batched renormalisation instead of one a slot."""
+        slots = np.asarray(slots, dtype=np.int64)
+        T = np.asarray(world_to_cam, dtype=np.float64)
+        if T.shape != (len(slots), 4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError("set_keyframe_states: world_to_cam must be finite 4x4 matrices, one a slot")
+        self.world_to_cam_[slots] = se3_renormalize(T)
+        self.affine_[slots] = affine
+
     def set_linearization_point(self, slot: int) -> None:
         """Fix a keyframe's first-estimate linearisation point at its current estimate."""
         self.world_to_cam_zero_[slot] = self.world_to_cam_[slot]
