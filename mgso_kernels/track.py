@@ -40,12 +40,14 @@ from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gra
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
-    "make_track_params", "reduce_tracking_system", "REDUCE_KERNELS", "track_system", "COARSE_CUTOFF_TH",
+    "make_track_params", "reduce_tracking_system", "REDUCE_KERNELS", "LANE_KERNELS", "LANE_POINTS_PER_BLOCK",
+    "track_system", "COARSE_CUTOFF_TH",
 ]
 
 wp.set_module_options({"enable_backward": False})
 
 POINTS_PER_BLOCK = 32  # points per reduction block (one thread each)
+LANE_POINTS_PER_BLOCK = 128  # the same for the CPU's lane kernel (its lanes are summed once a block)
 SPLIT_MIN_POINTS = 4096  # residuals a chunk needs before a launch is split over the CPU cores
 COARSE_CUTOFF_TH = 20.0  # DSO setting_coarseCutoffTH
 
@@ -201,6 +203,150 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
     return reduce_tracking_system
 
 
+mat88_lanes = wp.types.matrix(shape=(8, 8), dtype=wp.float64)  # [parameter, lane]
+mat64_lanes = wp.types.matrix(shape=(64, 8), dtype=wp.float64)  # [8 a + b, lane], the upper triangle used
+LANES = wp.constant(8)
+
+
+@wp.func
+def lane_sum(v: vec8d) -> wp.float64:
+    """The 8 lanes summed in a fixed tree (the same bits on every launch, single or split)."""
+    return ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
+
+
+def _make_lane_kernel(with_system: bool):
+    """The CPU form of the one-residual-a-point kernel (DSO's coarse tracker, ``ref_color [N, 1]``): each residual
+    is computed as in :func:`_make_reduce_kernel`, then the system is accumulated for 8 points at once, one float64
+    lane each (as DSO's SSE accumulators take 4), only the upper triangle, and the lanes are summed at the block's
+    end. Warp's CPU compiler keeps the scalar form's 8x8 accumulator out of registers; this form is 20 % faster a
+    residual (docs/tracking_kernels.md). The sums are the scalar kernel's terms in another order (float64: equal to
+    round-off); on a GPU the scalar kernel stays (a thread's lanes would be local memory there)."""
+
+    @wp.kernel
+    def reduce_tracking_system_lanes(offset: int,
+                                     host_uv: wp.array(dtype=wp.vec2),
+                                     idepth: wp.array(dtype=float),
+                                     ref_color: wp.array2d(dtype=float),  # [N, 1]
+                                     pair: FramePair,
+                                     cam: Intrinsics,
+                                     dI_t: wp.array2d(dtype=wp.vec3),
+                                     photo: PhotometricParams,
+                                     params: TrackParams,
+                                     residual: wp.array2d(dtype=float),
+                                     weight: wp.array2d(dtype=float),
+                                     state: wp.array2d(dtype=wp.int32),
+                                     jacobian: wp.array2d(dtype=vec8f),  # unused (no stored Jacobians here)
+                                     partials: wp.array2d(dtype=wp.float64)):
+        blk = offset + wp.tid()
+        n = host_uv.shape[0]
+        start = blk * params.points_per_block
+        end = wp.min(start + params.points_per_block, n)
+        Hl = mat64_lanes()
+        gl = mat88_lanes()
+        energy = wp.float64(0.0)
+        n_terms = int(0)
+        n_in = int(0)
+        n_sat = int(0)
+        flow_t = wp.float64(0.0)
+        flow_rt = wp.float64(0.0)
+        flow_n = int(0)
+        max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
+        Ki = inverse_K(cam)
+        RKi = pair.R * Ki
+        next_flow = int(-1)
+        if params.flow_stride > 0:
+            next_flow = ((start + params.flow_stride - 1) // params.flow_stride) * params.flow_stride
+        for g0 in range(start, end, LANES):
+            J = mat88_lanes()
+            w_l = vec8d()
+            wr_l = vec8d()
+            for k in range(LANES):
+                i = g0 + k
+                live = i < end
+                ii = wp.min(i, end - 1)  # a lane past the block's end repeats its last point with weight 0
+                c = host_uv[ii]
+                idp = idepth[ii]
+                if live and ii == next_flow:
+                    next_flow += params.flow_stride
+                    hp = Ki * wp.vec3(c[0], c[1], 1.0)
+                    rh = RKi * wp.vec3(c[0], c[1], 1.0)
+                    tt = pair.t * idp
+                    p1 = hp + tt
+                    p2 = hp - tt
+                    p3 = rh + tt
+                    p4 = rh - tt
+                    d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
+                    d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
+                    d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
+                    d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
+                    flow_t += wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2))
+                    flow_rt += wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
+                    flow_n += 2
+                kk, nrm = project_RKi(c[0], c[1], idp, RKi, pair.t, cam)
+                ku = kk[0]
+                kv = kk[1]
+                front = nrm[2] > 0.0
+                inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
+                inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
+                s = sample_dI(dI_t, ku, kv)
+                ok = live and front and inside and finite(s[0])
+                hc = ref_color[ii, 0] - pair.b_h
+                r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
+                sat = ok and wp.abs(r) > params.cutoff_th
+                inl = ok and not sat
+                hw = huber_weight(r, photo.huber_th)
+                gw = float(1.0)
+                if photo.grad_c2 > 0.0:
+                    gw = gradient_weight(s[1] * s[1] + s[2] * s[2], photo.grad_c2)
+                    gw = gw * gw
+                wgt = wp.where(inl, hw * gw, 0.0)
+                energy += wp.float64(wp.where(inl, gw * hw * r * r * (2.0 - hw), wp.where(sat, max_energy, 0.0)))
+                n_terms += wp.where(ok, 1, 0)
+                n_in += wp.where(inl, 1, 0)
+                n_sat += wp.where(sat, 1, 0)
+                if live:
+                    residual[ii, 0] = r
+                    weight[ii, 0] = wgt
+                    state[ii, 0] = wp.where(front, wp.where(ok, wp.where(sat, 3, 0), 1), 2)
+                jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), nrm, idp, cam.fx, cam.fy)
+                J[0, k] = wp.float64(jp[0])
+                J[1, k] = wp.float64(jp[1])
+                J[2, k] = wp.float64(jp[2])
+                J[3, k] = wp.float64(jp[3])
+                J[4, k] = wp.float64(jp[4])
+                J[5, k] = wp.float64(jp[5])
+                J[6, k] = wp.float64(-pair.a_rel * hc)
+                J[7, k] = wp.float64(-1.0)
+                w_l[k] = wp.float64(wgt)
+                wr_l[k] = wp.float64(wgt) * wp.float64(r)
+            if wp.static(with_system):
+                for a in range(8):
+                    wa = wp.cw_mul(w_l, J[a])
+                    gl[a] = gl[a] + wp.cw_mul(wr_l, J[a])
+                    for b in range(8):
+                        if b >= a:  # a and b are unrolled constants: no branch is generated
+                            Hl[a * 8 + b] = Hl[a * 8 + b] + wp.cw_mul(wa, J[b])
+        for a in range(8):
+            for b in range(8):
+                if b >= a:
+                    partials[blk, SLOT_H + a * 8 + b] = lane_sum(Hl[a * 8 + b])
+                else:
+                    partials[blk, SLOT_H + a * 8 + b] = lane_sum(Hl[b * 8 + a])
+            partials[blk, SLOT_B + a] = lane_sum(gl[a])
+        partials[blk, SLOT_ENERGY] = energy
+        partials[blk, SLOT_NUM_TERMS] = wp.float64(n_terms)
+        partials[blk, SLOT_NUM_INLIERS] = wp.float64(n_in)
+        partials[blk, SLOT_NUM_SATURATED] = wp.float64(n_sat)
+        partials[blk, SLOT_FLOW_T] = flow_t
+        partials[blk, SLOT_FLOW_RT] = flow_rt
+        partials[blk, SLOT_FLOW_COUNT] = wp.float64(flow_n)
+
+    return reduce_tracking_system_lanes
+
+
+# with_system -> the CPU kernel of one residual a point
+LANE_KERNELS = {True: _make_lane_kernel(True), False: _make_lane_kernel(False)}
+
 # (with_system, store_jacobians) -> kernel. All variants are defined at import so the module compiles once.
 REDUCE_KERNELS = {
     (True, False): _make_reduce_kernel(True, False),
@@ -250,14 +396,22 @@ class TrackWorkspace:
     """
 
     def __init__(self, capacity: int, pattern_size: int = 1, device: str | None = None,
-                 store_jacobians: bool = False, points_per_block: int = POINTS_PER_BLOCK):
+                 store_jacobians: bool = False, points_per_block: int | None = None, lanes: bool | None = None):
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if pattern_size not in (1, 8):
             raise ValueError(f"pattern_size must be 1 (DSO coarse tracker) or 8 (pattern), got {pattern_size}")
+        self.device = runtime.device_or_cpu(device)
+        # the CPU's lane kernel takes one residual a point and stores no Jacobians (``lanes=None``: whenever it can;
+        # False: the scalar kernel, for comparisons); it sums its lanes once a block, so its blocks are larger
+        can = pattern_size == 1 and not store_jacobians and wp.get_device(self.device).is_cpu
+        if lanes and not can:
+            raise ValueError("the lane kernel needs pattern_size 1, no stored Jacobians and a CPU device")
+        self.lanes = can if lanes is None else bool(lanes)
+        if points_per_block is None:
+            points_per_block = LANE_POINTS_PER_BLOCK if self.lanes else POINTS_PER_BLOCK
         if points_per_block < 1:
             raise ValueError(f"points_per_block must be >= 1, got {points_per_block}")
-        self.device = runtime.device_or_cpu(device)
         self.capacity = int(capacity)
         self.pattern_size = int(pattern_size)
         self.points_per_block = int(points_per_block)
@@ -366,7 +520,10 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
         raise ValueError(f"cutoff_th must be > 0, got {cutoff_th}")
     ws.n = n
     photo, params = ws.params(huber_th, grad_c2, border_lo, border_hi, cutoff_th, flow_stride)
-    kernel = REDUCE_KERNELS[(True, True) if ws.store_jacobians else (bool(with_system), False)]
+    if ws.lanes:
+        kernel = LANE_KERNELS[bool(with_system)]
+    else:
+        kernel = REDUCE_KERNELS[(True, True) if ws.store_jacobians else (bool(with_system), False)]
     blocks = ws.num_blocks
     if blocks:
         # split over the cores only from SPLIT_MIN_POINTS points a chunk: a split launch costs ~0.3 ms more than a
