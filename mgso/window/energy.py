@@ -281,8 +281,10 @@ class WindowProblem:
         bk = np.einsum("kai,ka->ki", A, lin.key_b)
         idx = np.concatenate([8 * self._key_host[:, None] + np.arange(8), 8 * self._key_target[:, None] + np.arange(8)],
                              axis=1)  # [nk, 16]
-        np.add.at(H, (idx[:, :, None], idx[:, None, :]), Hk)
-        np.add.at(b, idx, bk)
+        # summed key by key in order, as np.add.at would (the same bits), a fifth of its time
+        H = np.bincount((idx[:, :, None] * self.nf + idx[:, None, :]).ravel(), weights=Hk.ravel(),
+                        minlength=self.nf * self.nf).reshape(self.nf, self.nf)
+        b = np.bincount(idx.ravel(), weights=bk.ravel(), minlength=self.nf)
         return H, b
 
     def point_extras(self):
