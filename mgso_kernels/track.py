@@ -20,8 +20,9 @@ the mean squared pixel shift of the point centre under ``+-t`` alone (translatio
 
 Reduction: one thread owns a block of ``points_per_block`` points, accumulates in float64 registers and writes one
 row of a partial-sum buffer; the launcher sums the rows in float64. No atomics, so the result is bitwise the same
-on CPU and GPU, single or split over CPU cores (docs/tracking_kernels.md: 16,000 fp32 outer products summed one by
-one lost 3e-6 relative).
+single or split over CPU cores (docs/tracking_kernels.md: 16,000 fp32 outer products summed one by one lost 3e-6
+relative). On the CPU, DSO's one residual a point runs as the lane kernel (:data:`LANE_KERNELS`: the same residuals,
+the system summed 8 points at a time), which a GPU does not use: the two devices agree to float64 round-off.
 DSO divides ``H`` and ``b`` by the number of terms and scales blocks by ``SCALE_XI_*``/``SCALE_A/B``; that
 preconditioning belongs to the solver and is not applied here.
 """
