@@ -810,6 +810,11 @@ class SystemConfig:
                          "rate and frames that arrive while the odometry is busy are dropped (as a live camera's)")
     playback_speed: float = opt(1.0, "realtime mode: a recorded sequence plays at this multiple of its frame rate "
                                      "(0 = as fast as the odometry takes frames, nothing dropped)")
+    max_lag_ms: float = opt(250.0, "realtime mode: frames that arrive while the odometry is busy wait, in order, "
+                                   "until they are this old (ms), then are dropped: the frames of a short stall (a "
+                                   "keyframe's hand-over, DSO's motion-hypothesis search) are tracked late instead of "
+                                   "lost; 0 = only the newest frame waits (every pose as fresh as it can be, the "
+                                   "stalls' frames dropped)")
     odometry_map_thread: bool = opt(True, "realtime mode: the odometry's mapping half (window optimisation, "
                                           "marginalisation, new points) on a thread of its own beside the tracking, "
                                           "as DSO's mapping thread, so that a keyframe does not stall the frames "
@@ -841,7 +846,7 @@ class SystemConfig:
     def __post_init__(self):
         c = _Checks("system", self)
         c.one_of(("deterministic", "realtime"), "mode")
-        c.ge(0, "playback_speed")
+        c.ge(0, "playback_speed", "max_lag_ms")
         c.ge(0, "odometry_threads", "mapper_threads")
         c.within(0, 19, "mapper_nice")
         c.ge(1, "image_slots")

@@ -55,6 +55,7 @@ import os
 import resource
 import threading
 import time
+from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence as TSequence
@@ -194,6 +195,7 @@ class SystemResult:
     odometry_keyframe_trajectory: Trajectory | None = None
     tracking_losses: list = field(default_factory=list)    # the odometry's TrackingLost events, in order
     segments: int = 1                                       # tracking segments (a loss starts a new one)
+    frame_lags: list = field(default_factory=list)          # real time: seconds each frame waited to be taken
 
     @property
     def mapper_cpu_share(self) -> float | None:
@@ -231,41 +233,56 @@ class SystemRunError(RuntimeError):
 _END = object()
 
 
+def _is_frame(item) -> bool:
+    return item is not _END and not isinstance(item, BaseException)
+
+
 class Player:
     """Plays frames at their timestamps (a recorded sequence as a live camera): a thread reads ``frames`` and
-    releases each at ``t0 + (timestamp - first) / speed``; the consumer takes the newest released frame. A frame
-    released while the previous one was not yet taken replaces it (counted in :attr:`dropped`). ``speed = 0``: no
-    pacing and nothing dropped (the consumer's pace). Errors of the source (including ``KeyboardInterrupt``) are
-    raised in the consumer.
+    releases each at ``t0 + (timestamp - first) / speed``; the consumer takes the released frames in order. A frame
+    that is ``max_lag`` seconds old while a newer one waits is dropped (counted in :attr:`dropped`): with ``max_lag =
+    0`` the consumer always gets the newest frame, as from a live camera; a positive ``max_lag`` lets the frames that
+    arrive during a short stall wait (a delay of at most that long) instead of being lost (:attr:`lags`: how long
+    each frame taken had waited). ``speed = 0``: no pacing and nothing dropped (the consumer's pace). Errors of the
+    source (including ``KeyboardInterrupt``) are raised in the consumer, after the frames released before them.
 
     A live source (``frames.live`` true: :class:`mgso.io.live.LiveSource`'s frames) is never paced (the device is
-    the clock) and always drops, whatever ``speed``; it is closed before the player's thread is joined (that thread
-    may be waiting in it for the next frame), and the frames the source itself replaced before the player took them
-    (``frames.dropped``) are added to :attr:`read` and :attr:`dropped`."""
+    the clock) and always drops as above, whatever ``speed``; it is closed before the player's thread is joined (that
+    thread may be waiting in it for the next frame), and the frames the source itself replaced before the player
+    took them (``frames.dropped``) are added to :attr:`read` and :attr:`dropped`."""
 
-    def __init__(self, frames: Iterable, speed: float = 1.0):
+    def __init__(self, frames: Iterable, speed: float = 1.0, max_lag: float = 0.0):
         self.speed = float(speed)
+        self.max_lag = max(0.0, float(max_lag))
         self._frames = frames
         self.live = bool(getattr(frames, "live", False))
         self._cond = threading.Condition()
-        self._slot: Any = None
-        self._has = False
+        self._queue: deque = deque()  # (release time, frame / _END / exception), oldest first
         self._stop = threading.Event()
         self.read = 0
         self.dropped = 0
+        self.lags: list[float] = []  # seconds each frame taken waited after its release
         self._thread = threading.Thread(target=self._work, name="mgso-player", daemon=True)
 
     def _put(self, item, replace: bool) -> bool:
         with self._cond:
-            while self._has and not replace and not self._stop.is_set():
+            while self._queue and not replace and not self._stop.is_set():
                 self._cond.wait(0.05)
             if self._stop.is_set():
                 return False
-            if self._has and item is not _END and not isinstance(item, BaseException):
-                self.dropped += 1
-            self._slot, self._has = item, True
+            now = time.perf_counter()
+            self._queue.append((now, item))
+            self._expire(now)
             self._cond.notify_all()
         return True
+
+    def _expire(self, now: float) -> None:
+        """Drop the oldest waiting frames while a newer frame waits behind them and they are ``max_lag`` old (under
+        the condition's lock): a frame is taken at most that late, unless it is the newest."""
+        q = self._queue
+        while (len(q) > 1 and now - q[0][0] >= self.max_lag and _is_frame(q[0][1]) and _is_frame(q[1][1])):
+            q.popleft()
+            self.dropped += 1
 
     def _work(self) -> None:
         t0, ts0 = None, None
@@ -292,14 +309,16 @@ class Player:
         try:
             while True:
                 with self._cond:
-                    while not self._has:
+                    while not self._queue:
                         self._cond.wait(0.05)
-                    item, self._slot, self._has = self._slot, None, False
+                    self._expire(time.perf_counter())
+                    released, item = self._queue.popleft()
                     self._cond.notify_all()
                 if item is _END:
                     return
                 if isinstance(item, BaseException):
                     raise item
+                self.lags.append(time.perf_counter() - released)
                 yield item
         finally:
             self._stop.set()
@@ -404,7 +423,7 @@ class System:
         player = None
         threads_before = None
         if self.realtime:
-            player = Player(frames, self.config.system.playback_speed)
+            player = Player(frames, self.config.system.playback_speed, self.config.system.max_lag_ms / 1000.0)
             source: Iterable = player
             if self.odometry_threads is not None:      # the cores split with the mapper's process
                 # ... from the first keyframe on: until the initialiser succeeds the mapper has nothing to train,
@@ -505,6 +524,7 @@ class System:
         result = SystemResult(
             mode=self.config.system.mode, frames_read=read, frames_processed=processed,
             frames_dropped=player.dropped if player is not None else 0, keyframes=self._keyframes,
+            frame_lags=list(player.lags) if player is not None else [],
             pose_updates=self._pose_updates, interrupted=interrupted,
             trajectory=traj, keyframe_trajectory=kf_traj, frame_log=self.frame_log, cloud=cloud,
             mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,

@@ -301,16 +301,53 @@ def test_real_time_mode_delivers_every_keyframe_and_pose_update(room, tmp_path):
     assert metrics["mode"] == "realtime" and metrics["psnr_monogs_db"] > 20.0
 
 
-def test_real_time_playback_drops_frames_the_odometry_cannot_take(room, tmp_path):
+@pytest.mark.parametrize("max_lag_ms", [0, 250])
+def test_real_time_playback_drops_frames_the_odometry_cannot_take(room, tmp_path, max_lag_ms):
     result, metrics, *_ = _in_thread(lambda: _run(
         room, tmp_path, "system.mode=realtime", "system.playback_speed=1", "mapping.mapper.final_iterations=0",
-        "system.eval_photo_slam=false", odometry_wrapper=lambda o: SlowOdometry(o, 0.1)), timeout=120)
-    # 30 fps playback, 100 ms a frame: about two of every three frames are dropped, as by a live camera
+        "system.eval_photo_slam=false", f"system.max_lag_ms={max_lag_ms}",
+        odometry_wrapper=lambda o: SlowOdometry(o, 0.1)), timeout=120)
+    # 30 fps playback, 100 ms a frame: a sustained overload, so frames are dropped with either setting; with
+    # max_lag 0 the odometry always takes the newest frame (about two of every three dropped, as by a live camera),
+    # with 250 ms the frames it takes have waited up to that long
     assert result.frames_read == 24
     assert result.frames_processed + result.frames_dropped == 24
-    assert 10 <= result.frames_dropped <= 20
+    assert (10 if max_lag_ms == 0 else 5) <= result.frames_dropped <= 20
     assert metrics["frames"]["dropped"] == result.frames_dropped
     assert metrics["end_to_end_fps"] < 12
+    rt = metrics["realtime"]
+    assert rt["max_lag_ms"] == max_lag_ms and 0 <= rt["frame_lag_ms_median"] <= rt["frame_lag_ms_max"]
+    if max_lag_ms == 0:
+        assert rt["frame_lag_ms_max"] < 100  # at most a frame interval (33 ms) and the scheduler's delay
+    else:
+        assert 150 < rt["frame_lag_ms_max"] < 600
+
+
+def test_the_player_lets_frames_wait_up_to_max_lag(tmp_path):
+    """Player (system.py): 20 frames at 100 Hz and a consumer that stalls 0.12 s on the first one. With max_lag 0
+    the frames of the stall are dropped and the newest is taken; with a lag bound above the stall every frame comes,
+    in order; with one below it, some are dropped and the rest still come in order."""
+    from types import SimpleNamespace
+
+    from mgso.system import Player
+
+    def consume(max_lag):
+        player = Player((SimpleNamespace(index=k, timestamp=0.01 * k) for k in range(20)), 1.0, max_lag)
+        got = []
+        for f in player:
+            got.append(f.index)
+            if len(got) == 1:
+                time.sleep(0.12)
+        assert got == sorted(got) and got[-1] == 19 and player.read == 20
+        assert player.read == len(got) + player.dropped
+        return got, player.dropped
+
+    got, dropped = consume(0.0)
+    assert dropped >= 3 and got[1] >= 4  # after the stall, the newest frame
+    got, dropped = consume(2.0)
+    assert dropped == 0 and got == list(range(20))
+    got, dropped = consume(0.03)
+    assert 3 <= dropped <= 12
 
 
 # ---------------------------------------------------------------------------------------------------- Ctrl-C

@@ -325,7 +325,12 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "mapping_steps_running": st.steps - st.final_steps, "mapping_steps_final": st.final_steps,
             "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
             "mapper_cpu_share": result.mapper_cpu_share,
-            "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds},
+            "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds,
+            # how long the frames taken waited after the camera (the player) released them: system.max_lag_ms
+            "max_lag_ms": cfg.system.max_lag_ms,
+            "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
+                                    else None),
+            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None},
         "loop": None if result.loop is None else result.loop.as_dict(),
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
