@@ -24,8 +24,9 @@ stand-in for tests and profiles.
   ``system.mapper_process: false``: a thread) while the odometry runs, the cores split between them
   (``system.odometry_threads`` / ``mapper_threads``); the odometry never waits for it except on a full queue
   (counted). A recorded sequence is played at its frame rate times ``system.playback_speed``: a
-  player thread releases each frame at its time, and a frame that arrives while the odometry is still busy with an
-  earlier one replaces it (the earlier one is dropped, as a live camera's would be; counted).
+  player thread releases each frame at its time, and the frames that arrive while the odometry is busy wait in order
+  until they are ``system.max_lag_ms`` old; an older one is dropped once a newer one waits (counted; 0: only the
+  newest frame waits, as a live camera's would).
 
 **Loop closure** (``loop.enabled``, :mod:`mgso.loop`): a :class:`~mgso.loop.closer.LoopCloser` sees every message
 of the odometry, looks for a revisit at each keyframe (in the caller's thread in the deterministic mode, on a thread

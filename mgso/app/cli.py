@@ -395,8 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"how far to go (default {DEFAULT_STAGE}): " + "; ".join(STAGE_HELP[s] for s in STAGES))
     p.add_argument("--realtime", action="store_true",
                    help="play the sequence at its frame rate as a live camera would, the map trained in its own "
-                        "thread; frames that arrive while the odometry is busy are dropped (system.mode=realtime; "
-                        "default: deterministic; a live camera or stream always runs so)")
+                        "process; frames that arrive while the odometry is busy wait up to system.max_lag_ms (250) "
+                        "and are dropped after that (system.mode=realtime; default: deterministic; a live camera or "
+                        "stream always runs so)")
     p.add_argument("--max-frames", type=int, metavar="N",
                    help="stop after N frames: a live source's first N captured (input.live_max_frames), a recorded "
                         "sequence's first N selected (input.end)")

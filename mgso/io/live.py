@@ -18,7 +18,8 @@ A live source has no length and no end of its own:
 
 The calibration is required (``calib=``, ``mgso run --calib FILE``): there is no folder to look in. A live source has
 no ground truth and cannot read a frame back (:meth:`LiveSource.load` refuses). :attr:`LiveSource.live` is what the
-real-time :class:`mgso.system.Player` and the application look for: played without pacing, newest frame wins.
+real-time :class:`mgso.system.Player` and the application look for: played without pacing, frames older than
+``system.max_lag_ms`` dropped once a newer one waits.
 
 For tests (no camera here), ``pace_fps`` reads a video *file* through the same code as a stream, released at that
 frame rate (``LiveSource(path, pace_fps=...)``); at its last frame it stalls like an unplugged camera.
