@@ -56,6 +56,7 @@ import os
 import resource
 import threading
 import time
+from array import array
 from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -262,7 +263,7 @@ class Player:
         self._stop = threading.Event()
         self.read = 0
         self.dropped = 0
-        self.lags: list[float] = []  # seconds each frame taken waited after its release
+        self.lags = array("d")  # seconds each frame taken waited after its release (8 bytes a frame: runs are long)
         self._thread = threading.Thread(target=self._work, name="mgso-player", daemon=True)
 
     def _put(self, item, replace: bool) -> bool:
