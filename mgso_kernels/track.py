@@ -84,6 +84,78 @@ class TrackParams:
     points_per_block: int
 
 
+@wp.func
+def flow_shifts(c: wp.vec2, idp: float, Ki: wp.mat33, RKi: wp.mat33, t: wp.vec3, cam: Intrinsics):
+    """DSO ``calcRes``'s flow indicators of one point centre ``c``: the squared pixel shifts under ``+t`` and ``-t``
+    alone, summed, and under ``R, +-t``, summed (float64)."""
+    hp = Ki * wp.vec3(c[0], c[1], 1.0)
+    rh = RKi * wp.vec3(c[0], c[1], 1.0)
+    tt = t * idp
+    p1 = hp + tt
+    p2 = hp - tt
+    p3 = rh + tt
+    p4 = rh - tt
+    d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
+    d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
+    d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
+    d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
+    return wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2)), wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
+
+
+@wp.func
+def first_flow_index(start: int, stride: int) -> int:
+    """The first point index at or after ``start`` that adds to the flow indicators (every ``stride``-th point; -1
+    when ``stride`` is 0): a block then steps it instead of taking a modulo per point."""
+    if stride > 0:
+        return ((start + stride - 1) // stride) * stride
+    return -1
+
+
+@wp.func
+def counted(sums: vec8d, e: float, ok: bool, sat: bool) -> vec8d:
+    """A residual added to a block's counts ``(energy, in bounds, within the cutoff, saturated, flow_t, flow_rt,
+    flow points, -)``: float64, counts exact below 2^53; written to the partial row from ``SLOT_ENERGY`` on."""
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    return sums + vec8d(wp.float64(e), wp.where(ok, one, zero), wp.where(ok and not sat, one, zero),
+                        wp.where(sat, one, zero), zero, zero, zero, zero)
+
+
+@wp.func
+def coarse_residual(u: float, v: float, idp: float, host_color: float, live: bool, RKi: wp.mat33, pair: FramePair,
+                    cam: Intrinsics, dI_t: wp.array2d(dtype=wp.vec3), photo: PhotometricParams, cutoff_th: float,
+                    max_energy: float):
+    """One residual of the coarse tracker (both kernels): the host pixel ``(u, v)`` with inverse depth ``idp`` and
+    intensity ``host_color`` in the new frame. Returns ``(r, W, energy, state, in_bounds, saturated, J)``: ``r`` 0
+    when not in bounds, ``W`` the weight in the system (0 unless within the cutoff), ``state`` a :class:`TrackState`,
+    ``J`` the 8 Jacobian entries (the pose part 0 when not in bounds). ``live`` false: the residual counts nowhere.
+    Branch-free on purpose: Warp merges every variable assigned under a condition with a select, and selecting the
+    8x8 float64 accumulator per residual costs more than the residual itself; invalid residuals get weight 0."""
+    kk, nrm = project_RKi(u, v, idp, RKi, pair.t, cam)
+    ku = kk[0]
+    kv = kk[1]
+    front = nrm[2] > 0.0
+    inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
+    inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
+    s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
+    ok = live and front and inside and finite(s[0])  # DSO checks the intensity only
+    hc = host_color - pair.b_h
+    r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
+    sat = ok and wp.abs(r) > cutoff_th
+    inl = ok and not sat
+    hw = huber_weight(r, photo.huber_th)
+    gw = float(1.0)
+    if photo.grad_c2 > 0.0:
+        gw = gradient_weight(s[1] * s[1] + s[2] * s[2], photo.grad_c2)
+        gw = gw * gw
+    wgt = wp.where(inl, hw * gw, 0.0)
+    e = wp.where(inl, gw * hw * r * r * (2.0 - hw), wp.where(sat, max_energy, 0.0))
+    st = wp.where(front, wp.where(ok, wp.where(sat, 3, 0), 1), 2)
+    jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), nrm, idp, cam.fx, cam.fy)
+    jf = vec8f(jp[0], jp[1], jp[2], jp[3], jp[4], jp[5], -pair.a_rel * hc, -1.0)
+    return r, wgt, e, st, ok, sat, jf
+
+
 def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
     """One kernel per variant: the flags are resolved at code generation (``wp.static``) so that no select of the
     8x8 accumulator is generated (see the loop comment)."""
@@ -110,78 +182,31 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
         npat = ref_color.shape[1]
         H = mat88d()
         g = vec8d()
-        energy = wp.float64(0.0)
-        n_terms = int(0)
-        n_in = int(0)
-        n_sat = int(0)
-        flow_t = wp.float64(0.0)
-        flow_rt = wp.float64(0.0)
-        flow_n = int(0)
+        sums = vec8d()  # energy, counts, flow sums (see counted)
         max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
         Ki = inverse_K(cam)
         RKi = pair.R * Ki
-        # next point index that contributes to the flow indicators (no modulo per point)
-        next_flow = int(-1)
-        if params.flow_stride > 0:
-            next_flow = ((start + params.flow_stride - 1) // params.flow_stride) * params.flow_stride
+        next_flow = first_flow_index(start, params.flow_stride)
         for i in range(start, end):
             c = host_uv[i]
             idp = idepth[i]
             if i == next_flow:
                 next_flow += params.flow_stride
-                hp = Ki * wp.vec3(c[0], c[1], 1.0)
-                rh = RKi * wp.vec3(c[0], c[1], 1.0)
-                tt = pair.t * idp
-                p1 = hp + tt
-                p2 = hp - tt
-                p3 = rh + tt
-                p4 = rh - tt
-                d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
-                d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
-                d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
-                d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
-                flow_t += wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2))
-                flow_rt += wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
-                flow_n += 2
+                ft, frt = flow_shifts(c, idp, Ki, RKi, pair.t, cam)
+                sums = sums + vec8d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), ft, frt,
+                                    wp.float64(2.0), wp.float64(0.0))
             for k in range(npat):
-                # Branch-free on purpose: Warp merges every variable assigned under a condition with a select, and
-                # selecting the 8x8 float64 accumulator per residual costs more than the residual itself. Invalid
-                # residuals get weight 0 and add zeros.
                 u = c[0]
                 v = c[1]
                 if npat == 8:
                     u = u + PATTERN[k, 0]
                     v = v + PATTERN[k, 1]
-                kk, nrm = project_RKi(u, v, idp, RKi, pair.t, cam)
-                ku = kk[0]
-                kv = kk[1]
-                front = nrm[2] > 0.0
-                inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
-                inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
-                s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
-                good_sample = finite(s[0])  # DSO checks the intensity only
-                ok = front and inside and good_sample
-                hc = ref_color[i, k] - pair.b_h
-                r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
-                ar = wp.abs(r)
-                sat = ok and ar > params.cutoff_th
-                inl = ok and not sat
-                hw = huber_weight(r, photo.huber_th)
-                gw = float(1.0)
-                if photo.grad_c2 > 0.0:
-                    gw = gradient_weight(s[1] * s[1] + s[2] * s[2], photo.grad_c2)
-                    gw = gw * gw
-                wgt = wp.where(inl, hw * gw, 0.0)
-                e = wp.where(inl, gw * hw * r * r * (2.0 - hw), wp.where(sat, max_energy, 0.0))
-                energy += wp.float64(e)
-                n_terms += wp.where(ok, 1, 0)
-                n_in += wp.where(inl, 1, 0)
-                n_sat += wp.where(sat, 1, 0)
+                r, wgt, e, st, ok, sat, jf = coarse_residual(u, v, idp, ref_color[i, k], True, RKi, pair, cam, dI_t,
+                                                             photo, params.cutoff_th, max_energy)
+                sums = counted(sums, e, ok, sat)
                 residual[i, k] = r
                 weight[i, k] = wgt
-                state[i, k] = wp.where(front, wp.where(ok, wp.where(sat, 3, 0), 1), 2)
-                jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), nrm, idp, cam.fx, cam.fy)
-                jf = vec8f(jp[0], jp[1], jp[2], jp[3], jp[4], jp[5], -pair.a_rel * hc, -1.0)
+                state[i, k] = st
                 if wp.static(store_jacobians):
                     jacobian[i, k] = jf
                 if wp.static(with_system):
@@ -193,13 +218,8 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
             for b in range(8):
                 partials[blk, SLOT_H + a * 8 + b] = H[a, b]
             partials[blk, SLOT_B + a] = g[a]
-        partials[blk, SLOT_ENERGY] = energy
-        partials[blk, SLOT_NUM_TERMS] = wp.float64(n_terms)
-        partials[blk, SLOT_NUM_INLIERS] = wp.float64(n_in)
-        partials[blk, SLOT_NUM_SATURATED] = wp.float64(n_sat)
-        partials[blk, SLOT_FLOW_T] = flow_t
-        partials[blk, SLOT_FLOW_RT] = flow_rt
-        partials[blk, SLOT_FLOW_COUNT] = wp.float64(flow_n)
+        for q in range(7):
+            partials[blk, SLOT_ENERGY + q] = sums[q]
 
     return reduce_tracking_system
 
@@ -244,19 +264,11 @@ def _make_lane_kernel(with_system: bool):
         end = wp.min(start + params.points_per_block, n)
         Hl = mat64_lanes()
         gl = mat88_lanes()
-        energy = wp.float64(0.0)
-        n_terms = int(0)
-        n_in = int(0)
-        n_sat = int(0)
-        flow_t = wp.float64(0.0)
-        flow_rt = wp.float64(0.0)
-        flow_n = int(0)
+        sums = vec8d()  # energy, counts, flow sums (see counted)
         max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
         Ki = inverse_K(cam)
         RKi = pair.R * Ki
-        next_flow = int(-1)
-        if params.flow_stride > 0:
-            next_flow = ((start + params.flow_stride - 1) // params.flow_stride) * params.flow_stride
+        next_flow = first_flow_index(start, params.flow_stride)
         for g0 in range(start, end, LANES):
             J = mat88_lanes()
             w_l = vec8d()
@@ -269,55 +281,18 @@ def _make_lane_kernel(with_system: bool):
                 idp = idepth[ii]
                 if live and ii == next_flow:
                     next_flow += params.flow_stride
-                    hp = Ki * wp.vec3(c[0], c[1], 1.0)
-                    rh = RKi * wp.vec3(c[0], c[1], 1.0)
-                    tt = pair.t * idp
-                    p1 = hp + tt
-                    p2 = hp - tt
-                    p3 = rh + tt
-                    p4 = rh - tt
-                    d1 = wp.vec2(cam.fx * p1[0] / p1[2] + cam.cx - c[0], cam.fy * p1[1] / p1[2] + cam.cy - c[1])
-                    d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
-                    d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
-                    d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
-                    flow_t += wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2))
-                    flow_rt += wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
-                    flow_n += 2
-                kk, nrm = project_RKi(c[0], c[1], idp, RKi, pair.t, cam)
-                ku = kk[0]
-                kv = kk[1]
-                front = nrm[2] > 0.0
-                inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
-                inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
-                s = sample_dI(dI_t, ku, kv)
-                ok = live and front and inside and finite(s[0])
-                hc = ref_color[ii, 0] - pair.b_h
-                r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
-                sat = ok and wp.abs(r) > params.cutoff_th
-                inl = ok and not sat
-                hw = huber_weight(r, photo.huber_th)
-                gw = float(1.0)
-                if photo.grad_c2 > 0.0:
-                    gw = gradient_weight(s[1] * s[1] + s[2] * s[2], photo.grad_c2)
-                    gw = gw * gw
-                wgt = wp.where(inl, hw * gw, 0.0)
-                energy += wp.float64(wp.where(inl, gw * hw * r * r * (2.0 - hw), wp.where(sat, max_energy, 0.0)))
-                n_terms += wp.where(ok, 1, 0)
-                n_in += wp.where(inl, 1, 0)
-                n_sat += wp.where(sat, 1, 0)
+                    ft, frt = flow_shifts(c, idp, Ki, RKi, pair.t, cam)
+                    sums = sums + vec8d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), ft,
+                                        frt, wp.float64(2.0), wp.float64(0.0))
+                r, wgt, e, st, ok, sat, jf = coarse_residual(c[0], c[1], idp, ref_color[ii, 0], live, RKi, pair, cam,
+                                                             dI_t, photo, params.cutoff_th, max_energy)
+                sums = counted(sums, e, ok, sat)
                 if live:
                     residual[ii, 0] = r
                     weight[ii, 0] = wgt
-                    state[ii, 0] = wp.where(front, wp.where(ok, wp.where(sat, 3, 0), 1), 2)
-                jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), nrm, idp, cam.fx, cam.fy)
-                J[0, k] = wp.float64(jp[0])
-                J[1, k] = wp.float64(jp[1])
-                J[2, k] = wp.float64(jp[2])
-                J[3, k] = wp.float64(jp[3])
-                J[4, k] = wp.float64(jp[4])
-                J[5, k] = wp.float64(jp[5])
-                J[6, k] = wp.float64(-pair.a_rel * hc)
-                J[7, k] = wp.float64(-1.0)
+                    state[ii, 0] = st
+                for a in range(8):
+                    J[a, k] = wp.float64(jf[a])
                 w_l[k] = wp.float64(wgt)
                 wr_l[k] = wp.float64(wgt) * wp.float64(r)
             if wp.static(with_system):
@@ -334,13 +309,8 @@ def _make_lane_kernel(with_system: bool):
                 else:
                     partials[blk, SLOT_H + a * 8 + b] = lane_sum(Hl[b * 8 + a])
             partials[blk, SLOT_B + a] = lane_sum(gl[a])
-        partials[blk, SLOT_ENERGY] = energy
-        partials[blk, SLOT_NUM_TERMS] = wp.float64(n_terms)
-        partials[blk, SLOT_NUM_INLIERS] = wp.float64(n_in)
-        partials[blk, SLOT_NUM_SATURATED] = wp.float64(n_sat)
-        partials[blk, SLOT_FLOW_T] = flow_t
-        partials[blk, SLOT_FLOW_RT] = flow_rt
-        partials[blk, SLOT_FLOW_COUNT] = wp.float64(flow_n)
+        for q in range(7):
+            partials[blk, SLOT_ENERGY + q] = sums[q]
 
     return reduce_tracking_system_lanes
 
