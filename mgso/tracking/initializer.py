@@ -496,24 +496,24 @@ class CoarseInitializer:
                 p.idepth_new[bi] = val
 
     def _do_step(self, lvl: int, lam: float, inc: np.ndarray) -> None:
+        # over every point, kept where good: gathering the good rows first cost 8x more (the same values a row)
         p = self.points[lvl]
-        g = p.is_good.copy()
-        b = p.jb[g, 8] + p.jb[g, :8] @ inc
-        step = -b * p.jb[g, 9] / (1.0 + lam)
-        maxstep = np.minimum(0.25 * p.maxstep[g], 1e10)
+        b = p.jb[:, 8] + p.jb[:, :8] @ inc
+        step = -b * p.jb[:, 9] / (1.0 + lam)
+        maxstep = np.minimum(0.25 * p.maxstep, 1e10)
         step = np.clip(step, -maxstep, maxstep)
-        p.idepth_new[g] = np.clip(p.idepth[g] + step, 1e-3, 50.0)
+        np.copyto(p.idepth_new, np.clip(p.idepth + step, 1e-3, 50.0), casting="unsafe", where=p.is_good)
 
     def _apply_step(self, lvl: int) -> None:
         p = self.points[lvl]
         bad = ~p.is_good
-        p.idepth[bad] = p.iR[bad]
-        p.idepth_new[bad] = p.iR[bad]
+        np.copyto(p.idepth, p.iR, where=bad)
+        np.copyto(p.idepth_new, p.iR, where=bad)
         g = p.is_good.copy()
-        p.energy[g] = p.energy_new[g]
-        p.idepth[g] = p.idepth_new[g]
-        p.last_hessian[g] = p.last_hessian_new[g]
-        p.is_good[g] = p.is_good_new[g]
+        np.copyto(p.energy, p.energy_new, where=g[:, None])
+        np.copyto(p.idepth, p.idepth_new, where=g)
+        np.copyto(p.last_hessian, p.last_hessian_new, where=g)
+        np.copyto(p.is_good, p.is_good_new, where=g)
         p.jb, p.jb_new = p.jb_new, p.jb
 
     # ------------------------------------------------------------------------------------------ handover
