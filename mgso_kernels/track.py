@@ -394,6 +394,8 @@ class TrackWorkspace:
         self.jacobian_ = wp.zeros(shape if store_jacobians else (1, 1), dtype=vec8f, device=self.device)
         self.partials_ = wp.zeros((-(-self.capacity // self.points_per_block), NUM_SLOTS), dtype=wp.float64,
                                   device=self.device)
+        # on the CPU a NumPy view of the partial rows, made once (an LM iteration reads them; 3 us a view)
+        self.partials_host = self.partials_.numpy() if wp.get_device(self.device).is_cpu else None
         self.n = 0
         self._params: dict = {}
         self.launches: dict = {}  # runtime.launch_split's recorded launches (the same arrays every iteration)
@@ -504,7 +506,8 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
                               ws.jacobian_, ws.partials_], dev,
                              min_chunk=max(1, SPLIT_MIN_POINTS // (ws.points_per_block * ws.pattern_size)),
                              threads=(threads if split else 1), recorded=ws.launches)
-    s = ws.partials_.numpy()[:blocks].sum(axis=0) if blocks else np.zeros(NUM_SLOTS)
+    part = ws.partials_host if ws.partials_host is not None else ws.partials_.numpy()
+    s = part[:blocks].sum(axis=0) if blocks else np.zeros(NUM_SLOTS)
     return TrackingSystem(
         H=s[SLOT_H:SLOT_H + 64].reshape(8, 8).copy(), b=s[SLOT_B:SLOT_B + 8].copy(), energy=float(s[SLOT_ENERGY]),
         num_terms=int(s[SLOT_NUM_TERMS]), num_inliers=int(s[SLOT_NUM_INLIERS]),

@@ -52,6 +52,9 @@ log = logging.getLogger(__name__)
 # DSO's parameter scaling in the coarse tracker: (v, w, a, b); DSO applies SCALE_XI_ROT to Sophus' first three
 # (the translation) and SCALE_XI_TRANS to the rotation.
 SCALE = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 10.0, 1000.0])
+# the parameters a step solves for when the affine a and / or b are fixed
+_FREE = {(fa, fb): np.array([i for i in range(8) if not ((i == 6 and fa) or (i == 7 and fb))])
+         for fa in (False, True) for fb in (False, True)}
 
 
 # ------------------------------------------------------------------------------------------------ reference
@@ -417,12 +420,20 @@ class CoarseTracker:
         return s.energy / s.num_terms if s.num_terms else float("inf")
 
     def _solve(self, H: np.ndarray, b: np.ndarray, lam: float, fix_a: bool, fix_b: bool) -> np.ndarray:
-        Hl = H.copy()
-        Hl[np.diag_indices(8)] *= 1.0 + lam
-        free = [i for i in range(8) if not ((i == 6 and fix_a) or (i == 7 and fix_b))]
+        """The damped step on the free parameters (the affine ones may be fixed): ``H``'s diagonal times ``1 + lam``.
+        Without index arrays when nothing is fixed (the common case; an LM iteration's host time counts)."""
         inc = np.zeros(8)
+        if fix_a or fix_b:
+            free = _FREE[(fix_a, fix_b)]
+            Hl = H[free][:, free]
+            rhs = -b[free]
+        else:
+            free = slice(None)
+            Hl = H.copy()
+            rhs = -b
+        Hl.flat[::Hl.shape[0] + 1] *= 1.0 + lam
         try:
-            inc[free] = np.linalg.solve(Hl[np.ix_(free, free)], -b[free])
+            inc[free] = np.linalg.solve(Hl, rhs)
         except np.linalg.LinAlgError:
             inc[:] = np.nan
         return inc
