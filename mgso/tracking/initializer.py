@@ -496,7 +496,7 @@ class CoarseInitializer:
                 p.idepth_new[bi] = val
 
     def _do_step(self, lvl: int, lam: float, inc: np.ndarray) -> None:
-        # over every point, kept where good: gathering the good rows first cost 8x more (the same values a row)
+        # over every point, kept where good: gathering the good rows first made the product 8x slower (same values)
         p = self.points[lvl]
         b = p.jb[:, 8] + p.jb[:, :8] @ inc
         step = -b * p.jb[:, 9] / (1.0 + lam)
