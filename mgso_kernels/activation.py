@@ -248,7 +248,8 @@ def distance_map(seeds: np.ndarray, shape: tuple[int, int], steps: int = DISTANC
     """DSO ``CoarseDistanceMap::makeDistanceMap``: ``[h, w]`` float32 breadth-first steps to the nearest seed (``seeds
     [N, 2]`` integer ``(x, y)`` inside the image). Only the pixels reached in the previous step grow, by their 8
     neighbours on odd steps and their 4 on even ones; pixels on the image border are reached but do not grow;
-    :data:`DISTANCE_NONE` beyond ``steps - 1`` steps. One thread on the CPU (0.2 ms at KITTI's level 1)."""
+    :data:`DISTANCE_NONE` beyond ``steps - 1`` steps. One thread on the CPU (1.3-1.7 ms at KITTI's level 1, 616x184,
+    with 200-2,000 seeds; 2026-12-02)."""
     h, w = int(shape[0]), int(shape[1])
     seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
     if len(seeds) and (seeds.min() < 0 or np.any(seeds[:, 0] >= w) or np.any(seeds[:, 1] >= h)):

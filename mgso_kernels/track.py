@@ -85,9 +85,10 @@ class TrackParams:
 
 
 @wp.func
-def flow_shifts(c: wp.vec2, idp: float, Ki: wp.mat33, RKi: wp.mat33, t: wp.vec3, cam: Intrinsics):
-    """DSO ``calcRes``'s flow indicators of one point centre ``c``: the squared pixel shifts under ``+t`` and ``-t``
-    alone, summed, and under ``R, +-t``, summed (float64)."""
+def flow_counts(c: wp.vec2, idp: float, Ki: wp.mat33, RKi: wp.mat33, t: wp.vec3, cam: Intrinsics) -> vec8d:
+    """DSO ``calcRes``'s flow indicators of one point centre ``c`` as an increment of a block's counts (see
+    :func:`counted`): the squared pixel shifts under ``+t`` and ``-t`` alone, summed, and under ``R, +-t``, summed,
+    and the 2 shifts of each."""
     hp = Ki * wp.vec3(c[0], c[1], 1.0)
     rh = RKi * wp.vec3(c[0], c[1], 1.0)
     tt = t * idp
@@ -99,7 +100,9 @@ def flow_shifts(c: wp.vec2, idp: float, Ki: wp.mat33, RKi: wp.mat33, t: wp.vec3,
     d2 = wp.vec2(cam.fx * p2[0] / p2[2] + cam.cx - c[0], cam.fy * p2[1] / p2[2] + cam.cy - c[1])
     d3 = wp.vec2(cam.fx * p3[0] / p3[2] + cam.cx - c[0], cam.fy * p3[1] / p3[2] + cam.cy - c[1])
     d4 = wp.vec2(cam.fx * p4[0] / p4[2] + cam.cx - c[0], cam.fy * p4[1] / p4[2] + cam.cy - c[1])
-    return wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2)), wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4))
+    zero = wp.float64(0.0)
+    return vec8d(zero, zero, zero, zero, wp.float64(wp.dot(d1, d1) + wp.dot(d2, d2)),
+                 wp.float64(wp.dot(d3, d3) + wp.dot(d4, d4)), wp.float64(2.0), zero)
 
 
 @wp.func
@@ -192,9 +195,7 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
             idp = idepth[i]
             if i == next_flow:
                 next_flow += params.flow_stride
-                ft, frt = flow_shifts(c, idp, Ki, RKi, pair.t, cam)
-                sums = sums + vec8d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), ft, frt,
-                                    wp.float64(2.0), wp.float64(0.0))
+                sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
             for k in range(npat):
                 u = c[0]
                 v = c[1]
@@ -281,9 +282,7 @@ def _make_lane_kernel(with_system: bool):
                 idp = idepth[ii]
                 if live and ii == next_flow:
                     next_flow += params.flow_stride
-                    ft, frt = flow_shifts(c, idp, Ki, RKi, pair.t, cam)
-                    sums = sums + vec8d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), ft,
-                                        frt, wp.float64(2.0), wp.float64(0.0))
+                    sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
                 r, wgt, e, st, ok, sat, jf = coarse_residual(c[0], c[1], idp, ref_color[ii, 0], live, RKi, pair, cam,
                                                              dI_t, photo, params.cutoff_th, max_energy)
                 sums = counted(sums, e, ok, sat)
