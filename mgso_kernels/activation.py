@@ -32,7 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .photometric import Intrinsics, huber_weight, make_intrinsics, sample_pattern_pixel
+from .photometric import Intrinsics, huber_weight, make_intrinsics, sample_pattern
 
 __all__ = ["DepthParams", "make_depth_params", "DepthPairs", "point_depth_kernel", "point_depth_residuals",
            "DISTANCE_STEPS", "DISTANCE_NONE", "distance_map", "pick_spaced"]
@@ -80,16 +80,17 @@ def point_depth_kernel(offset: int,
     e = float(0.0)
     h = float(0.0)
     b = float(0.0)
+    ps = sample_pattern(c[0], c[1], d, RKi, t, cam, params.border_lo, params.border_hi, img)
     for i in range(8):
-        nrm, s, good = sample_pattern_pixel(c[0], c[1], i, d, RKi, t, cam, params.border_lo, params.border_hi, img)
+        good = ps.good[i] != 0
         if not good:
             ok = False
-        r = wp.where(good, s[0] - (aff[0] * color[p, i] + aff[1]), 0.0)
+        r = wp.where(good, ps.I[i] - (aff[0] * color[p, i] + aff[1]), 0.0)
         hw = huber_weight(r, params.huber_th)
         wh = weight[p, i]
         gw = wh * wh
-        jd = wp.where(good, nrm[2] * (s[1] * cam.fx * (t[0] - t[2] * nrm[0]) + s[2] * cam.fy * (t[1] - t[2] * nrm[1])),
-                      0.0)
+        jd = wp.where(good, ps.dr[i] * (ps.gx[i] * cam.fx * (t[0] - t[2] * ps.un[i])
+                                        + ps.gy[i] * cam.fy * (t[1] - t[2] * ps.vn[i])), 0.0)
         e += gw * hw * r * r * (2.0 - hw)
         h += hw * gw * jd * jd
         b += hw * gw * r * jd

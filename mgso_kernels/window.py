@@ -53,7 +53,7 @@ import warp as wp
 
 from . import runtime
 from .photometric import (Intrinsics, gradient_weight, huber_weight, inverse_K, make_intrinsics, project_pixel,
-                          projection_jacobians, sample_pattern_pixel)
+                          projection_jacobians, sample_pattern)
 
 __all__ = [
     "PAIR_PARAMS", "FRAME_PARAMS", "NUM_KEY_SLOTS", "SLOT_H", "SLOT_B", "PairState", "WindowParams",
@@ -198,15 +198,15 @@ def linearize_pairs_kernel(offset: int,
         s_r = float(0.0)  # sum W r
         energy = float(0.0)
         wji2 = float(0.0)
+        ps = sample_pattern(c[0], c[1], d, RKi, t, cam, params.border_lo, params.border_hi, dI_t)
         for i in range(8):
-            nrm, s, good = sample_pattern_pixel(c[0], c[1], i, d, RKi, t, cam, params.border_lo, params.border_hi,
-                                                dI_t)
+            good = ps.good[i] != 0
             if not good:
                 ok = False
             hc = color[p, i] - b_h
-            r = wp.where(good, (s[0] - b_t) - a_rel * hc, 0.0)
-            gx = wp.where(good, s[1], 0.0)
-            gy = wp.where(good, s[2], 0.0)
+            r = wp.where(good, (ps.I[i] - b_t) - a_rel * hc, 0.0)
+            gx = wp.where(good, ps.gx[i], 0.0)
+            gy = wp.where(good, ps.gy[i], 0.0)
             g2 = gx * gx + gy * gy
             w = 0.5 * (gradient_weight(g2, params.grad_c2) + weight[p, i])
             hw = huber_weight(r, params.huber_th)
