@@ -85,7 +85,7 @@ def point_depth_kernel(offset: int,
         good = ps.good[i] != 0
         if not good:
             ok = False
-        r = wp.where(good, ps.I[i] - (aff[0] * color[p, i] + aff[1]), 0.0)
+        r = wp.where(good, ps.intensity[i] - (aff[0] * color[p, i] + aff[1]), 0.0)
         hw = huber_weight(r, params.huber_th)
         wh = weight[p, i]
         gw = wh * wh

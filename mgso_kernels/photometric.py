@@ -214,7 +214,7 @@ def in_margins(x: float, y: float, width: int, height: int, lo: float, hi: float
 class PatternSample:
     """The 8 pattern pixels of one point projected into a target (:func:`sample_pattern`)."""
 
-    I: vec8f  # bilinear intensity
+    intensity: vec8f  # bilinear
     gx: vec8f  # bilinear gradient
     gy: vec8f
     un: vec8f  # normalised target coordinates
@@ -261,7 +261,7 @@ def sample_pattern(cu: float, cv: float, idepth: float, RKi: wp.mat33, t: wp.vec
         inside = in_margins(kx[i], ky[i], cam.width, cam.height, lo, hi)
         inside = inside and bilinear_inside(kx[i], ky[i], cam.width, cam.height) and dr[i] > 0.0
         good[i] = wp.where(inside and finite3(wp.vec3(sI[i], sx[i], sy[i])), 1, 0)
-    ps.I = sI
+    ps.intensity = sI
     ps.gx = sx
     ps.gy = sy
     ps.un = un

@@ -204,7 +204,7 @@ def linearize_pairs_kernel(offset: int,
             if not good:
                 ok = False
             hc = color[p, i] - b_h
-            r = wp.where(good, (ps.I[i] - b_t) - a_rel * hc, 0.0)
+            r = wp.where(good, (ps.intensity[i] - b_t) - a_rel * hc, 0.0)
             gx = wp.where(good, ps.gx[i], 0.0)
             gy = wp.where(good, ps.gy[i], 0.0)
             g2 = gx * gx + gy * gy
