@@ -35,7 +35,7 @@ import warp as wp
 
 from . import runtime
 from .image import bilinear_inside, finite, sample_dI, sample_intensity
-from .photometric import PATTERN, huber_weight
+from .photometric import PATTERN, huber_weight, vec8f
 
 __all__ = [
     "TraceStatus", "TraceParams", "make_trace_params", "trace_points_kernel", "trace_points",
@@ -225,6 +225,12 @@ def trace_points_kernel(offset: int,
     best_e = float(1e10)
     best_idx = int(-1)
     for s in range(num_steps):
+        # the step's 8 samples first (clamped: memory-safe when outside), then its energy: the loads issue
+        # together instead of one pixel's at a time behind its branches (as photometric.sample_pattern)
+        hits = vec8f()
+        for k in range(8):
+            hits[k] = sample_intensity(dI_t, ptx + r00 * PATTERN[k, 0] + r01 * PATTERN[k, 1],
+                                       pty + r10 * PATTERN[k, 0] + r11 * PATTERN[k, 1])
         e = float(0.0)
         for k in range(8):
             px = PATTERN[k, 0]
@@ -232,7 +238,7 @@ def trace_points_kernel(offset: int,
             x = ptx + r00 * px + r01 * py
             y = pty + r10 * px + r11 * py
             if bilinear_inside(x, y, w, h):
-                hit = sample_intensity(dI_t, x, y)
+                hit = hits[k]
                 if finite(hit):
                     r = hit - (aff[0] * color[i, k] + aff[1])
                     hw = huber_weight(r, params.huber_th)
@@ -266,13 +272,22 @@ def trace_points_kernel(offset: int,
         H = float(1.0)
         bb = float(0.0)
         e = float(0.0)
+        gI = vec8f()  # the 8 samples first, as in the search
+        gX = vec8f()
+        gY = vec8f()
+        for k in range(8):
+            hs = sample_dI(dI_t, best_u + r00 * PATTERN[k, 0] + r01 * PATTERN[k, 1],
+                           best_v + r10 * PATTERN[k, 0] + r11 * PATTERN[k, 1])
+            gI[k] = hs[0]
+            gX[k] = hs[1]
+            gY[k] = hs[2]
         for k in range(8):
             px = PATTERN[k, 0]
             py = PATTERN[k, 1]
             x = best_u + r00 * px + r01 * py
             y = best_v + r10 * px + r11 * py
             if bilinear_inside(x, y, w, h):
-                hit3 = sample_dI(dI_t, x, y)
+                hit3 = wp.vec3(gI[k], gX[k], gY[k])
                 if finite(hit3[0]):
                     r = hit3[0] - (aff[0] * color[i, k] + aff[1])
                     dres = dx * hit3[1] + dy * hit3[2]
