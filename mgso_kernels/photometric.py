@@ -52,7 +52,7 @@ __all__ = [
     "vec6f", "vec8f", "vec8i", "mat82f", "Intrinsics", "FramePair", "PhotometricParams", "PixelResidual",
     "make_intrinsics", "make_frame_pair", "make_photometric_params", "affine_from_to",
     "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "PatternSample",
-    "sample_pattern",
+    "project8", "sample8", "sample_pattern",
     "pose_jacobian",
     "huber_weight", "gradient_weight", "photometric_residual",
     "evaluate_patch_kernel", "extract_patterns_kernel", "PatchResiduals", "evaluate_patches", "HostPatterns",
@@ -210,6 +210,42 @@ def in_margins(x: float, y: float, width: int, height: int, lo: float, hi: float
     return x > lo and y > lo and x < float(width) - hi and y < float(height) - hi
 
 
+@wp.func
+def project8(u: vec8f, v: vec8f, idepth: vec8f, RKi: wp.mat33, t: wp.vec3, cam: Intrinsics):
+    """:func:`project_RKi` of 8 pixels: ``(kx, ky, un, vn, drescale)``, 8 each (a pattern's pixels, or the tracker's
+    8 lanes), computed before any of them is sampled (:func:`sample8`)."""
+    kx = vec8f()
+    ky = vec8f()
+    un = vec8f()
+    vn = vec8f()
+    dr = vec8f()
+    for i in range(8):
+        kk, nrm = project_RKi(u[i], v[i], idepth[i], RKi, t, cam)
+        kx[i] = kk[0]
+        ky[i] = kk[1]
+        un[i] = nrm[0]
+        vn[i] = nrm[1]
+        dr[i] = nrm[2]
+    return kx, ky, un, vn, dr
+
+
+@wp.func
+def sample8(dI_t: wp.array2d(dtype=wp.vec3), kx: vec8f, ky: vec8f):
+    """:func:`sample_dI` at 8 points, one after another with nothing between: ``(I, gx, gy)``, 8 each. Clamped, so
+    memory-safe wherever the points are. Sampling 8 projections together, after all of them are computed, lets their
+    32 loads issue at once instead of one pixel's behind its branches (docs/window.md, "The samples' loads issued
+    together")."""
+    sI = vec8f()
+    sx = vec8f()
+    sy = vec8f()
+    for i in range(8):
+        s = sample_dI(dI_t, kx[i], ky[i])
+        sI[i] = s[0]
+        sx[i] = s[1]
+        sy[i] = s[2]
+    return sI, sx, sy
+
+
 @wp.struct
 class PatternSample:
     """The 8 pattern pixels of one point projected into a target (:func:`sample_pattern`)."""
@@ -235,32 +271,19 @@ def sample_pattern(cu: float, cv: float, idepth: float, RKi: wp.mat33, t: wp.vec
     issued together instead of one pixel's at a time behind its branches. The window's linearisation kernel took
     a fifth less time so (3.05 against 3.92 ms for 13,100 pairs of a 7-Scenes window, one thread), the same bits.
     """
-    ps = PatternSample()
-    kx = vec8f()
-    ky = vec8f()
-    un = vec8f()
-    vn = vec8f()
-    dr = vec8f()
+    u = vec8f()
+    v = vec8f()
     for i in range(8):
-        kk, nrm = project_RKi(cu + PATTERN[i, 0], cv + PATTERN[i, 1], idepth, RKi, t, cam)
-        kx[i] = kk[0]
-        ky[i] = kk[1]
-        un[i] = nrm[0]
-        vn[i] = nrm[1]
-        dr[i] = nrm[2]
-    sI = vec8f()
-    sx = vec8f()
-    sy = vec8f()
-    for i in range(8):
-        s = sample_dI(dI_t, kx[i], ky[i])
-        sI[i] = s[0]
-        sx[i] = s[1]
-        sy[i] = s[2]
+        u[i] = cu + PATTERN[i, 0]
+        v[i] = cv + PATTERN[i, 1]
+    kx, ky, un, vn, dr = project8(u, v, vec8f(idepth), RKi, t, cam)
+    sI, sx, sy = sample8(dI_t, kx, ky)
     good = vec8i()
     for i in range(8):
         inside = in_margins(kx[i], ky[i], cam.width, cam.height, lo, hi)
         inside = inside and bilinear_inside(kx[i], ky[i], cam.width, cam.height) and dr[i] > 0.0
         good[i] = wp.where(inside and finite3(wp.vec3(sI[i], sx[i], sy[i])), 1, 0)
+    ps = PatternSample()
     ps.intensity = sI
     ps.gx = sx
     ps.gy = sy

@@ -37,7 +37,8 @@ import warp as wp
 from . import runtime
 from .image import bilinear_inside, finite, sample_dI
 from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gradient_weight, huber_weight,
-                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f)
+                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project8, project_RKi,
+                          sample8, vec8f)
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
@@ -286,28 +287,17 @@ def _make_lane_kernel(with_system: bool):
             wr_l = vec8d()
             # the 8 projections, then the 8 samples, then the residuals: the samples' loads issue together (a
             # fifth less time than one point at a time, as the window's sample_pattern)
-            kx = vec8f()
-            ky = vec8f()
-            un = vec8f()
-            vn = vec8f()
-            dr = vec8f()
+            u = vec8f()
+            v = vec8f()
+            d = vec8f()
             for k in range(LANES):
                 ii = wp.min(g0 + k, end - 1)  # a lane past the block's end repeats its last point with weight 0
                 c = host_uv[ii]
-                kk, nrm = project_RKi(c[0], c[1], idepth[ii], RKi, pair.t, cam)
-                kx[k] = kk[0]
-                ky[k] = kk[1]
-                un[k] = nrm[0]
-                vn[k] = nrm[1]
-                dr[k] = nrm[2]
-            sI = vec8f()
-            sx = vec8f()
-            sy = vec8f()
-            for k in range(LANES):
-                s = sample_dI(dI_t, kx[k], ky[k])  # clamped: memory-safe even when outside
-                sI[k] = s[0]
-                sx[k] = s[1]
-                sy[k] = s[2]
+                u[k] = c[0]
+                v[k] = c[1]
+                d[k] = idepth[ii]
+            kx, ky, un, vn, dr = project8(u, v, d, RKi, pair.t, cam)
+            sI, sx, sy = sample8(dI_t, kx, ky)
             for k in range(LANES):
                 i = g0 + k
                 live = i < end
