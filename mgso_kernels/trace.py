@@ -34,8 +34,8 @@ import numpy as np
 import warp as wp
 
 from . import runtime
-from .image import bilinear_inside, finite, sample_dI, sample_intensity
-from .photometric import PATTERN, huber_weight, vec8f
+from .image import bilinear_inside, finite, sample_intensity
+from .photometric import PATTERN, huber_weight, sample8, vec8f
 
 __all__ = [
     "TraceStatus", "TraceParams", "make_trace_params", "trace_points_kernel", "trace_points",
@@ -98,6 +98,20 @@ def hash_unit(a: int, b: int, c: int) -> float:
 @wp.func
 def _inside(x: float, y: float, w: int, h: int, lo: float, hi: float) -> bool:
     return x > lo and y > lo and x < float(w) - hi and y < float(h) - hi
+
+
+@wp.func
+def pattern_at(cx: float, cy: float, r00: float, r01: float, r10: float, r11: float):
+    """The 8 pattern pixels around ``(cx, cy)`` under the 2x2 map ``((r00, r01), (r10, r11))``: ``(xs, ys)``,
+    computed before they are sampled (the samples' loads then issue together, as ``photometric.sample_pattern``)."""
+    xs = vec8f()
+    ys = vec8f()
+    for k in range(8):
+        px = PATTERN[k, 0]
+        py = PATTERN[k, 1]
+        xs[k] = cx + r00 * px + r01 * py
+        ys[k] = cy + r10 * px + r11 * py
+    return xs, ys
 
 
 @wp.kernel
@@ -227,17 +241,13 @@ def trace_points_kernel(offset: int,
     for s in range(num_steps):
         # the step's 8 samples first (clamped: memory-safe when outside), then its energy: the loads issue
         # together instead of one pixel's at a time behind its branches (as photometric.sample_pattern)
+        xs, ys = pattern_at(ptx, pty, r00, r01, r10, r11)
         hits = vec8f()
         for k in range(8):
-            hits[k] = sample_intensity(dI_t, ptx + r00 * PATTERN[k, 0] + r01 * PATTERN[k, 1],
-                                       pty + r10 * PATTERN[k, 0] + r11 * PATTERN[k, 1])
+            hits[k] = sample_intensity(dI_t, xs[k], ys[k])
         e = float(0.0)
         for k in range(8):
-            px = PATTERN[k, 0]
-            py = PATTERN[k, 1]
-            x = ptx + r00 * px + r01 * py
-            y = pty + r10 * px + r11 * py
-            if bilinear_inside(x, y, w, h):
+            if bilinear_inside(xs[k], ys[k], w, h):
                 hit = hits[k]
                 if finite(hit):
                     r = hit - (aff[0] * color[i, k] + aff[1])
@@ -272,21 +282,10 @@ def trace_points_kernel(offset: int,
         H = float(1.0)
         bb = float(0.0)
         e = float(0.0)
-        gI = vec8f()  # the 8 samples first, as in the search
-        gX = vec8f()
-        gY = vec8f()
+        xs, ys = pattern_at(best_u, best_v, r00, r01, r10, r11)
+        gI, gX, gY = sample8(dI_t, xs, ys)  # the 8 samples first, as in the search
         for k in range(8):
-            hs = sample_dI(dI_t, best_u + r00 * PATTERN[k, 0] + r01 * PATTERN[k, 1],
-                           best_v + r10 * PATTERN[k, 0] + r11 * PATTERN[k, 1])
-            gI[k] = hs[0]
-            gX[k] = hs[1]
-            gY[k] = hs[2]
-        for k in range(8):
-            px = PATTERN[k, 0]
-            py = PATTERN[k, 1]
-            x = best_u + r00 * px + r01 * py
-            y = best_v + r10 * px + r11 * py
-            if bilinear_inside(x, y, w, h):
+            if bilinear_inside(xs[k], ys[k], w, h):
                 hit3 = wp.vec3(gI[k], gX[k], gY[k])
                 if finite(hit3[0]):
                     r = hit3[0] - (aff[0] * color[i, k] + aff[1])

@@ -126,6 +126,17 @@ def counted(sums: vec8d, e: float, ok: bool, sat: bool) -> vec8d:
 
 
 @wp.func
+def block_setup(blk: int, n: int, pair: FramePair, cam: Intrinsics, photo: PhotometricParams, params: TrackParams):
+    """What both kernels' blocks start from: the block's points ``[start, end)``, a saturated residual's energy,
+    ``K^-1``, ``R K^-1`` and the block's first point that adds to the flow indicators."""
+    start = blk * params.points_per_block
+    end = wp.min(start + params.points_per_block, n)
+    max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
+    Ki = inverse_K(cam)
+    return start, end, max_energy, Ki, pair.R * Ki, first_flow_index(start, params.flow_stride)
+
+
+@wp.func
 def coarse_residual(u: float, v: float, idp: float, host_color: float, live: bool, RKi: wp.mat33, pair: FramePair,
                     cam: Intrinsics, dI_t: wp.array2d(dtype=wp.vec3), photo: PhotometricParams, cutoff_th: float,
                     max_energy: float):
@@ -191,16 +202,11 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                                partials: wp.array2d(dtype=wp.float64)):  # [blocks, NUM_SLOTS] out
         blk = offset + wp.tid()
         n = host_uv.shape[0]
-        start = blk * params.points_per_block
-        end = wp.min(start + params.points_per_block, n)
+        start, end, max_energy, Ki, RKi, next_flow = block_setup(blk, n, pair, cam, photo, params)
         npat = ref_color.shape[1]
         H = mat88d()
         g = vec8d()
         sums = vec8d()  # energy, counts, flow sums (see counted)
-        max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
-        Ki = inverse_K(cam)
-        RKi = pair.R * Ki
-        next_flow = first_flow_index(start, params.flow_stride)
         for i in range(start, end):
             c = host_uv[i]
             idp = idepth[i]
@@ -272,15 +278,10 @@ def _make_lane_kernel(with_system: bool):
                                      partials: wp.array2d(dtype=wp.float64)):
         blk = offset + wp.tid()
         n = host_uv.shape[0]
-        start = blk * params.points_per_block
-        end = wp.min(start + params.points_per_block, n)
+        start, end, max_energy, Ki, RKi, next_flow = block_setup(blk, n, pair, cam, photo, params)
         Hl = mat64_lanes()
         gl = mat88_lanes()
         sums = vec8d()  # energy, counts, flow sums (see counted)
-        max_energy = 2.0 * photo.huber_th * params.cutoff_th - photo.huber_th * photo.huber_th
-        Ki = inverse_K(cam)
-        RKi = pair.R * Ki
-        next_flow = first_flow_index(start, params.flow_stride)
         for g0 in range(start, end, LANES):
             J = mat88_lanes()
             w_l = vec8d()
@@ -302,8 +303,8 @@ def _make_lane_kernel(with_system: bool):
                 i = g0 + k
                 live = i < end
                 ii = wp.min(i, end - 1)
-                c = host_uv[ii]
-                idp = idepth[ii]
+                c = wp.vec2(u[k], v[k])  # the point as loaded above
+                idp = d[k]
                 if live and ii == next_flow:
                     next_flow += params.flow_stride
                     sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
