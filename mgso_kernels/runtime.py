@@ -47,6 +47,7 @@ __all__ = [
     "launch_split",
     "ensure_loaded",
     "load_modules",
+    "cpu_flags_full_slp",
 ]
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,32 @@ def default_cache_dir() -> Path:
         return Path(env).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "mgso" / f"warp-{wp.config.version}"
+
+
+def cpu_flags_full_slp() -> str:
+    """Warp's CPU compiler flags (``wp.config.cpu_compiler_flags``) without its cap on the SLP vectoriser's
+    recursion depth (Warp sets ``-slp-recursion-max-depth=4`` against LLVM's 12, for compile time), for a module's
+    ``cpu_compiler_flags`` option. With LLVM's depth more of a kernel's arithmetic on its 8 pattern pixels is
+    vectorised: the window's linearisation kernel 12-14 % less time a call, the activation's depth kernel 30 %, the
+    same bits (docs/tracking_kernels.md, "Compiler options"); the tracker's, the epipolar search's and the image
+    kernels gained nothing measurable, so only the modules that measured a gain ask for it."""
+    flags = wp.config.cpu_compiler_flags
+    if flags is None:  # Warp's own meaning of None: the host's features with LLVM's defaults
+        return "-march=native"
+    out: list[str] = []
+    toks = flags.split()
+    i = 0
+    while i < len(toks):
+        t = toks[i]
+        if t.startswith("-mllvm=-slp-recursion-max-depth"):
+            i += 1
+            continue
+        if t == "-mllvm" and i + 1 < len(toks) and toks[i + 1].startswith("-slp-recursion-max-depth"):
+            i += 2
+            continue
+        out.append(t)
+        i += 1
+    return " ".join(out)
 
 
 def is_initialised() -> bool:

@@ -183,3 +183,32 @@ def test_a_split_launch_interrupted_while_waiting_drops_its_workers():
     assert runtime._run(after) == 2 and after[1].thread is not None
     assert runtime._local.workers[0] is not before  # new workers
     gate.set()
+
+
+def test_full_slp_flags_drop_only_warps_slp_depth_cap(monkeypatch):
+    monkeypatch.setattr(wp.config, "cpu_compiler_flags",
+                        "-march=native -mllvm=-inline-threshold=9000 -mllvm=-slp-recursion-max-depth=4")
+    assert runtime.cpu_flags_full_slp() == "-march=native -mllvm=-inline-threshold=9000"
+    monkeypatch.setattr(wp.config, "cpu_compiler_flags", "-march=native -mllvm -slp-recursion-max-depth=4 -O1")
+    assert runtime.cpu_flags_full_slp() == "-march=native -O1"
+    monkeypatch.setattr(wp.config, "cpu_compiler_flags", None)  # Warp's None: host features, LLVM's defaults
+    assert runtime.cpu_flags_full_slp() == "-march=native"
+    monkeypatch.setattr(wp.config, "cpu_compiler_flags", "")  # a generic target stays generic
+    assert runtime.cpu_flags_full_slp() == ""
+
+
+def test_the_modules_that_measured_a_gain_carry_their_compiler_options():
+    """docs/tracking_kernels.md "Compiler options on the CPU": the window's and the activation's kernels with LLVM's
+    full SLP depth, the initialiser's at -O3; the tracker's module (no gain measured) keeps Warp's defaults."""
+    from mgso_kernels import activation, initializer, track, window
+
+    def opts(m):
+        return wp.get_module(m.__name__).options
+
+    for m in (window, activation):
+        flags = opts(m)["cpu_compiler_flags"]
+        assert flags is not None and "slp-recursion-max-depth" not in flags and "-march=native" in flags
+    assert opts(initializer)["optimization_level"] == 3
+    track_flags = opts(track)["cpu_compiler_flags"]  # None: Warp's global flags, which cap the SLP depth
+    assert track_flags is None or "slp-recursion-max-depth" in track_flags
+    assert opts(track)["optimization_level"] in (None, 2)
