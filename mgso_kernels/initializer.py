@@ -54,8 +54,8 @@ __all__ = [
     "smooth_inverse_depths", "smooth_idepths",
 ]
 
-# -O3 on the CPU (Warp's default there is -O2; CUDA's is -O3): 14-29 % off accumulate_init_system in three
-# interleaved runs of captured calls, the same bits (docs/tracking_kernels.md, "Compiler options")
+# -O3 on the CPU (Warp's default there is -O2; CUDA's is -O3): init_system 0.87x the time, the same bits
+# (profiles/compiler_options.py; docs/tracking_kernels.md, "Compiler options on the CPU")
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 POINTS_PER_BLOCK = 32  # points per reduction block (one thread each)
