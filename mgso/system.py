@@ -251,7 +251,9 @@ class Player:
     A live source (``frames.live`` true: :class:`mgso.io.live.LiveSource`'s frames) is never paced (the device is
     the clock) and always drops as above, whatever ``speed``; it is closed before the player's thread is joined (that
     thread may be waiting in it for the next frame), and the frames the source itself replaced before the player
-    took them (``frames.dropped``) are added to :attr:`read` and :attr:`dropped`."""
+    took them (``frames.dropped``) are added to :attr:`read` and :attr:`dropped`. When the consumer stops early (an
+    interrupted run), the frames read but still waiting count as dropped too: ``read = taken + dropped``, the frame
+    the consumer was working on being one of the taken."""
 
     def __init__(self, frames: Iterable, speed: float = 1.0, max_lag: float = 0.0):
         self.speed = float(speed)
@@ -300,6 +302,8 @@ class Player:
                     if wait > 0 and self._stop.wait(wait):
                         return
                 if not self._put(frame, replace=self.speed > 0 or self.live):
+                    with self._cond:  # read, then the consumer stopped: never processed
+                        self.dropped += 1
                     return
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
             self._put(exc, replace=False)
@@ -330,6 +334,9 @@ class Player:
             if self.live and close is not None:
                 close()
             self._thread.join(timeout=5.0)
+            with self._cond:  # frames still waiting when the consumer stopped (an interrupted run): never processed
+                self.dropped += sum(1 for _, item in self._queue if _is_frame(item))
+                self._queue.clear()
             if close is not None and not self.live:
                 close()
             if self.live:

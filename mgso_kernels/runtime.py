@@ -77,9 +77,9 @@ def cpu_flags_full_slp() -> str:
     """Warp's CPU compiler flags (``wp.config.cpu_compiler_flags``) without its cap on the SLP vectoriser's
     recursion depth (Warp sets ``-slp-recursion-max-depth=4`` against LLVM's 12, for compile time), for a module's
     ``cpu_compiler_flags`` option. With LLVM's depth more of a kernel's arithmetic on its 8 pattern pixels is
-    vectorised: the window's linearisation 0.89x the time a call, the activation's depth residuals 0.81x, the
-    same bits (docs/tracking_kernels.md, "Compiler options"); the tracker's, the epipolar search's and the image
-    kernels gained nothing measurable, so only the modules that measured a gain ask for it."""
+    vectorised: the window's linearisation 0.89x the time a call, the activation's depth residuals 0.81x, the same
+    bits (docs/tracking_kernels.md, "Compiler options on the CPU"); the tracker's, the epipolar search's and the
+    image kernels gained nothing measurable, so only the modules that measured a gain ask for it."""
     flags = wp.config.cpu_compiler_flags
     if flags is None:  # Warp's own meaning of None: the host's features with LLVM's defaults
         return "-march=native"

@@ -323,6 +323,25 @@ def test_real_time_playback_drops_frames_the_odometry_cannot_take(room, tmp_path
         assert 150 < rt["frame_lag_ms_max"] < 600
 
 
+def test_frames_waiting_when_the_consumer_stops_count_as_dropped():
+    """An interrupted run stops taking frames while some wait in the player (up to max_lag's worth, more when the
+    odometry is slow): those were read and never processed, so they count as dropped, ``read = taken + dropped``
+    (a SIGTERM'd live run on a slow machine had 4-15 frames in neither before)."""
+    from types import SimpleNamespace
+
+    from mgso.system import Player
+
+    player = Player((SimpleNamespace(index=k, timestamp=0.001 * k) for k in range(40)), 1.0, 10.0)
+    taken = 0
+    for _ in player:
+        taken += 1
+        if taken == 1:
+            time.sleep(0.15)  # the 40 frames (40 ms of them) are all released meanwhile and wait
+        if taken == 3:
+            break
+    assert player.read == 40 and player.dropped == 40 - 3  # nothing expired (max_lag 10 s): all left at the stop
+
+
 def test_the_player_lets_frames_wait_up_to_max_lag(tmp_path):
     """Player (system.py): 20 frames at 100 Hz and a consumer that stalls 0.12 s on the first one. With max_lag 0
     the frames of the stall are dropped and the newest is taken; with a lag bound above the stall every frame comes,
