@@ -163,7 +163,7 @@ def main() -> None:
                      "variant_ms": round(1000 * float(np.median(v)), 3),
                      "ratio_median": round(float(np.median(v / d)), 3),
                      "ratio_p10_p90": [round(float(np.percentile(v / d, q)), 3) for q in (10, 90)],
-                     "variant": {k: variant[k] for k in variant}, "same_bits": bits["default"] == bits["variant"]}
+                     "variant": dict(variant), "same_bits": bits["default"] == bits["variant"]}
         wp.set_module_options({k: landed[name][k] for k in variant}, module=mod.__name__)  # back as landed
     out["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps(out))

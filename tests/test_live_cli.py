@@ -118,8 +118,8 @@ def _check_outputs(out: Path, interrupted: bool = False) -> dict:
     metrics = json.loads((out / "metrics.json").read_text())
     fr = metrics["frames"]
     assert metrics["mode"] == "realtime"
-    # every frame captured was processed or dropped (frames still waiting in the player when a signal stops the run
-    # count as dropped); a signal may leave the frame being processed and the one in the source's slot in neither
+    # every frame read was processed or dropped (frames still waiting in the player when a signal stops the run
+    # count as dropped); a signal may leave the frame the odometry was on in neither
     extra = fr["read"] - fr["processed"] - fr["dropped"]
     assert (0 <= extra <= 2) if interrupted else extra == 0, fr
     assert fr["processed"] == _rows(out / "frames.csv")
