@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -197,29 +198,69 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
         assert wp.get_module(name).execs, name
 
 
+class _PausedMapper:
+    """Wraps the odometry: before the first frame the mapper's process is stopped (SIGSTOP) for ``seconds``, so
+    that the keyframes pile up in the ring and the queue whatever the machine's speed (without the pause, whether
+    the ring grew hung on how soon the mapper took a keyframe: CI once saw it not grow)."""
+
+    def __init__(self, odo, seconds):
+        self.odo = odo
+        self.seconds = seconds
+        self.system = None
+        self.timer = None
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)
+
+    def process(self, frame):
+        if self.timer is None:
+            pid = self.system.mapper._proc.pid
+            os.kill(pid, signal.SIGSTOP)
+            self.timer = threading.Timer(self.seconds, os.kill, (pid, signal.SIGCONT))
+            self.timer.start()
+        return self.odo.process(frame)
+
+
+def _paused_system(room, seconds, *over):
+    paused = []
+    system, seq, _ = _system(room, *over, wrapper=lambda odo: paused.append(_PausedMapper(odo, seconds)) or paused[0])
+    paused[0].system = system
+    return system, seq, paused[0]
+
+
+needs_sigstop = pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="pausing a process needs SIGSTOP (POSIX)")
+
+
+@needs_sigstop
 def test_a_full_ring_and_queue_make_the_odometry_wait_and_lose_nothing(room):
-    """Blocks of one image slot and a queue of two: while the mapper's process starts (a second or more), the ring
-    grows to two slots and the odometry then waits (counted); every keyframe still reaches the map. The default ring
-    (8 slots a block, 6 keyframes) and queue never wait nor grow: the negative control."""
-    tight, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0", "system.image_slots=1",
-                            "mapping.mapper.queue_size=2", "mapping.mapper.final_iterations=0")
+    """Blocks of one image slot and a queue of two, the mapper paused for a second: keyframe 0 holds the first
+    block's slot and frame 4's pose update fills the queue, so keyframe 1 grows the ring to two blocks (the cap: as
+    many slots as the queue holds) and then waits for queue room (counted); every keyframe still reaches the map.
+    The default ring (8 slots a block, 6 keyframes) and queue, paused the same, never wait nor grow: the negative
+    control."""
+    tight, seq, paused = _paused_system(room, 1.0, "system.mode=realtime", "system.playback_speed=0",
+                                        "system.image_slots=1", "mapping.mapper.queue_size=2",
+                                        "mapping.mapper.final_iterations=0")
     r = tight.run(seq.frames())
-    assert r.mapper.queue_waits >= 1 and r.mapper.queue_wait_seconds > 0 and r.mapper.image_blocks == 2
+    paused.timer.join()
+    assert r.mapper.queue_waits >= 1 and r.mapper.queue_wait_seconds > 0.3 and r.mapper.image_blocks == 2
     assert r.mapper.keyframes == 6 and tight.mapper.keyframe_ids == list(range(6))
-    roomy, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0",
-                            "mapping.mapper.final_iterations=0")
+    roomy, seq, paused = _paused_system(room, 1.0, "system.mode=realtime", "system.playback_speed=0",
+                                        "mapping.mapper.final_iterations=0")
     r2 = roomy.run(seq.frames())
+    paused.timer.join()
     assert r2.mapper.queue_waits == 0 and r2.mapper.keyframes == 6 and r2.mapper.image_blocks == 1
 
 
+@needs_sigstop
 def test_the_ring_grows_instead_of_making_the_odometry_wait(room):
-    """Blocks of one slot and the default queue: the mapper's process takes a second or more to start while the
-    oracle odometry sends six keyframes at once, so the ring must grow beyond one block; the odometry never
-    waits."""
-    system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0", "system.image_slots=1",
-                             "mapping.mapper.final_iterations=0")
+    """Blocks of one slot and the default queue, the mapper paused for a second while the oracle odometry sends its
+    six keyframes: the ring grows to six blocks; the odometry never waits."""
+    system, seq, paused = _paused_system(room, 1.0, "system.mode=realtime", "system.playback_speed=0",
+                                         "system.image_slots=1", "mapping.mapper.final_iterations=0")
     r = system.run(seq.frames())
-    assert r.mapper.queue_waits == 0 and r.mapper.image_blocks >= 2 and r.mapper.keyframes == 6
+    paused.timer.join()
+    assert r.mapper.queue_waits == 0 and r.mapper.image_blocks == 6 and r.mapper.keyframes == 6
 
 
 class _Watcher(Observer):
