@@ -12,10 +12,15 @@ was done; the exit code says which (docs/architecture.md, README "Exit codes").
   stops, and the files already written stand.
 
 Handlers are only installed in the main thread (Python delivers signals there); elsewhere these are no-ops.
+
+A signal that lands while a finaliser runs (a ``__del__``: Warp frees every array in one) must not raise there:
+Python prints such an exception as "Exception ignored in ..." with a traceback and drops it, so the stop was lost
+and the run went on. It is delivered again, once the finaliser has returned (:func:`_in_finaliser`).
 """
 
 from __future__ import annotations
 
+import _thread
 import logging
 import signal
 import threading
@@ -47,6 +52,7 @@ class StopState:
         self.count = 0
         self._hold = 0
         self._pending: int | None = None
+        self._redelivered = 0           # signals handed back to the handler after a finaliser (counted once)
 
     @contextmanager
     def held(self) -> Iterator[None]:
@@ -78,6 +84,26 @@ def _raise(signum: int) -> None:
     if signum == signal.SIGINT:
         raise KeyboardInterrupt
     raise Terminated(signum)
+
+
+def _in_finaliser(frame) -> bool:
+    """Whether ``frame`` (where the main thread was when the signal came) is inside a ``__del__``, at any depth:
+    an exception raised there would be printed and dropped."""
+    depth = 0
+    while frame is not None and depth < 64:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+        depth += 1
+    return False
+
+
+def _redeliver(state: StopState, signum: int) -> None:
+    """Hand ``signum`` to the main thread's handler again in a moment (after the finaliser it landed in)."""
+    state._redelivered += 1
+    t = threading.Timer(0.005, _thread.interrupt_main, (signum,))
+    t.daemon = True
+    t.start()
 
 
 def _main_thread() -> bool:
@@ -116,11 +142,17 @@ def stop_signals(state: StopState, end_input: Callable[[], bool] | None = None) 
     time, stop as above."""
 
     def handler(signum, frame):
-        if signum == signal.SIGINT and end_input is not None and state.signum is None and end_input():
-            log.warning("Ctrl-C: the live stream ends here; the odometry finishes and the map gets its final "
-                        "refinement before the outputs are written (Ctrl-C again cuts the refinement short)")
+        if state._redelivered:          # the same signal, back from a finaliser: already heard and counted
+            state._redelivered -= 1
+        else:
+            if signum == signal.SIGINT and end_input is not None and state.signum is None and end_input():
+                log.warning("Ctrl-C: the live stream ends here; the odometry finishes and the map gets its final "
+                            "refinement before the outputs are written (Ctrl-C again cuts the refinement short)")
+                return
+            state.record(signum)
+        if _in_finaliser(frame):
+            _redeliver(state, signum)
             return
-        state.record(signum)
         if state._hold:                 # raised when the held block ends (StopState.held)
             state._pending = state._pending or signum
             return
@@ -135,6 +167,9 @@ def deferred_signals(state: StopState, what: str = "writing the outputs") -> Ite
     """Signals are recorded and logged, not raised, while the block runs."""
 
     def handler(signum, frame):
+        if state._redelivered:          # one from a finaliser under stop_signals, already counted
+            state._redelivered -= 1
+            return
         state.record(signum)
         log.warning("%s received while %s: finishing them first", _NAMES.get(signum, signum), what)
 
