@@ -208,9 +208,10 @@ def test_a_failure_turns_loop_closure_off_and_the_run_goes_on(loop_folder, tmp_p
         raise MemoryError("no room for features")
 
     monkeypatch.setattr(place, "extract_features", broken)
-    res, m, system = _run(loop_folder, tmp_path, f"system.mode={mode}", "system.playback_speed=0")
+    # 32 frames (8 keyframes): the first search fails, and the run goes on for seven more keyframes
+    res, m, system = _run(loop_folder, tmp_path, f"system.mode={mode}", "system.playback_speed=0", frames=32)
     assert m["loop"]["error"] == "MemoryError: no room for features"
-    assert m["loop"]["accepted"] == 0 and res.frames_processed == LOOP_SEQ["num_frames"]
+    assert m["loop"]["accepted"] == 0 and res.frames_processed == 32 and m["loop"]["keyframes"] == 8
     assert calls["n"] == 1                                  # off after the failure: no more searches
     assert (m["out"] / "map.ply").is_file() and m["ate_all_frames_m"] is not None
 
