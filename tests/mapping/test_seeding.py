@@ -378,6 +378,46 @@ def test_seed_keyframe_adds_nothing_where_the_map_covers_the_view(seq, cam, rast
     assert r_bypass.num_added == r_bypass.num_candidates > 500
 
 
+class _CountingRasterizer:
+    """The rasterizer, counting its coverage renders."""
+
+    def __init__(self, rast):
+        self.rast = rast
+        self.renders = 0
+
+    def render_alpha(self, *a, **k):
+        self.renders += 1
+        return self.rast.render_alpha(*a, **k)
+
+    def forward(self, *a, **k):
+        self.renders += 1
+        return self.rast.forward(*a, **k)
+
+
+def test_a_batch_smaller_than_the_minimum_is_skipped_without_rendering(seq, cam, rast, wp_device):
+    """Fewer candidates than ``min_new_gaussians`` can never leave enough survivors: the seeding says too few without
+    the coverage render (most batches of marginalised points are that small, and the render was most of their
+    seeding's time). Negative control: a batch of the minimum's size is rendered, and so is this one with a lower
+    minimum, whose visibility filter then has something to say."""
+    gm = _covering_map(seq, cam, wp_device, cols=cam.width // 2)          # the right half is empty
+    n0 = gm.n
+    uv = _grid_points(cam, step=8)
+    right = uv[uv[:, 0] > cam.width // 2 + 8]
+    cfg = SeedingConfig(fill=False, depth_tolerance=0.0, min_new_gaussians=30)
+    counting = _CountingRasterizer(rast)
+    small = _message(seq, cam, right[:29], frame=0)
+    r = sd.seed_keyframe(gm, counting, small, cfg, step=1)
+    assert counting.renders == 0 and r.status is sd.SeedStatus.TOO_FEW and r.num_candidates == 29
+    assert not r.coverage_rendered and r.num_added == 0 and gm.n == n0
+    r30 = sd.seed_keyframe(gm, counting, _message(seq, cam, right[:30], frame=0), cfg, step=1)
+    assert counting.renders == 1 and r30.coverage_rendered and r30.status is sd.SeedStatus.ADDED
+    n1 = gm.n
+    r_low = sd.seed_keyframe(gm, counting, small, dataclasses.replace(cfg, min_new_gaussians=10), step=2)
+    assert counting.renders == 2 and r_low.coverage_rendered and r_low.num_candidates == 29
+    assert r_low.num_rejected_visibility > 0                              # the 30 just added cover some (6)
+    assert gm.n - n1 == r_low.num_added
+
+
 def test_seed_keyframe_fills_only_the_uncovered_part(seq, cam, rast, wp_device):
     uv = _grid_points(cam, step=4)
     msg = _message(seq, cam, uv, frame=0)
