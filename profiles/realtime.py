@@ -3,8 +3,9 @@ rate), once per variant, each in its own process; prints **one JSON line**.
 
 Per sequence and variant: frames read, tracked (processed) and dropped, the fraction tracked, the tracking losses
 (frame and reason), keyframes sent and in the map, mapping steps while the camera ran and in the final refinement,
-the mapper's share of the CPU, tracking and end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue
-waits, how long the frames taken had waited (median and largest, ms; ``system.max_lag_ms``), and the wall time.
+the mapper's share of the CPU and its CPU seconds, seconds seeding, training and refining, its longest queue,
+tracking and end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue waits, how long the frames
+taken had waited (median and largest, ms; ``system.max_lag_ms``), and the wall time.
 The variants (default ``process`` and ``thread``) differ only by their settings, measured one after the other on
 the same machine: compare the ratios in one run, not figures of different days.
 
@@ -62,7 +63,9 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "keyframes_sent": m.get("keyframes", {}).get("sent"), "keyframes_in_map": m.get("keyframes", {}).get("in_map"),
         "mapping_steps_running": st.get("steps", 0) - st.get("final_steps", 0),
         "mapping_steps_final": st.get("final_steps"), "queue_waits": st.get("queue_waits"),
-        "queue_wait_s": st.get("queue_wait_seconds"),
+        "queue_wait_s": st.get("queue_wait_seconds"), "mapper_queue_max": st.get("max_queue_depth"),
+        "mapper_cpu_s": st.get("cpu_seconds"), "mapper_seed_s": st.get("seed_seconds"),
+        "mapper_train_s": st.get("train_seconds"), "mapper_final_s": st.get("final_seconds"),
         "frame_lag_ms_median": rt.get("frame_lag_ms_median"), "frame_lag_ms_max": rt.get("frame_lag_ms_max"),
         "mapper_in": rt.get("mapper_in"), "mapper_cpu_share": rt.get("mapper_cpu_share"),
         "tracking_fps": m.get("tracking_fps"), "end_to_end_fps": m.get("end_to_end_fps"),
