@@ -1,5 +1,8 @@
 """Stand-ins around an odometry that the system tests share."""
 
+import os
+import signal
+import threading
 import time
 
 
@@ -51,4 +54,24 @@ class LoadOrderOdometry(_Wrapped):
 
     def process(self, frame):
         self.events.append("frame")
+        return self.odo.process(frame)
+
+
+class PausedMapperOdometry(_Wrapped):
+    """An odometry that, before its first frame, stops the mapper's process (SIGSTOP, POSIX) of ``system`` (set it
+    after building the System) for ``seconds``: the keyframes then pile up in the image ring and the queue whatever
+    the machine's speed. ``timer`` resumes the process; join it before checking the run."""
+
+    def __init__(self, odo, seconds):
+        super().__init__(odo)
+        self.seconds = seconds
+        self.system = None
+        self.timer = None
+
+    def process(self, frame):
+        if self.timer is None:
+            pid = self.system.mapper._proc.pid
+            os.kill(pid, signal.SIGSTOP)
+            self.timer = threading.Timer(self.seconds, os.kill, (pid, signal.SIGCONT))
+            self.timer.start()
         return self.odo.process(frame)

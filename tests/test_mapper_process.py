@@ -11,7 +11,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import threading
 import time
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from mgso.observers import Observer
 from mgso.oracle import OracleOdometry
 from mgso.system import System, SystemRunError
 
-from odometry_doubles import LoadOrderOdometry, SlowOdometry, ThreadsSeenOdometry
+from odometry_doubles import LoadOrderOdometry, PausedMapperOdometry, SlowOdometry, ThreadsSeenOdometry
 
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
         "system.eval_photo_slam=false"]
@@ -198,34 +197,12 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
         assert wp.get_module(name).execs, name
 
 
-class _PausedMapper:
-    """Wraps the odometry: before the first frame the mapper's process is stopped (SIGSTOP) for ``seconds``, so
-    that the keyframes pile up in the ring and the queue whatever the machine's speed (without the pause, whether
-    the ring grew hung on how soon the mapper took a keyframe: CI once saw it not grow)."""
-
-    def __init__(self, odo, seconds):
-        self.odo = odo
-        self.seconds = seconds
-        self.system = None
-        self.timer = None
-
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
-
-    def process(self, frame):
-        if self.timer is None:
-            pid = self.system.mapper._proc.pid
-            os.kill(pid, signal.SIGSTOP)
-            self.timer = threading.Timer(self.seconds, os.kill, (pid, signal.SIGCONT))
-            self.timer.start()
-        return self.odo.process(frame)
-
-
 def _paused_system(room, seconds, *over):
-    paused = []
-    system, seq, _ = _system(room, *over, wrapper=lambda odo: paused.append(_PausedMapper(odo, seconds)) or paused[0])
-    paused[0].system = system
-    return system, seq, paused[0]
+    """:func:`_system` with the mapper's process stopped for ``seconds`` before the first frame (without the pause,
+    whether the ring grew hung on how soon the mapper took a keyframe: CI once saw it not grow)."""
+    system, seq, _ = _system(room, *over, wrapper=lambda odo: PausedMapperOdometry(odo, seconds))
+    system.odometry.system = system
+    return system, seq, system.odometry
 
 
 needs_sigstop = pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="pausing a process needs SIGSTOP (POSIX)")

@@ -397,9 +397,10 @@ def test_a_signal_inside_a_held_block_is_raised_when_the_block_ends(held):
 @pytest.mark.parametrize("sig,exc", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, "Terminated")])
 def test_a_signal_that_lands_in_a_finaliser_still_stops_the_run(sig, exc, monkeypatch):
     """Warp frees each array in a ``__del__``; a signal whose handler ran there raised inside the finaliser, where
-    Python prints "Exception ignored in" with a traceback and drops the exception: the stop was lost (CI: a Ctrl-C'd
-    tracking run printed a traceback from warp's array.__del__). The signal is delivered again after the finaliser,
-    once. Negative control: the handler of a bare ``KeyboardInterrupt`` raise, as before, loses it."""
+    Python prints "Exception ignored in" with a traceback and drops the exception: the stop was lost (a local full
+    suite run: a Ctrl-C'd tracking run printed a traceback from warp's array.__del__). The signal is delivered again
+    after the finaliser, once. Negative control: the handler of a bare ``KeyboardInterrupt`` raise, as before, loses
+    it."""
     from mgso.app.signals import StopState, Terminated, stop_signals
 
     expected = Terminated if exc == "Terminated" else exc
@@ -411,7 +412,7 @@ def test_a_signal_that_lands_in_a_finaliser_still_stops_the_run(sig, exc, monkey
             signal.raise_signal(sig)      # the handler runs here, inside the finaliser
             sum(range(100))
 
-    def run(state):
+    def run():
         obj = Freed()
         del obj
         for _ in range(500):              # the redelivered signal arrives within this loop
@@ -421,7 +422,7 @@ def test_a_signal_that_lands_in_a_finaliser_still_stops_the_run(sig, exc, monkey
     state = StopState()
     with pytest.raises(expected):
         with stop_signals(state):
-            run(state)
+            run()
     assert state.signum == sig and state.count == 1 and dropped == []
 
     def bare(signum, frame):              # negative control: raising wherever the handler runs
@@ -429,7 +430,7 @@ def test_a_signal_that_lands_in_a_finaliser_still_stops_the_run(sig, exc, monkey
 
     old = {s: signal.signal(s, bare) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        assert run(StopState()) == "went on"
+        assert run() == "went on"
     finally:
         for s, h in old.items():
             signal.signal(s, h)
