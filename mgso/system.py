@@ -86,7 +86,9 @@ class OdometryFrame:
 
     ``cam_to_world``: the pose at tracking time (4x4), ``None`` while there is none (initialising, lost).
     ``affine``: DSO's (a, b) of the frame (0-255 scale); ``exposure_ms``: its exposure time (``None``: unknown).
-    ``is_keyframe``; ``status``: the odometry's word for the frame (e.g. "tracked", "initializing", "lost");
+    ``is_keyframe``: the frame asked to become a keyframe (with DSO's mapping thread the request may go to a later
+    frame: the keyframes made are the frames of the keyframe messages, ``SystemResult.keyframe_frames``);
+    ``status``: the odometry's word for the frame (e.g. "tracked", "initializing", "lost");
     ``messages``: what it emits for the mapper, in order; ``seconds``: its time on this frame.
     """
 

@@ -435,3 +435,19 @@ def test_a_signal_that_lands_in_a_finaliser_still_stops_the_run(sig, exc, monkey
         for s, h in old.items():
             signal.signal(s, h)
     assert dropped == [expected]
+
+
+def test_frames_csv_leaves_a_keyframe_request_answered_later_empty():
+    """frames.csv's keyframe column: the id of a frame made a keyframe, -1 for a frame that did not ask, empty for a
+    frame that asked and whose answer comes after its row (DSO's first frame; in real time, every request, which the
+    odometry's mapping thread grants to the newest waiting frame only). -1 there read as 'not a keyframe'."""
+    from mgso.app.writer import frame_row
+    from mgso.odometry import FrameResult, FrameStatus
+
+    def row(asked, kf_id):
+        r = FrameResult(7, 0.25, FrameStatus.TRACKED, 0, np.eye(4), asked, "flow" if asked else "", keyframe_id=kf_id)
+        return frame_row(r)["keyframe"], frame_row(r)["keyframe_reason"]
+
+    assert row(True, 3) == (3, "flow")       # made a keyframe before its row (deterministic DSO)
+    assert row(False, -1) == (-1, "")        # the control: a frame that did not ask
+    assert row(True, -1) == ("", "flow")     # asked; the mapping thread decides later

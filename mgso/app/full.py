@@ -223,9 +223,11 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
     tracked = [k for k in range(len(log_)) if log_.timestamp[k] in pose_at]
     tracked_idx = [log_.index[k] for k in tracked]
     pos_of = {log_.index[k]: k for k in tracked}
-    # keyframes = every frame that reached the map as a training view (DSO's first keyframe is announced frames
-    # after its own frame, when the initialiser succeeds: the frame's is_keyframe cannot say it)
-    kf_idx = sorted(set(result.keyframe_frames) | {log_.index[k] for k in range(len(log_)) if log_.is_keyframe[k]})
+    # keyframes = the frames that reached the map as training views (a keyframe message each), not the frames'
+    # is_keyframe: DSO announces its first keyframe frames after its own frame (when the initialiser succeeds), and
+    # with the odometry's mapping thread (real time) is_keyframe is the tracker's request, which the thread grants
+    # to the newest waiting frame only (most frames of a real-time run ask: docs/evaluation.md)
+    kf_idx = sorted(set(result.keyframe_frames))
     cam = seq.calibration.output if seq is not None else None
     sc = cfg.system
 

@@ -281,8 +281,12 @@ def frame_row(r) -> dict:
     row = {"index": r.index, "timestamp": float(r.timestamp), "status": getattr(status, "value", status),
            "segment": getattr(r, "segment", None),
            "keyframe_reason": getattr(r, "keyframe_reason", "") or ""}
-    kf = getattr(r, "keyframe_id", None)   # the keyframe id, -1 for other frames; empty when unknown
-    row["keyframe"] = kf if kf is not None else ("" if getattr(r, "is_keyframe", False) else -1)
+    # the keyframe id, -1 for other frames; empty when the frame asked for a keyframe and the answer comes later (DSO's
+    # first frame, made a keyframe when the initialiser succeeds; with the odometry's mapping thread, which makes
+    # only the newest waiting frame a keyframe): keyframes.txt lists the keyframes made
+    kf = getattr(r, "keyframe_id", None)
+    asked = bool(getattr(r, "is_keyframe", False))
+    row["keyframe"] = kf if kf is not None and (kf >= 0 or not asked) else ("" if asked else -1)
     tr = getattr(r, "track", None)
     if tr is not None:
         row.update(rmse=float(tr.rmse0), inlier_ratio=float(tr.inlier_ratio), hypotheses=int(tr.hypotheses_tried))
