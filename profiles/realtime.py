@@ -9,9 +9,10 @@ taken had waited (median and largest, ms; ``system.max_lag_ms``), and the wall t
 The variants (default ``process`` and ``thread``) differ only by their settings, measured one after the other on
 the same machine: compare the ratios in one run, not figures of different days.
 
-``--deterministic``: also the deterministic run given the same number of mapping steps a keyframe as the real-time
-run of the first variant made while the camera ran (``iterations_per_keyframe = steps / keyframes``), for the PSNR
-comparison of issue 13; it is slow at 640x480 (minutes).
+``--deterministic``: also the deterministic run given as many mapping steps in all as the real-time run of the
+first variant made (while the camera ran and in the final refinement), all of them in the final refinement
+(``iterations_per_keyframe=0``: on a CPU the real-time mapper trains a few steps while the camera runs, fewer than
+one a keyframe), for the PSNR comparison of issue 13; it is slow at 640x480 (minutes).
 
     python profiles/realtime.py [PATH ...] [--downscale 1] [--speed 1] [--variant NAME=SET,SET ...]
                                 [--deterministic] [--set SECTION.KEY=VALUE ...]
@@ -119,13 +120,13 @@ def main(argv=None) -> int:
             res[vname] = _run(p, out_root / name / vname, [*base, *size, *sets], realtime=True)
         if args.deterministic:
             first = res[next(iter(variants))]
-            kf = first.get("keyframes_in_map") or 0
-            per_kf = max(1, round((first.get("mapping_steps_running") or 0) / kf)) if kf else 1
+            steps = (first.get("mapping_steps_running") or 0) + (first.get("mapping_steps_final") or 0)
             res["deterministic_same_steps"] = _run(
                 p, out_root / name / "deterministic",
                 [*base, *size, *variants[next(iter(variants))], "system.mode=deterministic",
-                 f"mapping.mapper.iterations_per_keyframe={per_kf}"], realtime=False)
-            res["deterministic_same_steps"]["iterations_per_keyframe"] = per_kf
+                 "mapping.mapper.iterations_per_keyframe=0", f"mapping.mapper.final_iterations={steps}"],
+                realtime=False)
+            res["deterministic_same_steps"]["final_iterations"] = steps
         results[name] = res
     print(json.dumps({"profile": "realtime", "machine": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "speed": args.speed, "downscale": args.downscale,
