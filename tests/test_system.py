@@ -600,7 +600,7 @@ def test_a_tracking_loss_is_in_metrics_and_the_summary(tmp_path, monkeypatch):
 
     folder = synthetic.cached_sequence_folder(num_frames=60, width=128, height=96, seed=0)
     cfg = load_config(None, [*BASE, "output.plot=false", "system.eval_photo_slam=false",
-                             "mapping.mapper.final_iterations=5"])
+                             "mapping.mapper.iterations_per_keyframe=1", "mapping.mapper.final_iterations=5"])
 
     def run(out, noise_at=None):
         seq = open_sequence(str(folder), config=cfg.input)
