@@ -762,7 +762,8 @@ class MapperConfig:
 class MappingConfig:
     """Gaussian splatting map and its training."""
 
-    enabled: bool = opt(True, "build the Gaussian map (false = odometry only)")
+    enabled: bool = opt(True, "the full stage always builds the map: false is refused (it did nothing); the odometry "
+                              "alone is `mgso run --stage odometry`")
     capacity: int = opt(500_000, "most Gaussians the map holds (buffers preallocated; ~130 MB at SH degree 0)")
     sh_degree: int = opt(0, "spherical-harmonics degree of colour; 0 = view-independent RGB (MGSO; 3DGS uses 3)")
     lambda_dssim: float = opt(0.2, "weight of D-SSIM in the loss, L = (1-l) L1 + l (1-SSIM) (3DGS lambda_dssim)")
@@ -779,6 +780,7 @@ class MappingConfig:
 
     def __post_init__(self):
         c = _Checks("mapping", self)
+        c.rule(self.enabled, "enabled", "true (the odometry alone: mgso run --stage odometry)")
         c.ge(1, "capacity")
         c.within(0, 3, "sh_degree")  # the SH kernels evaluate degrees 0..3 (mgso_kernels.splat.sh)
         c.within(0, 1, "lambda_dssim")  # L = (1 - l) L1 + l D-SSIM

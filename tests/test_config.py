@@ -35,6 +35,15 @@ def test_overrides_are_typed():
         apply_overrides(Config(), ["window.idepth_fix_prior_marg_fac=-1"])
 
 
+def test_mapping_enabled_false_is_refused_not_ignored():
+    """mapping.enabled was read by nothing: false still built the map. It is refused with the way to the odometry
+    alone; true (what every run's config.yaml holds) still loads."""
+    with pytest.raises(ConfigError, match=r"mapping\.enabled must be true \(the odometry alone: mgso run --stage "
+                                          r"odometry\), got False"):
+        apply_overrides(Config(), ["mapping.enabled=false"])
+    assert apply_overrides(Config(), ["mapping.enabled=true"]).mapping.enabled is True
+
+
 def test_profile_inheritance_and_roundtrip(tmp_path):
     parent = tmp_path / "parent.yaml"
     parent.write_text("window:\n  max_frames: 6\nruntime:\n  threads: 1\n")
