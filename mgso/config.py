@@ -321,14 +321,15 @@ class TrackingConfig:
                                       "(regWeight)")
     init_coupling_weight: float = opt(1.0, "weight coupling each inverse depth to its smoothed value after "
                                            "snapping (couplingWeight)")
-    init_frames_after_snap: int = opt(5, "frames tracked after enough parallax before initialising "
-                                         "(trackFrame: frameID > snappedAt + 5)")
+    init_frames_after_snap: int = opt(5, "frames of the camera after enough parallax before initialising "
+                                         "(trackFrame: frameID > snappedAt + 5; the frames dropped in real time "
+                                         "count)")
     init_done_translation: float = opt(0.1, "the initialisation also ends, before init_frames_after_snap, once the "
                                             "translation reaches this (scene units: mean inverse depth 1), so fast "
                                             "motion (a car) does not lose the overlap; handheld motion rarely gets "
                                             "there first (mgso; DSO only counts frames)")
-    init_max_frames: int = opt(40, "give up an initialisation attempt after this many frames without enough "
-                                   "parallax and retry from a newer first frame (DSO waits forever)")
+    init_max_frames: int = opt(40, "give up an initialisation attempt after this many frames of the camera "
+                                   "without enough parallax and retry from a newer first frame (DSO waits forever)")
     init_min_points: int = opt(50, "a first frame with fewer selected points (level 0) is not used")
     init_max_rmse: float = opt(25.0, "give up an initialisation attempt when the level-0 RMSE exceeds this (the "
                                      "first frame does not match the others: a frame of noise gives 30-35; KITTI "

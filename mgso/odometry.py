@@ -695,7 +695,7 @@ class Odometry:
         ini = self.initializer
         if not ini.has_first:
             return self._set_first(rec, pyr, exposure, rgb)
-        res = ini.track_frame(pyr, exposure)
+        res = ini.track_frame(pyr, exposure, index=rec.index)
         if res.status == InitStatus.FAILED:
             log.info("initialisation failed at frame %d: %s; restarting from it", rec.index, res.message)
             out = self._set_first(rec, pyr, exposure, rgb)
@@ -711,7 +711,7 @@ class Odometry:
         return TrackedFrame(rec, pyr, exposure, rgb, False, "", result)
 
     def _set_first(self, rec, pyr, exposure, rgb) -> TrackedFrame:
-        res = self.initializer.set_first(pyr, exposure, frame=(rec, rgb))
+        res = self.initializer.set_first(pyr, exposure, frame=(rec, rgb), index=rec.index)
         rec.status = FrameStatus.FIRST_FRAME if res.status == InitStatus.FIRST_FRAME else FrameStatus.INIT_FAILED
         result = FrameResult(rec.index, rec.timestamp, rec.status, rec.segment, None, False, init=res)
         return TrackedFrame(rec, pyr, exposure, rgb, False, "", result)

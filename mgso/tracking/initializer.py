@@ -17,9 +17,12 @@ inverse depths eliminated by a Schur complement, Levenberg-Marquardt damping, DS
   reg_weight)`` its own plus ``reg_weight`` the median of its neighbours' (``optReg``).
 - After each frame the depths are propagated up the pyramid (Hessian-weighted means of the children) so the next
   frame starts from them; at the start of each level they are propagated down from the parents.
-- When the frame that snapped is followed by ``init_frames_after_snap`` more frames (or, mgso's addition for fast
-  motion, once the translation reaches ``init_done_translation``), :meth:`CoarseInitializer.track_frame` answers
-  ``INITIALIZED``; the odometry then takes the first frame and this one as the first two
+- When the frame that snapped is followed by ``init_frames_after_snap`` more frames of the camera (or, mgso's
+  addition for fast motion, once the translation reaches ``init_done_translation``),
+  :meth:`CoarseInitializer.track_frame` answers ``INITIALIZED``. The frames are counted by the frames' indices
+  when the caller gives them: in real time the frames that arrive while the initialiser works are dropped, and
+  counting only the frames it aligned made each of the 5 cost 10 of the camera's at 640x480 (DSO counts aligned
+  frames; with nothing dropped the two are the same); the odometry then takes the first frame and this one as the first two
   keyframes and the level-0 points (inverse depths scaled to a mean of 1, as DSO) as the first active points.
 
 Deviation from DSO, on purpose: ``optReg`` updates all points of a level at once from the previous smoothed values
@@ -196,7 +199,8 @@ class CoarseInitializer:
         self.this_to_next_aff = (0.0, 0.0)
         self.snapped = False
         self.frame_id = -1
-        self.snapped_at = 0
+        self.snapped_at = 0  # frames of the camera from the first frame to the one that snapped (0: not snapped)
+        self._first_index: int | None = None  # the first frame's index, when the caller gives indices
         self._sparsity = 5  # DSO's global sparsityFactor (legacy, carried between calls)
         self.alpha_k = self.config.init_alpha_k
         self.alpha_w = self.config.init_alpha_w
@@ -214,13 +218,17 @@ class CoarseInitializer:
         self.frame_id = -1
         self.snapped = False
         self.snapped_at = 0
+        self._first_index = None
         self.this_to_next = np.eye(4)
         self.this_to_next_aff = (0.0, 0.0)
 
     # --------------------------------------------------------------------------------------- first frame
-    def set_first(self, pyramid: ImagePyramid, exposure: float = 0.0, frame=None) -> InitResult:
+    def set_first(self, pyramid: ImagePyramid, exposure: float = 0.0, frame=None,
+                  index: int | None = None) -> InitResult:
         """DSO ``setFirst``: select the points of every level, their neighbours and parents. ``pyramid`` is copied.
-        Returns ``FIRST_FRAME``, or ``FAILED`` when level 0 has fewer than ``init_min_points`` points."""
+        ``index``: the frame's index in the camera's stream (then :meth:`track_frame` counts the camera's frames,
+        the dropped ones too). Returns ``FIRST_FRAME``, or ``FAILED`` when level 0 has fewer than
+        ``init_min_points`` points."""
         self.reset()
         g = self.geometry
         cfg = self.config
@@ -273,6 +281,7 @@ class CoarseInitializer:
                                           neighbours=p.neighbours) for p in self.points]
         self.frame_id = 0
         self.snapped_at = 0
+        self._first_index = None if index is None else int(index)
         return InitResult(InitStatus.FIRST_FRAME, 0, False, np.eye(4), (0.0, 0.0), float("nan"), n0, n0)
 
     def _make_nn(self) -> None:
@@ -294,9 +303,12 @@ class CoarseInitializer:
                 p.parent[:] = -1
 
     # ------------------------------------------------------------------------------------------- per frame
-    def track_frame(self, pyramid: ImagePyramid, exposure: float = 0.0) -> InitResult:
+    def track_frame(self, pyramid: ImagePyramid, exposure: float = 0.0, index: int | None = None) -> InitResult:
         """DSO ``trackFrame``: align the new frame to the first, coarse to fine; ``INITIALIZED`` once the
-        translation has been large enough (snapped) for ``init_frames_after_snap`` more frames."""
+        translation has been large enough (snapped) for ``init_frames_after_snap`` more frames. ``index``: the
+        frame's index in the camera's stream (with the first frame's, :meth:`set_first`): the frames after snapping
+        and ``init_max_frames`` count the camera's frames, the ones dropped before reaching here too; without,
+        the frames aligned."""
         if not self.has_first:
             raise RuntimeError("CoarseInitializer.track_frame before set_first")
         cfg = self.config
@@ -369,19 +381,22 @@ class CoarseInitializer:
         for lvl in range(top):
             self._propagate_up(lvl)
         self.frame_id += 1
+        camera_frames = self.frame_id     # frames of the camera since the first: the aligned ones, or by index
+        if index is not None and self._first_index is not None and int(index) > self._first_index:
+            camera_frames = max(int(index) - self._first_index, self.frame_id)
         if not self.snapped:
             self.snapped_at = 0
         if self.snapped and self.snapped_at == 0:
-            self.snapped_at = self.frame_id
+            self.snapped_at = camera_frames
         p0 = self.points[0]
         rmse = math.sqrt(res_old[0] / max(res_old[2], 1) / 8.0)
-        done = self.snapped and (self.frame_id > self.snapped_at + cfg.init_frames_after_snap
+        done = self.snapped and (camera_frames > self.snapped_at + cfg.init_frames_after_snap
                                  or np.linalg.norm(T[:3, 3]) >= cfg.init_done_translation)
         status = InitStatus.INITIALIZED if done else InitStatus.TRACKING
         msg = ""
-        if not done and not self.snapped and self.frame_id >= cfg.init_max_frames:
+        if not done and not self.snapped and camera_frames >= cfg.init_max_frames:
             status = InitStatus.FAILED
-            msg = f"no parallax after {self.frame_id} frames (translation {np.linalg.norm(T[:3, 3]):.4f})"
+            msg = f"no parallax after {camera_frames} frames (translation {np.linalg.norm(T[:3, 3]):.4f})"
         if not done and not (rmse <= cfg.init_max_rmse):
             status = InitStatus.FAILED
             msg = f"level-0 RMSE {rmse:.1f} above init_max_rmse {cfg.init_max_rmse:g}: the frames do not match"

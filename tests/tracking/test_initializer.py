@@ -101,3 +101,37 @@ def test_initialisation_failure_is_reported(wp_device, seq160):
     assert ini.set_first(pyr.build(img)).status == InitStatus.FIRST_FRAME
     statuses = [ini.track_frame(pyr.build(img)).status for _ in range(4)]  # a camera that does not move
     assert statuses[:3] == [InitStatus.TRACKING] * 3 and statuses[3] == InitStatus.FAILED
+
+
+def test_frames_after_snapping_count_the_cameras_frames_when_indices_are_given(wp_device, seq160):
+    """In real time the frames that arrive while the initialiser works are dropped. Given the frames' indices, the
+    frames after snapping are the camera's (DSO's 5), not the ones aligned: with every 3rd frame aligned it is done
+    two aligned frames after snapping (the camera's 6 frames later) instead of 6. The control: consecutive
+    indices and no indices give the same answers as each other, frame for frame."""
+    k = seq160.intrinsics
+    geo = plan_pyramid(k.width, k.height, Pinhole(k.fx, k.fy, k.cx, k.cy))
+    pyr = ImagePyramid(geo)
+    after = TrackingConfig().init_frames_after_snap
+
+    def run(frames, indexed):
+        ini = CoarseInitializer(geo, TrackingConfig(init_done_translation=10.0))  # the frame count decides
+        ini.set_first(pyr.build(gray_of(seq160.images[frames[0]])), index=frames[0] if indexed else None)
+        out = []
+        for i in frames[1:]:
+            r = ini.track_frame(pyr.build(gray_of(seq160.images[i])), index=i if indexed else None)
+            out.append((i, r.status, r.snapped, r.first_to_new.round(12).tobytes()))
+            if r.status != InitStatus.TRACKING:
+                break
+        return out
+
+    every = list(range(0, 40))
+    plain, counted = run(every, False), run(every, True)
+    assert plain == counted and plain[-1][1] == InitStatus.INITIALIZED
+    third = list(range(0, 40, 3))
+    aligned = run(third, False)
+    camera = run(third, True)
+    snap = next(n for n, r in enumerate(camera) if r[2])
+    assert aligned[-1][1] == camera[-1][1] == InitStatus.INITIALIZED
+    assert len(aligned) == snap + 1 + after + 1                       # DSO: 6 aligned frames after the snap
+    assert len(camera) == snap + 1 + after // 3 + 1                   # the camera's 6 frames: 2 aligned ones
+    assert camera[-1][0] - camera[snap][0] == 3 * (after // 3 + 1) > after
