@@ -21,9 +21,10 @@ inverse depths eliminated by a Schur complement, Levenberg-Marquardt damping, DS
   addition for fast motion, once the translation reaches ``init_done_translation``),
   :meth:`CoarseInitializer.track_frame` answers ``INITIALIZED``. The frames are counted by the frames' indices
   when the caller gives them: in real time the frames that arrive while the initialiser works are dropped, and
-  counting only the frames it aligned made each of the 5 cost 10 of the camera's at 640x480 (DSO counts aligned
-  frames; with nothing dropped the two are the same); the odometry then takes the first frame and this one as the first two
-  keyframes and the level-0 points (inverse depths scaled to a mean of 1, as DSO) as the first active points.
+  counting only the frames it aligned made each of the 5 cost about 10 of the camera's at 640x480 (DSO counts
+  aligned frames; with nothing dropped the two are the same). The odometry then takes the first frame and this one
+  as the first two keyframes and the level-0 points (inverse depths scaled to a mean of 1, as DSO) as the first
+  active points.
 
 Deviation from DSO, on purpose: ``optReg`` updates all points of a level at once from the previous smoothed values
 (DSO updates them one after the other in place, so a point may see a neighbour's new value); the outcome differs
