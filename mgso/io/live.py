@@ -253,6 +253,11 @@ class LiveSource:
                     continue
                 ts = self.clock.stamp(float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0), mono)
                 with self._cond:
+                    if self._ended or self._stop.is_set():
+                        # the stream ended (Ctrl-C: end(); a close) while this frame was being read: it is not part
+                        # of the run. Counted, it was a frame captured that nobody read or dropped (CI: captured 47
+                        # against 46 read after a Ctrl-C)
+                        break
                     if c.live_duration_s > 0 and self.captured and ts - self._first_ts >= c.live_duration_s:
                         self._ended = "duration"
                         self._cond.notify_all()

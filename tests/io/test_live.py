@@ -344,3 +344,36 @@ def test_a_capture_clock_that_stands_still_or_has_no_time_is_not_used(pos):
     clock = _CaptureClock()
     ts = [clock.stamp(p, 10.0 + k * 0.05) for k, p in enumerate(pos)]
     assert clock.source == "monotonic" and np.all(np.diff(ts) > 0)
+
+
+def test_a_frame_read_while_the_stream_is_ended_is_not_counted(clip):
+    """Ctrl-C ends a live stream (end()) while the capture thread is inside the device's read: the frame that read
+    returns is not part of the run. Counted as captured, it was neither read nor dropped by the run (`mgso run
+    camera:0` then wrote captured = read + 1 in metrics.json; a CI run of tests/test_live_cli.py saw 47 against 46).
+    The gate holds the capture thread in read until the stream has been ended and the consumer has seen the end."""
+    src = _src(clip, live_timeout_s=600.0)
+    real = src._cap
+    in_read, release, gate = threading.Event(), threading.Event(), threading.Event()
+
+    class Gated:
+        def read(self):
+            if gate.is_set():
+                in_read.set()
+                release.wait(10.0)
+            return real.read()
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    src._cap = Gated()
+    it = src.frames()
+    got = [next(it)]
+    gate.set()
+    assert in_read.wait(10.0)          # the capture thread is inside read; what it captured before is in the slot
+    assert src.end()                   # what the first Ctrl-C does
+    threading.Timer(0.3, release.set).start()    # read returns a frame after the consumer has seen the end
+    got.extend(it)                     # the slot's frame, if any, then the end; the iteration joins the thread
+    assert src.end_reason == "interrupt"
+    assert src.captured == len(got) + src.dropped, (src.captured, len(got), src.dropped)
+    src._cap = real
+    src.close()
