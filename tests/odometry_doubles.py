@@ -28,6 +28,17 @@ class SlowOdometry(_Wrapped):
         return self.odo.process(frame)
 
 
+class KeyframeRequestingOdometry(_Wrapped):
+    """DSO's mapping thread (real time): the tracker asks for a keyframe on frame after frame while the thread is
+    busy, and the thread makes only the newest waiting frame a keyframe. Here every frame asks (``is_keyframe``);
+    the wrapped odometry's keyframes are the ones made."""
+
+    def process(self, frame):
+        import dataclasses
+
+        return dataclasses.replace(self.odo.process(frame), is_keyframe=True)
+
+
 class ThreadsSeenOdometry(_Wrapped):
     """An odometry that records the CPU threads its kernel launches would use at each frame."""
 

@@ -25,7 +25,7 @@ from mgso.oracle import OracleOdometry
 from mgso.app.full import METRICS_KEYS, write_outputs
 from mgso.system import System, SystemRunError
 
-from odometry_doubles import SlowOdometry
+from odometry_doubles import KeyframeRequestingOdometry, SlowOdometry
 
 # Small CPU-sized runs: 96x72 images, a keyframe every 4 frames, 15 mapping steps a keyframe, 60 final steps.
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=true"]
@@ -514,30 +514,13 @@ def test_late_announced_keyframes_are_not_evaluated_as_held_out(room, tmp_path):
     assert 0 not in frames and frames == [5, 10, 15]
 
 
-class _RequestsNotGranted:
-    """DSO's mapping thread (real time): the tracker asks for a keyframe on frame after frame while the thread is
-    busy, and the thread makes only the newest waiting frame a keyframe. Here every frame asks; the oracle's keyframes
-    (every 4th) are the ones made."""
-
-    def __init__(self, odo):
-        self.odo = odo
-
-    def process(self, frame):
-        import dataclasses
-
-        return dataclasses.replace(self.odo.process(frame), is_keyframe=True)
-
-    def __getattr__(self, name):
-        return getattr(self.odo, name)
-
-
 def test_frames_that_asked_for_a_keyframe_but_were_not_made_one_are_evaluated(room, tmp_path):
     """MonoGS's held-out frames exclude the training views, i.e. the frames of the keyframe messages; a request
     the odometry did not grant does not make a frame a training view. The control: the same run without the
     requests evaluates the same frames."""
     over = ("mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=0",
             "system.eval_photo_slam=false", "output.plot=false")
-    result, metrics, *_ = _run(room, tmp_path / "asked", *over, odometry_wrapper=_RequestsNotGranted)
+    result, metrics, *_ = _run(room, tmp_path / "asked", *over, odometry_wrapper=KeyframeRequestingOdometry)
     assert result.frame_log.is_keyframe == [True] * len(result.frame_log)
     assert result.keyframe_frames == [0, 4, 8, 12, 16, 20]
     asked = [f["frame"] for f in metrics["render"][0]["frames"]]

@@ -285,8 +285,10 @@ def frame_row(r) -> dict:
     # first frame, made a keyframe when the initialiser succeeds; with the odometry's mapping thread, which makes
     # only the newest waiting frame a keyframe): keyframes.txt lists the keyframes made
     kf = getattr(r, "keyframe_id", None)
-    asked = bool(getattr(r, "is_keyframe", False))
-    row["keyframe"] = kf if kf is not None and (kf >= 0 or not asked) else ("" if asked else -1)
+    if getattr(r, "is_keyframe", False) and (kf is None or kf < 0):
+        row["keyframe"] = ""
+    else:
+        row["keyframe"] = -1 if kf is None else kf
     tr = getattr(r, "track", None)
     if tr is not None:
         row.update(rmse=float(tr.rmse0), inlier_ratio=float(tr.inlier_ratio), hypotheses=int(tr.hypotheses_tried))

@@ -383,7 +383,7 @@ class CoarseInitializer:
             self._propagate_up(lvl)
         self.frame_id += 1
         camera_frames = self.frame_id     # frames of the camera since the first: the aligned ones, or by index
-        if index is not None and self._first_index is not None and int(index) > self._first_index:
+        if index is not None and self._first_index is not None:
             camera_frames = max(int(index) - self._first_index, self.frame_id)
         if not self.snapped:
             self.snapped_at = 0
