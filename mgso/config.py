@@ -833,6 +833,11 @@ class SystemConfig:
     mapper_nice: int = opt(5, "realtime mode with mapper_process (POSIX): the mapper process's niceness increment, "
                               "so that when the cores are short the odometry's frames come first and the map trains "
                               "in what is left (loop closure's thread gets the same increment, on Linux); 0 = same priority")
+    mapper_sched_idle: bool = opt(True, "realtime mode with mapper_process (Linux): the mapper's process runs under "
+                                        "the SCHED_IDLE policy while the camera runs, on the cores the odometry "
+                                        "leaves: the scheduler then hands the tracking thread a core the mapper holds "
+                                        "at once, which a niceness does not (docs/mgso.md); back to normal for the "
+                                        "final refinement where the system allows it; false: mapper_nice alone")
     image_slots: int = opt(8, "realtime mode with mapper_process: keyframe images a block of the shared-memory ring "
                               "to the mapper process holds; when every slot waits for the mapper the ring grows by a "
                               "block (up to mapping.mapper.queue_size slots; beyond that the odometry waits, counted)")

@@ -366,7 +366,7 @@ class System:
             self.odometry_threads, mapper_threads = split_threads(sc.odometry_threads, sc.mapper_threads)
             self.mapper: Mapper | MapperProcess = MapperProcess(
                 config, device=device, observer=self.observer, threads=mapper_threads, nice=sc.mapper_nice,
-                image_slots=sc.image_slots)
+                idle=sc.mapper_sched_idle, image_slots=sc.image_slots)
         else:
             self.mapper = Mapper(config, device=device, observer=self.observer)
         self.loop: LoopCloser | None = None

@@ -122,6 +122,10 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     assert st.final_steps == 60 and st.steps > 60 and st.stopped_by == "stop" and st.queue_waits == 0
     assert st.cpu_seconds > 0 and 0 < result.mapper_cpu_share < 1
     assert not system.mapper.running
+    if in_process and sys.platform.startswith("linux"):     # system.mapper_sched_idle (default): see below
+        assert st.priority == "SCHED_IDLE" and st.final_priority in ("SCHED_IDLE", "nice +5")
+    elif not in_process:
+        assert st.priority == st.final_priority == ""
     if in_process:      # the camera played once the process had started
         assert system.mapper._ready.is_set() and not system.mapper._proc.is_alive()
         # its share of the cores while the camera ran, every core for the final refinement (the odometry is done)
@@ -147,14 +151,69 @@ def test_the_odometry_takes_every_core_until_the_mapper_has_a_keyframe(room):
         return seen[0]
 
     before = runtime.cpu_threads()
-    system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0.5", wrapper=wrap)
+    system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0.5",
+                             "system.mapper_sched_idle=false", wrapper=wrap)   # and the niceness alone
     result = system.run(seq.frames())
+    if hasattr(os, "nice"):
+        assert result.mapper.priority == result.mapper.final_priority == "nice +5"
     threads = seen[0].threads
     assert result.frames_processed == len(threads) == 24
     assert threads[0] == before and set(threads[1:]) == {system.odometry_threads}
     assert runtime.cpu_threads() == before                   # put back when the run ends
     if before > 1:
         assert system.odometry_threads < before
+
+
+def _priorities(nice, idle, restore, out):
+    """In a spawned process: a thread started before and one after lower_priority; every thread's policy."""
+    import threading
+
+    from mgso.mapping.process import lower_priority, restore_priority
+
+    stop = threading.Event()
+    before = threading.Thread(target=stop.wait)
+    before.start()
+    got = lower_priority(nice, idle)
+    after = threading.Thread(target=stop.wait)
+    after.start()
+    final = restore_priority(got, nice) if restore else None
+    tids = [int(t) for t in os.listdir("/proc/self/task")]
+    out.put((got, final, sorted(os.sched_getscheduler(t) for t in tids),
+             {os.getpriority(os.PRIO_PROCESS, t) for t in tids}, len(tids)))
+    stop.set()
+    before.join()
+    after.join()
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux") and hasattr(os, "SCHED_IDLE")),
+                    reason="SCHED_IDLE is Linux's")
+@pytest.mark.parametrize("idle,restore", [(True, False), (True, True), (False, False)])
+def test_the_mapper_process_runs_on_the_cores_the_odometry_leaves(idle, restore):
+    """system.mapper_sched_idle: every thread of the mapper's process under SCHED_IDLE and niced, those started
+    before the call and after it (OpenBLAS's, Warp's launch threads); back to the normal policy for the final
+    refinement where Linux allows it (a privileged process), the niceness kept. Control: the niceness alone leaves
+    the policy normal.
+    (Why it matters, measured: docs/mgso.md, "The mapper's process under SCHED_IDLE".)"""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    p = ctx.Process(target=_priorities, args=(3, idle, restore, out))
+    p.start()
+    got, final, policies, nices, n = out.get(timeout=60)
+    p.join(30)
+    assert n >= 3 and nices == {os.getpriority(os.PRIO_PROCESS, 0) + 3}      # every thread's niceness
+    if not idle:
+        assert got == "nice +3" and set(policies) == {os.SCHED_OTHER}
+        return
+    assert got == "SCHED_IDLE"
+    if not restore:
+        assert set(policies) == {os.SCHED_IDLE}
+    elif os.geteuid() == 0:
+        assert final == "nice +3" and set(policies) == {os.SCHED_OTHER}
+    else:   # an unprivileged process may not leave SCHED_IDLE (RLIMIT_NICE): it says so
+        assert final in ("nice +3", "SCHED_IDLE")
+        assert set(policies) == {os.SCHED_OTHER if final == "nice +3" else os.SCHED_IDLE}
 
 
 @pytest.mark.parametrize("mode", ["realtime", "deterministic"])

@@ -322,6 +322,7 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"},
         "realtime": None if result.mode != "realtime" else {
             "mapper_in": result.mapper_in,
+            "mapper_priority": st.priority or None,     # its process's, while the camera ran (SCHED_IDLE, nice +N)
             "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
                                         else None),
             "mapping_steps_running": st.steps - st.final_steps, "mapping_steps_final": st.final_steps,

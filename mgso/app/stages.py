@@ -397,7 +397,9 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     if rt:
         share = rt["mapper_cpu_share"]
         m.append(f"real time: {result.frames_processed} of {result.frames_read} frames tracked "
-                 f"({result.frames_dropped} dropped); mapper in a {rt['mapper_in']}: {rt['mapping_steps_running']} "
+                 f"({result.frames_dropped} dropped); mapper in a {rt['mapper_in']}"
+                 + (f" ({rt['mapper_priority']})" if rt.get("mapper_priority") else "")
+                 + f": {rt['mapping_steps_running']} "
                  f"steps while the camera ran, {rt['mapping_steps_final']} after"
                  + (f", {100 * share:.0f}% of the CPU" if share is not None else "")
                  + (f"; the odometry waited for the map {rt['queue_waits']} times ({rt['queue_wait_seconds']:.1f} s)"

@@ -93,6 +93,8 @@ class MapperStats:
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_seconds: float = 0.0
     final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
+    priority: str = ""                      # mapper's process: its CPU priority while the camera ran (SCHED_IDLE,
+    final_priority: str = ""                # nice +N, normal) and in the final refinement; "" in one process
     seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
     cpu_seconds: float | None = None        # CPU time of the mapper in real time (its process's, or its thread's)
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
@@ -219,6 +221,8 @@ class Mapper:
         # runs on its share of the cores while the camera runs; after Stop the odometry has finished and waits,
         # so the refinement takes every core (0).
         self.final_threads: int | None = None
+        # Called as the final refinement begins (the mapper's process: its priority back to normal where allowed).
+        self.before_final = None
 
     def load_kernels(self) -> None:
         """Compile or load every kernel module the mapper launches, now (real time: before the camera plays; a
@@ -365,6 +369,8 @@ class Mapper:
 
             if self.final_threads is not None:
                 runtime.set_cpu_threads(self.final_threads)
+            if self.before_final is not None:
+                self.before_final()
             self.stats.final_threads = runtime.cpu_threads() if self.cfg.final_iterations > 0 else 0
             self.refine(self.cfg.final_iterations)
             # an interrupt during the refinement ends it early (train() checks it between steps)

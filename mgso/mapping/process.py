@@ -20,6 +20,11 @@ of shared-memory slots (blocks of ``system.image_slots``; the ring grows by a bl
 mapper, up to as many slots as the queue holds), not as pickled copies. Only a full queue or ring makes the odometry
 wait, and each wait is counted (``MapperStats.queue_waits``, ``queue_wait_seconds``) as in one process.
 
+**Its priority.** While the camera runs the process is a background one (:func:`lower_priority`): on Linux
+``SCHED_IDLE`` (``system.mapper_sched_idle``), so that the odometry's tracking thread gets a core the moment it
+wakes, and the niceness ``system.mapper_nice``; for the final refinement the normal policy again where the system
+allows it (:func:`restore_priority`). ``MapperStats.priority`` / ``final_priority`` say what it ran at.
+
 **Stops.** The mapper process ignores Ctrl-C, SIGTERM and SIGHUP: a terminal's Ctrl-C reaches the whole process
 group, and the main process decides how the run ends. :meth:`MapperProcess.stop` sends ``Stop``; with
 ``refine=False`` (an interrupt) it also sets a shared event that ends training at the next step, so the process
@@ -54,7 +59,7 @@ from mgso.mapping.messages import KeyframeMessage, LoopCorrection, MapperMessage
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard
 from mgso.observers import Observer
 
-__all__ = ["MapperProcess", "split_threads"]
+__all__ = ["MapperProcess", "lower_priority", "restore_priority", "split_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -190,17 +195,68 @@ class _EventObserver(Observer):
         self._events.put(("update", stats))
 
 
-def _mapper_main(config: Config, device: str, threads: int, nice: int, messages, released, requests, events,
-                 interrupt) -> None:
+def _own_threads() -> list[int] | None:
+    """The task ids of this process's threads (Linux: a thread's priority is its own), None elsewhere."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except (OSError, ValueError):
+        return None
+
+
+def lower_priority(nice: int, idle: bool) -> str:
+    """Make this process a background one for a real-time run, and say what it got: ``"SCHED_IDLE"``, ``"nice
+    +N"`` or ``"normal"``.
+
+    ``nice``: a niceness increment (POSIX), for every thread of the process (on Linux each thread has its own;
+    threads started later inherit it). ``idle`` (Linux): every thread under the ``SCHED_IDLE`` policy as well.
+    Such a thread runs only on a core nothing else wants, and the scheduler counts a core that runs only idle
+    threads as free when it places a waking thread, so the odometry's tracking thread takes it at once. A niceness
+    alone does not do that: the niced mapper keeps its core, and the tracking thread waits in the run queue behind
+    the odometry's own mapping thread (on a 2-core machine 10-15 ms of every frame, docs/mgso.md)."""
+    got = "normal"
+    tids = _own_threads()
+    if nice and hasattr(os, "nice"):
+        try:
+            if tids is None:
+                os.nice(int(nice))
+            else:
+                for tid in tids:
+                    os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + int(nice))
+            got = f"nice +{int(nice)}"
+        except OSError:
+            log.debug("the mapper process could not lower its niceness", exc_info=True)
+    if idle and tids is not None and hasattr(os, "SCHED_IDLE"):
+        try:
+            for tid in tids:
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            got = "SCHED_IDLE"
+        except OSError:
+            log.debug("the mapper process could not take SCHED_IDLE", exc_info=True)
+    return got
+
+
+def restore_priority(got: str, nice: int) -> str:
+    """After the camera: the policy of :func:`lower_priority` back to the normal one (the niceness stays), so that
+    the final refinement is not starved by whatever else the machine runs. Linux allows it only to a privileged
+    process or one whose ``RLIMIT_NICE`` admits the niceness; otherwise the process stays ``SCHED_IDLE`` (on a
+    machine with nothing else to run it still gets every core). Returns what the refinement runs at."""
+    if got != "SCHED_IDLE":
+        return got
+    try:
+        for tid in _own_threads() or ():
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        return got
+    return f"nice +{int(nice)}" if nice else "normal"
+
+
+def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: bool, messages, released, requests,
+                 events, interrupt) -> None:
     """The mapper process (spawned): a :class:`Mapper` draining ``messages``, then its :class:`MapState` back."""
     for sig in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)):
         if sig is not None:
             signal.signal(sig, signal.SIG_IGN)      # the main process decides how the run ends
-    if nice and hasattr(os, "nice"):
-        try:
-            os.nice(int(nice))
-        except OSError:
-            pass
+    priority = lower_priority(nice, idle)
     from mgso.mapping.mapper import Mapper
     from mgso_kernels import runtime
 
@@ -209,6 +265,12 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, messages,
     try:
         dev = runtime.init(device, threads=threads, blas_threads=1)
         mapper = Mapper(config, device=dev, observer=_EventObserver(events))
+        mapper.stats.priority = priority
+
+        def before_final() -> None:
+            mapper.stats.final_priority = restore_priority(priority, nice)
+
+        mapper.before_final = before_final
         board = mapper.board = _ForwardingBoard(events)
         mapper.queue = wire
         parent = mp.parent_process()
@@ -269,16 +331,18 @@ class MapperProcess:
     everything a finished mapper offers (``gmap``, ``views``, ``render``, ``refined_trajectory``, ...), from
     :meth:`Mapper.restored`.
 
-    ``threads``: CPU threads of the mapper's kernel launches; ``nice``: its niceness increment (POSIX);
-    ``image_slots``: slots of the keyframe images' ring; ``start_timeout``: seconds to wait for the process."""
+    ``threads``: CPU threads of the mapper's kernel launches; ``nice``: its niceness increment (POSIX); ``idle``:
+    the process under ``SCHED_IDLE`` while the camera runs (Linux; :func:`lower_priority`); ``image_slots``: slots of
+    the keyframe images' ring; ``start_timeout``: seconds to wait for the process."""
 
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
-                 threads: int = 1, nice: int = 0, image_slots: int = 8):
+                 threads: int = 1, nice: int = 0, idle: bool = False, image_slots: int = 8):
         self.config = config
         self.device = device or "cpu"
         self.observer = observer or Observer()
         self.threads = int(threads)
         self.nice = int(nice)
+        self.idle = bool(idle)
         self.image_slots = max(1, int(image_slots))
         self.stats = MapperStats()
         self.board = SnapshotBoard()
@@ -314,7 +378,7 @@ class MapperProcess:
         self._interrupt = ctx.Event()
         self._proc = ctx.Process(
             target=_mapper_main, name="mgso-mapper",
-            args=(self.config, self.device, self.threads, self.nice, self._messages, self._released,
+            args=(self.config, self.device, self.threads, self.nice, self.idle, self._messages, self._released,
                   self._requests, self._events, self._interrupt),
             daemon=True)
         # The child needs nothing of the caller's main module (the target and its arguments are mgso's): do not let
