@@ -200,6 +200,9 @@ class SystemResult:
     tracking_losses: list = field(default_factory=list)    # the odometry's TrackingLost events, in order
     segments: int = 1                                       # tracking segments (a loss starts a new one)
     frame_lags: list = field(default_factory=list)          # real time: seconds each frame waited to be taken
+    # real time, the odometry's mapping thread: keyframe requests it mapped as ordinary frames because a newer frame
+    # waited (DSO's catch-up); None for an odometry without that thread
+    keyframe_requests_merged: int | None = None
 
     @property
     def mapper_cpu_share(self) -> float | None:
@@ -536,6 +539,8 @@ class System:
             mode=self.config.system.mode, frames_read=read, frames_processed=processed,
             frames_dropped=player.dropped if player is not None else 0, keyframes=self._keyframes,
             frame_lags=list(player.lags) if player is not None else [],
+            keyframe_requests_merged=(getattr(self.odometry, "num_keyframe_requests_merged", None)
+                                      if getattr(self.odometry, "map_thread", False) else None),
             pose_updates=self._pose_updates, interrupted=interrupted,
             trajectory=traj, keyframe_trajectory=kf_traj, frame_log=self.frame_log, cloud=cloud,
             mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,

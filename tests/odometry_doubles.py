@@ -31,12 +31,21 @@ class SlowOdometry(_Wrapped):
 class KeyframeRequestingOdometry(_Wrapped):
     """DSO's mapping thread (real time): the tracker asks for a keyframe on frame after frame while the thread is
     busy, and the thread makes only the newest waiting frame a keyframe. Here every frame asks (``is_keyframe``);
-    the wrapped odometry's keyframes are the ones made."""
+    the wrapped odometry's keyframes are the ones made, and the requests it did not grant are counted as the
+    mapping thread counts them (``num_keyframe_requests_merged``)."""
+
+    map_thread = True
+
+    def __init__(self, odo):
+        super().__init__(odo)
+        self.num_keyframe_requests_merged = 0
 
     def process(self, frame):
         import dataclasses
 
-        return dataclasses.replace(self.odo.process(frame), is_keyframe=True)
+        r = self.odo.process(frame)
+        self.num_keyframe_requests_merged += not r.is_keyframe
+        return dataclasses.replace(r, is_keyframe=True)
 
 
 class ThreadsSeenOdometry(_Wrapped):

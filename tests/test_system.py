@@ -526,6 +526,8 @@ def test_frames_that_asked_for_a_keyframe_but_were_not_made_one_are_evaluated(ro
     asked = [f["frame"] for f in metrics["render"][0]["frames"]]
     _, control, *_ = _run(room, tmp_path / "control", *over)
     assert asked == [f["frame"] for f in control["render"][0]["frames"]] == [5, 10, 15]
+    # metrics.json counts the requests the odometry's mapping thread merged; null for an odometry without that thread
+    assert metrics["keyframes"]["requests_merged"] == 24 - 6 and control["keyframes"]["requests_merged"] is None
 
 
 class _Broken:
