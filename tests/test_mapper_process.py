@@ -202,7 +202,7 @@ def test_the_mapper_process_runs_on_the_cores_the_odometry_leaves(idle, restore)
     p.start()
     got, final, policies, nices, n = out.get(timeout=60)
     p.join(30)
-    assert n >= 3 and nices == {os.getpriority(os.PRIO_PROCESS, 0) + 3}      # every thread's niceness
+    assert n >= 3 and nices == {min(os.getpriority(os.PRIO_PROCESS, 0) + 3, 19)}  # every thread's niceness
     if not idle:
         assert got == "nice +3" and set(policies) == {os.SCHED_OTHER}
         return
