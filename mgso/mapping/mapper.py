@@ -93,8 +93,10 @@ class MapperStats:
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_seconds: float = 0.0
     final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
-    priority: str = ""                      # mapper's process: its CPU priority while the camera ran (SCHED_IDLE,
-    final_priority: str = ""                # nice +N, normal) and in the final refinement; "" in one process
+    # the mapper's process: its CPU priority while the camera ran and in the final refinement ("SCHED_IDLE",
+    # "nice +N", "normal"); "" for a mapper in the odometry's process
+    priority: str = ""
+    final_priority: str = ""
     seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
     cpu_seconds: float | None = None        # CPU time of the mapper in real time (its process's, or its thread's)
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
