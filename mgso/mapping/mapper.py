@@ -10,7 +10,8 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
 - :class:`~mgso.mapping.messages.PoseUpdate`: move the views of refined keyframes (the map follows the odometry;
   the odometry never waits for the map);
 - :class:`~mgso.mapping.messages.PointsMessage`: seed from points with their final depth, seen from their host
-  keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived);
+  keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived); in real time
+  the points wait while messages are queued and one host's are seeded together (:meth:`Mapper._on_points`);
 - :class:`~mgso.mapping.messages.LoopCorrection`: loop closure moved keyframes: move their views, depth points and
   the Gaussians anchored to them by each keyframe's Sim(3);
 - :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
@@ -86,6 +87,9 @@ class MapperStats:
     poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
     point_messages: int = 0                 # PointsMessage messages
     points_received: int = 0
+    # real time: point messages seeded together with an earlier one of the same host keyframe (one coverage render
+    # for all), because they arrived while the mapper was behind (see Mapper._on_points)
+    points_coalesced: int = 0
     gaussians_seeded: int = 0               # added by seeding (keyframes and marginalised points)
     seeds_skipped_too_few: int = 0          # seedings that added nothing (fewer than min_new_gaussians survived)
     steps: int = 0                          # training steps, all of them
@@ -225,6 +229,10 @@ class Mapper:
         self.final_threads: int | None = None
         # Called as the final refinement begins (the mapper's process: its priority back to normal where allowed).
         self.before_final = None
+        # Real time: point messages' points by host keyframe, waiting while messages are queued (the mapper is
+        # behind); seeded when the queue is empty, before a loop correction and at the end (_flush_points).
+        self._coalesce_points = False
+        self._pending_points: dict[int, list[tuple]] = {}
 
     def load_kernels(self) -> None:
         """Compile or load every kernel module the mapper launches, now (real time: before the camera plays; a
@@ -311,12 +319,14 @@ class Mapper:
 
     def _run(self) -> None:
         cpu0 = time.thread_time()
+        self._coalesce_points = True
         try:
             while True:
                 self.safe_point()
                 try:
                     msg = self.queue.get_nowait()
                 except queue.Empty:
+                    self._flush_points()            # caught up: the points that waited, one seeding a keyframe
                     if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
                         return
@@ -366,6 +376,7 @@ class Mapper:
         return self.stats
 
     def _finish(self, msg: Stop) -> None:
+        self._flush_points()
         if msg.refine and not self._interrupt.is_set():
             from mgso_kernels import runtime
 
@@ -393,6 +404,7 @@ class Mapper:
         elif isinstance(msg, PointsMessage):
             self._on_points(msg)
         elif isinstance(msg, LoopCorrection):
+            self._flush_points()                # seeded where the views were when the points arrived
             self._on_loop_correction(msg)
         elif isinstance(msg, Stop):
             raise ValueError("Mapper.handle: Stop ends the stream (use stop())")
@@ -483,8 +495,35 @@ class Mapper:
         if not ok.any():
             return
         weights = None if msg.weights is None else msg.weights[ok]
-        seed_in = _as_seed_input(view, uv[ok], 1.0 / z[ok], msg.colors[ok], weights)
+        points = (uv[ok], 1.0 / z[ok], msg.colors[ok], weights)
+        if self._coalesce_points:
+            # Real time: each seeding renders the map's coverage from the host keyframe, and the odometry sends a
+            # message for every host whose points a keyframe marginalises (about 5 a keyframe). A 640x480 run on 2
+            # cores spent 69 % of its message handling on these renders, one a message; the points wait for the
+            # queue to empty instead, and all of one host's are seeded at once (from the keyframe's coordinates of
+            # their arrival: a pose update in between moves them with the view).
+            pending = self._pending_points.setdefault(msg.host_keyframe_id, [])
+            if pending:
+                self.stats.points_coalesced += 1
+            pending.append(points)
+            return
+        self._seed_points(msg.host_keyframe_id, [points])
+
+    def _seed_points(self, host: int, parts: list[tuple]) -> None:
+        """Seed points of one host keyframe (``parts``: ``(uv, idepth, colors, weights)`` in its camera), seen from
+        the keyframe where the map is still empty, without the Delaunay fill."""
+        uv, idepth, colors = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        weights = None if any(p[3] is None for p in parts) else np.concatenate([p[3] for p in parts])
+        seed_in = _as_seed_input(self.views[host], uv, idepth, colors, weights)
         self._seed(seed_in, dataclasses.replace(self.mc.seeding, fill=False))
+
+    def _flush_points(self) -> None:
+        """Seed the points that waited (real time), host by host in the order they first arrived."""
+        while self._pending_points:
+            host = next(iter(self._pending_points))
+            parts = self._pending_points.pop(host)
+            if host in self.views:
+                self._seed_points(host, parts)
 
     def exposure_for(self, affine: tuple[float, float], exposure_ms: float | None) -> tuple[float, float]:
         """The trainer's exposure ``(a', b')`` of an image with the odometry's affine brightness ``affine`` (0-255)

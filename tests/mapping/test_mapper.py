@@ -229,6 +229,46 @@ def test_real_time_thread_applies_every_message_and_counts_backpressure(wp_devic
     assert st.queue_waits > 0 and st.max_queue_depth >= 1    # a queue of 1 makes the sender wait
 
 
+def _backlog(seq, cam):
+    """Two keyframes with a third of their points each, then the rest of each one's points as marginalised
+    points in three messages per host, interleaved, as a mapper that fell behind finds them in its queue."""
+    msgs, later = [], []
+    for kid in (0, 4):
+        kf = _kf(seq, cam, kid)
+        first = np.arange(len(kf.points_uv)) % 3 == 0
+        msgs.append(KeyframeMessage(kid, kid, kf.timestamp, kf.image, cam, kf.cam_to_world, kf.points_uv[first],
+                                    kf.idepths[first]))
+        rest = np.flatnonzero(~first)
+        pts = backproject(kf.points_uv[rest], 1.0 / kf.idepths[rest], cam, kf.cam_to_world)
+        cols = np.full((len(pts), 3), 0.5, np.float32)
+        later.append([PointsMessage(pts[c], cols[c], host_keyframe_id=kid) for c in np.array_split(
+            np.arange(len(pts)), 3)])
+    return msgs + [m for trio in zip(*later) for m in trio]
+
+
+def test_a_mapper_behind_seeds_each_hosts_points_once(wp_device, seq, cam):
+    # every seeding renders the map's coverage from the host keyframe; a real-time mapper that finds several point
+    # messages of one host waiting seeds them together, when its queue is empty (here: at the end)
+    cfg = _cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.seeding.min_new_gaussians=1")
+    behind = Mapper(cfg, device=wp_device)
+    for m in _backlog(seq, cam):
+        behind.submit(m)                              # queued before the thread starts: a backlog of 8
+    behind.start()
+    st = behind.stop(refine=False, timeout=60)
+    # the control: the deterministic mode applies the same messages one by one, a seeding each
+    each = Mapper(cfg, device=wp_device)
+    for m in _backlog(seq, cam):
+        each.submit(m)
+    each.process_pending()
+    assert st.point_messages == each.stats.point_messages == 6
+    assert len(st.seed_results) == 2 + 2 and st.points_coalesced == 4
+    assert len(each.stats.seed_results) == 2 + 6 and each.stats.points_coalesced == 0
+    assert [r.keyframe_id for r in st.seed_results] == [0, 4, 0, 4]      # the hosts in the order they came
+    # the same points reach the map: the waiting ones are distinct points, so little is covered twice
+    n_behind, n_each = behind.gmap.n, each.gmap.n
+    assert n_each > 0 and 0.9 * n_each <= n_behind <= 1.1 * n_each, (n_behind, n_each)
+
+
 def test_mapping_thread_failure_reaches_the_sender(wp_device, seq, cam):
     mp = Mapper(_cfg(), device=wp_device)
     mp.start()
