@@ -497,11 +497,11 @@ class Mapper:
         weights = None if msg.weights is None else msg.weights[ok]
         points = (uv[ok], 1.0 / z[ok], msg.colors[ok], weights)
         if self._coalesce_points:
-            # Real time: each seeding renders the map's coverage from the host keyframe, and the odometry sends a
-            # message for every host whose points a keyframe marginalises (about 5 a keyframe). A 640x480 run on 2
-            # cores spent 69 % of its message handling on these renders, one a message; the points wait for the
-            # queue to empty instead, and all of one host's are seeded at once (from the keyframe's coordinates of
-            # their arrival: a pose update in between moves them with the view).
+            # Real time: a seeding renders the map's coverage from the host keyframe, and the odometry sends a
+            # message for every host whose points a keyframe marginalises (about 5 a keyframe): a 640x480 run on 2
+            # cores spent 69 % of its message handling seeding them (docs/mgso.md). The points wait for the queue
+            # to empty instead, and all of one host's are seeded at once (from the keyframe's coordinates of their
+            # arrival: a pose update in between moves them with the view).
             pending = self._pending_points.setdefault(msg.host_keyframe_id, [])
             if pending:
                 self.stats.points_coalesced += 1
