@@ -329,6 +329,7 @@ class Odometry:
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
         self._segment_median_depth = float("inf")  # median depth of the segment's first points (its own units)
         self._segment_steps: list[float] = []  # per-frame camera motion of the segment (its own units)
+        self._loss_detail = ""  # what the last loss check measured (the message of a jump)
         self._prev_rec: FrameRecord | None = None  # the previous tracked frame (this segment)
         self._prev_image: np.ndarray | None = None  # the previous frame's adjusted image (duplicate detection)
         self.num_duplicates = 0
@@ -896,6 +897,7 @@ class Odometry:
 
     def _loss(self, tr: TrackResult) -> LossReason | None:
         cfg = self.config.tracking
+        self._loss_detail = ""              # what a JUMP measured, for the message
         if not (np.all(np.isfinite(tr.ref_to_new)) and np.all(np.isfinite(tr.affine))):
             return LossReason.NON_FINITE
         if not tr.ok:
@@ -911,11 +913,15 @@ class Odometry:
         ref = self.tracker.reference
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
         if not np.isfinite(depth) or np.linalg.norm(tr.ref_to_new[:3, 3]) > cfg.lost_max_translation * depth:
+            self._loss_detail = (f"; {np.linalg.norm(tr.ref_to_new[:3, 3]):.3g} from the reference, above "
+                                 f"{cfg.lost_max_translation:g} x its median depth {depth:.3g}")
             return LossReason.JUMP
         if len(self._segment_steps) >= 5 and self._prev_rec is not None:
             step = self._step_per_source_frame(self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)
             typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
             if step > cfg.lost_max_speed_factor * typical:
+                self._loss_detail = (f"; moved {step:.3g} a source frame, above {cfg.lost_max_speed_factor:g} x the "
+                                     f"segment's typical {typical:.3g}")
                 return LossReason.JUMP
         return None
 
@@ -923,7 +929,7 @@ class Odometry:
         baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
         ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, baseline,
                           tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
-                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f})")
+                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f}{self._loss_detail})")
         log.warning(ev.message)
         self.losses.append(ev)
         rec.status = FrameStatus.LOST

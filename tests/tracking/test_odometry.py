@@ -1,6 +1,8 @@
 """The odometry loop on synthetic sequences: initialisation, tracking, keyframes, observer events, and bad inputs
 (a black frame, a frame of noise, a sudden jump) reported as tracking loss with recovery in a new segment."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -267,6 +269,9 @@ def test_the_speed_check_is_per_source_frame_when_frames_are_dropped(wp_device, 
     old, out_old = feed(False)
     assert out_old[-2].status == FrameStatus.LOST and old.num_lost == 1
     assert [e.reason for e in old.observer.lost] == [LossReason.JUMP]
+    # the message says which bound the frame broke and by how much
+    assert re.search(r"\(jump: .*; moved [0-9.e-]+ a source frame, above 3 x the segment's typical [0-9.e-]+\)$",
+                     old.observer.lost[0].message), old.observer.lost[0].message
     assert [r.status for r in out_old[:-2]] == [FrameStatus.TRACKED] * 7
 
 
