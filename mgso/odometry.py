@@ -811,6 +811,20 @@ class Odometry:
         except KeyError:
             return self.keyframes[keyframe_id].cam_to_world
 
+    def _tracking_ref_pose(self, keyframe_id: int) -> np.ndarray:
+        """The reference keyframe's pose as the tracking thread uses it. With ``map_thread`` the window belongs to the
+        mapping thread, whose optimisation moves the keyframes in place step by step (a trial step it then rejects
+        too, until it restores the backup): the tracking thread reads the pose the last finished optimisation left in
+        the keyframe's record instead (DSO: the shell's ``camToWorld``, written under a lock after each
+        optimisation). Reading the window there put a frame tracked during an optimisation where the trial step had
+        moved its reference: good residuals, a wrong place, and in real time a loss as a ``jump``. Without the thread
+        the window is read, as before (the deterministic mode is unchanged)."""
+        if self.map_thread:
+            kf = self.keyframes.get(keyframe_id)
+            if kf is not None:
+                return kf.cam_to_world
+        return self._ref_cam_to_world(keyframe_id)
+
     def _motion_prior(self, rec: FrameRecord, *, per_source_frame: bool = True):
         """``(prev, last, prelast)``: the record before ``rec`` and the two poses whose motion DSO assumes again
         for ``rec`` (``None`` where there are none in this segment). ``per_source_frame``: when the source dropped
@@ -849,7 +863,7 @@ class Odometry:
         self._swap_reference()
         cfg = self.config.tracking
         ref = self.tracker.reference
-        ref_c2w = self._ref_cam_to_world(ref.keyframe_id)
+        ref_c2w = self._tracking_ref_pose(ref.keyframe_id)
         prev, last, prelast = self._motion_prior(rec)
         hyps = motion_hypotheses(ref_c2w, last, prelast, rotations=cfg.coarse_rotation_hypotheses,
                                  rotation_delta=cfg.coarse_rotation_delta)
@@ -917,7 +931,7 @@ class Odometry:
                                  f"{cfg.lost_max_translation:g} x its median depth {depth:.3g}")
             return LossReason.JUMP
         if len(self._segment_steps) >= 5 and self._prev_rec is not None:
-            step = self._step_per_source_frame(self._ref_cam_to_world(ref.keyframe_id) @ tr.cam_to_ref)
+            step = self._step_per_source_frame(self._tracking_ref_pose(ref.keyframe_id) @ tr.cam_to_ref)
             typical = max(float(np.median(self._segment_steps)), 0.01 * self._segment_median_depth)
             if step > cfg.lost_max_speed_factor * typical:
                 self._loss_detail = (f"; moved {step:.3g} a source frame, above {cfg.lost_max_speed_factor:g} x the "

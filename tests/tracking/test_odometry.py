@@ -316,6 +316,61 @@ def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
             assert rec.kf_threads == {main}
 
 
+def test_the_tracking_thread_reads_finished_poses_not_the_window_being_optimised(wp_device, seq160):
+    """With ``map_thread`` the mapping thread's window optimisation moves the keyframes in place, a trial step at a
+    time (one it rejects too, until it restores the backup). Here one optimisation holds a trial step that moves
+    every keyframe by half the scene's depth while the caller tracks two frames: the tracking thread must chain them
+    to the poses of the last finished optimisation. Negative control: reading the window (as it did) loses tracking
+    (measured: 'no_hypothesis', the motion hypotheses start from the moved reference; in real-time runs on 7-Scenes
+    the frames tracked were put where a trial step had moved their reference, and were lost as 'jump')."""
+    import threading
+
+    k = seq160.intrinsics
+    cfg = Config()
+    path = np.sum(np.linalg.norm(np.diff(seq160.cam_to_world[:, :3, 3], axis=0), axis=1))
+
+    def run(read_the_window):
+        rec = Recorder()
+        odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, observer=rec,
+                       map_thread=True)
+        if read_the_window:
+            odo._tracking_ref_pose = odo._ref_cam_to_world
+        real = odo.back_end.optimize
+        trial, resume = threading.Event(), threading.Event()
+        calls = []
+
+        def optimize(w):
+            if threading.current_thread().name == "mgso-odometry-map":
+                calls.append(1)
+                if len(calls) == 2:
+                    saved = w.world_to_cam_.copy()
+                    shift = np.eye(4)
+                    shift[:3, 3] = [0.5 * odo._segment_median_depth, 0.0, 0.0]
+                    slots = list(w.order)
+                    w.world_to_cam_[slots] = shift @ w.world_to_cam_[slots]
+                    trial.set()
+                    resume.wait(3.0)       # bounded: a loss on the tracking thread waits for this thread
+                    w.world_to_cam_[:] = saved
+            return real(w)
+
+        odo.back_end.optimize = optimize
+        during = 0
+        for f in frames_of(seq160):
+            odo.process(f)
+            if trial.is_set() and not resume.is_set():
+                during += 1
+                if during == 2:
+                    resume.set()
+        odo.finish()
+        return odo, rec, during
+
+    odo, rec, during = run(False)
+    assert during == 2 and not rec.lost
+    assert compute_ate(odo.trajectory(), seq160.trajectory).rmse < 0.02 * path
+    _, rec_old, during_old = run(True)
+    assert during_old >= 1 and len(rec_old.lost) == 1
+
+
 def test_map_thread_error_reaches_the_caller(wp_device, seq160):
     """An error on the mapping thread is raised on the caller's thread (by a later ``process`` or by ``finish``), not
     lost with the thread, and ``finish`` still ends the thread."""
