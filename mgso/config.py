@@ -344,8 +344,11 @@ class TrackingConfig:
     lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
                                      "that has lost its points leaves the pose unconstrained however small the RMSE)")
     lost_max_speed_factor: float = opt(10.0, "tracking is lost when a frame moves more than this x the segment's "
-                                             "median motion per frame (at least 1 % of its median depth), after 5 "
-                                             "tracked frames: a sudden jump of the estimate, not of the camera")
+                                             "recent median motion per frame (at least 1 % of the reference's median "
+                                             "depth), after 5 tracked frames: a sudden jump of the estimate, not of "
+                                             "the camera")
+    lost_speed_window: int = opt(30, "the tracked frames whose median motion is the speed check's typical motion "
+                                     "(recent, so that a camera that speeds up, or a scale that drifts, moves it)")
     lost_max_translation: float = opt(2.0, "tracking is lost when the frame is farther from its reference keyframe "
                                            "than this x the median depth (the reference's, or the segment's first "
                                            "points' when smaller: a map drifted towards infinity leaves the "
@@ -403,7 +406,7 @@ class TrackingConfig:
         # tracking loss (mgso.odometry): a share, counts, and factors on a typical motion / depth
         c.ge(0, "lost_min_rmse", "lost_min_inliers")
         c.within(0, 1, "lost_min_inlier_ratio")
-        c.ge(1, "lost_max_speed_factor")  # below 1 a frame moving at the median speed would be lost
+        c.ge(1, "lost_max_speed_factor", "lost_speed_window")  # below 1 a frame at the median speed would be lost
         c.gt(0, "lost_max_translation")
         c.done()
 

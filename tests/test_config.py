@@ -128,7 +128,7 @@ BAD = {
     "tracking.init_done_translation": [0], "tracking.init_max_frames": [1], "tracking.init_min_points": [0],
     "tracking.init_max_rmse": [0], "tracking.lost_rmse_factor": [0.99], "tracking.lost_min_rmse": [-0.1],
     "tracking.lost_min_inlier_ratio": [-0.01, 1.01], "tracking.lost_min_inliers": [-1],
-    "tracking.lost_max_speed_factor": [0.99], "tracking.lost_max_translation": [0],
+    "tracking.lost_max_speed_factor": [0.99], "tracking.lost_speed_window": [0], "tracking.lost_max_translation": [0],
     "window.max_frames": [1, 17], "window.point_capacity": [99], "window.immature_capacity": [99],
     "window.backend": ["joint"], "window.iterations": [0, 101], "window.min_frames": [1, 8],
     "window.affine_prior_a": [-1], "window.affine_prior_b": [-1], "window.idepth_fix_prior": [-1],
