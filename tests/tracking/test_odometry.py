@@ -284,7 +284,7 @@ def test_the_speed_check_follows_a_camera_that_speeds_up(wp_device, seq160, monk
     k = seq160.intrinsics
     frames = frames_of(seq160)
 
-    def check(window, step):
+    def check(window, step, other_chain=False):
         cfg = apply_overrides(Config(), [f"tracking.lost_speed_window={window}"])
         odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, observer=Recorder())
         results = [odo.process(f) for f in frames[:20]]
@@ -293,11 +293,16 @@ def test_the_speed_check_follows_a_camera_that_speeds_up(wp_device, seq160, monk
         floor = 0.01 * odo.tracker.reference.median_depth
         odo._segment_steps = [0.1 * floor] * 90 + [2.0 * floor] * 30         # slow, then 20x faster
         monkeypatch.setattr(odo, "_step_per_source_frame", lambda c2w: step * floor)
+        if other_chain:     # the previous frame hangs on another keyframe (the reference changed since)
+            odo._prev_rec.keyframe_id, odo._prev_rec.tracking_ref = -1, odo.tracker.reference.keyframe_id + 1000
         return odo._loss(tr)
 
     assert check(30, 15.0) is None                              # 7.5x the recent steps: the camera, not a jump
     assert check(1000, 15.0) == LossReason.JUMP                 # 15x the floor over the whole segment's median
     assert check(30, 30.0) == LossReason.JUMP                   # 15x the recent steps: a jump
+    # ... unless the previous frame hangs on another keyframe: then the step holds the window's correction of one
+    # keyframe against the other, and the speed check waits for a frame on the same chain
+    assert check(30, 30.0, other_chain=True) is None
 
 
 def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
