@@ -579,8 +579,9 @@ class Coverage:
 
 
 def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndarray, downscale: int = 2,
-                    with_depth: bool = False) -> Coverage:
-    """Render the map's accumulated alpha from a keyframe at 1/``downscale`` resolution (``Rasterizer.render_alpha``).
+                    with_depth: bool = False, t_stop: float = 0.0) -> Coverage:
+    """Render the map's accumulated alpha (and with ``with_depth`` its accumulated depth) from a keyframe at
+    1/``downscale`` resolution (``Rasterizer.render_alpha``; ``t_stop``: its coverage stop, 0 = the full render's).
 
     The reduced camera follows docs/rasteriser.md: ``fx / s, fy / s, (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5``,
     size ``(W // s, H // s)`` (pixel centres at integer coordinates), so low-resolution pixel j covers
@@ -601,13 +602,10 @@ def render_coverage(gmap: GaussianMap, rasterizer, camera, world_to_cam: np.ndar
     rc = make_camera(cam.fx / s, cam.fy / s, (cam.cx + 0.5) / s - 0.5, (cam.cy + 0.5) / s - 0.5, w, h,
                      np.asarray(world_to_cam, dtype=np.float64))
     p = gmap.float_params()
-    if with_depth:          # the full forward: alpha and depth (the colours come along)
-        out = rasterizer.forward(p.means, p.log_scales, p.quats, p.opacity_logits, p.sh, rc, (0.0, 0.0, 0.0),
-                                 sh_degree=0)
-        return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s,
-                        np.array(out.depth.numpy(), dtype=np.float32, copy=True))
-    out = rasterizer.render_alpha(p.means, p.log_scales, p.quats, p.opacity_logits, rc)
-    return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s)
+    out = rasterizer.render_alpha(p.means, p.log_scales, p.quats, p.opacity_logits, rc, with_depth=with_depth,
+                                  t_stop=t_stop)
+    return Coverage(np.array(out.alpha.numpy(), dtype=np.float32, copy=True), out.radii.numpy() > 0, s,
+                    np.array(out.depth.numpy(), dtype=np.float32, copy=True) if with_depth else None)
 
 
 def map_seen_from(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: SeedingConfig
@@ -618,7 +616,7 @@ def map_seen_from(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     if gmap.n == 0:
         return None, None, None
     cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale,
-                          with_depth=cfg.depth_tolerance > 0)
+                          with_depth=cfg.depth_tolerance > 0, t_stop=cfg.coverage_stop)
     neighbours = gmap.means.numpy()[cov.visible] if cov.visible.any() else None
     return cov.alpha, cov.depth, neighbours
 

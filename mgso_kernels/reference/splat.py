@@ -13,6 +13,9 @@ Every Gaussian is tested against every pixel (no tiles, no sort keys); the rules
   as soon as ``T * (1 - alpha) < 1e-4``; ``rgb = sum w_i c_i + T_final * background``,
   ``depth = sum w_i z_i`` (not normalised), ``alpha = 1 - T_final``.
 
+``t_stop`` (:func:`render`; the coverage kernels' ``Rasterizer.render_alpha(t_stop=...)``): a pixel also stops
+once the Gaussian it has just accumulated took its transmittance below ``t_stop``; 0 (the default) changes nothing.
+
 ``cutoffs=False`` turns off everything that makes the image jump (the 1/255 skip, the 0.99 clamp, the early stop),
 so that central finite differences of the twin are meaningful; the analytic gradients (:func:`render_vjp`) follow
 the same switch.
@@ -341,7 +344,7 @@ def tile_pairs(proj: dict, cam, tile_size: int = 16, scale_r2: float = 1.0) -> s
 
 
 # --------------------------------------------------------------------------------------------------- rendering
-def _blend(proj, colors, cam, background, cutoffs):
+def _blend(proj, colors, cam, background, cutoffs, t_stop: float = 0.0):
     """Vectorised over pixels, sequential over depth-sorted Gaussians. Returns per-pixel outputs and the
     (P, N) per-Gaussian alpha / transmittance matrices (in sorted order) the backward pass reuses."""
     H, W = cam.height, cam.width
@@ -385,6 +388,8 @@ def _blend(proj, colors, cam, background, cutoffs):
         raw[:, k] = r
         Tb[:, k] = T
         T = np.where(use, Tn, T)
+        if cutoffs:
+            done |= use & (Tn < t_stop)  # the coverage stop: accumulated, and now below t_stop
     rgb = C + T[:, None] * np.asarray(background, np.float64)[None]
     return dict(rgb=rgb.reshape(H, W, 3), depth=D.reshape(H, W), alpha=(1.0 - T).reshape(H, W),
                 T_final=T.reshape(H, W), order=order, alphas=alphas, raw=raw, Tb=Tb, unclamped=unclamped,
@@ -392,15 +397,16 @@ def _blend(proj, colors, cam, background, cutoffs):
 
 
 def render(means, log_scales, quats, opacity_logits, sh, cam, background=(0.0, 0.0, 0.0), sh_degree=None,
-           eps2d: float = 0.3, cutoffs: bool = True, antialiased: bool = False) -> dict:
+           eps2d: float = 0.3, cutoffs: bool = True, antialiased: bool = False, t_stop: float = 0.0) -> dict:
     """Render (H, W) with every Gaussian against every pixel. Returns rgb (H, W, 3), depth (H, W) (unnormalised
-    ``sum w_i z_i``), alpha (H, W), T_final (H, W), plus the projection (``proj``) and colours (``colors``)."""
+    ``sum w_i z_i``), alpha (H, W), T_final (H, W), plus the projection (``proj``) and colours (``colors``).
+    ``t_stop``: the coverage stop (module docstring)."""
     sh = np.asarray(sh, np.float64)
     if sh_degree is None:
         sh_degree = int(round(np.sqrt(sh.shape[1]))) - 1
     proj = project(means, log_scales, quats, opacity_logits, cam, eps2d, antialiased)
     colors = sh_to_rgb(sh, np.asarray(means, np.float64), cam.centre, sh_degree)
-    out = _blend(proj, colors, cam, background, cutoffs)
+    out = _blend(proj, colors, cam, background, cutoffs, t_stop)
     out.update(proj=proj, colors=colors)
     return out
 

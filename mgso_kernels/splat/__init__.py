@@ -104,6 +104,7 @@ class AlphaOutput:
     alpha: wp.array
     radii: wp.array
     n_pairs: int
+    depth: wp.array | None = None   # (H, W) accumulated depth sum w z, with ``render_alpha(with_depth=True)``
 
 
 @dataclass
@@ -363,14 +364,22 @@ class Rasterizer:
             camera=camera, background=bg, num_bases=num_bases, T_final=T_final, n_contrib=n_contrib,
             params=params, generation=self._generation)
 
-    def render_alpha(self, means, log_scales, quats, opacity_logits, camera: Camera) -> AlphaOutput:
-        """Accumulated alpha (H, W) and per-Gaussian visibility only: no colours, no SH, no depth, no saved state
-        (the cheap coverage path for seeding and visibility tests; ``sh`` is not needed).
+    def render_alpha(self, means, log_scales, quats, opacity_logits, camera: Camera, *, with_depth: bool = False,
+                     t_stop: float = 0.0) -> AlphaOutput:
+        """Accumulated alpha (H, W), per-Gaussian visibility and, with ``with_depth``, the accumulated depth
+        ``sum w z`` (the full render's unnormalised depth): no colours, no SH, no saved state (the cheap coverage
+        path for seeding and visibility tests; ``sh`` is not needed).
 
         Same projection, binning and blending rules as :meth:`forward`; ``1 - alpha`` is the transmittance.
+        ``t_stop``: a pixel also stops once an accumulated Gaussian took its transmittance below this, so alpha is
+        exact wherever it stays below ``1 - t_stop`` and the depth sum misses at most a weight of ``t_stop``; 0 (or
+        anything up to 3DGS's 1e-4) gives the full render's alpha and depth.
         Invalidates the previous :class:`RenderOutput` of this rasteriser.
         """
         self._check_camera(camera)
+        t_stop = float(t_stop)
+        if not 0.0 <= t_stop < 1.0:
+            raise ValueError(f"render_alpha: t_stop must be in [0, 1), got {t_stop}")
         means, log_scales, quats, opacity_logits, _ = self._params(means, log_scales, quats, opacity_logits, None)
         dev, sp = self.device, self._split
         n = means.shape[0]
@@ -380,13 +389,16 @@ class Rasterizer:
         n_pairs = self._project_and_bin(means, log_scales, quats, opacity_logits, camera)
         t = time.perf_counter()
         _raster.launch_pack_splats(self.slots_.full, self.pair_gauss_.full, self.splat_g_.view(n), None, n_pairs,
-                                   self.splats_.full, self.splat_rgbz_.full, dev, **sp)
+                                   self.splats_.full, self.splat_rgbz_.full, dev, **sp,
+                                   depths_g=self.depths_.view(n) if with_depth else None)
         t = self._stage("pack", t)
         alpha = self._image("alpha_only", camera.height, camera.width)
+        depth = self._image("depth_only", camera.height, camera.width) if with_depth else None
         _raster.launch_rasterize_alpha(camera, self.ranges_.full, self.splats_.full, alpha, dev, **sp,
-                                       seg=self.pixels_per_thread)
+                                       seg=self.pixels_per_thread, splat_rgbz=self.splat_rgbz_.full, depth=depth,
+                                       t_stop=t_stop)
         self._stage("blend", t)
-        return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs)
+        return AlphaOutput(alpha=alpha, radii=self.radii_.view(n), n_pairs=n_pairs, depth=depth)
 
     # -------------------------------------------------------------------------------------------- backward
     def backward(self, out: RenderOutput, v_rgb, v_depth=None, v_alpha=None, *, into=None,

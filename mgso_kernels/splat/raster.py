@@ -41,8 +41,8 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "vec8", "vec16", "vec16i", "row_span",
-           "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
+__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
+           "row_span", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
 
 TS = wp.constant(TILE_SIZE)
 SEGMENT_WIDTHS = (1, 2, 4, 8, 16, TILE_SIZE * TILE_SIZE)  # pixels per thread the blend kernels accept; 256 = a
@@ -118,16 +118,19 @@ def pack_splats(
     slots: wp.array(dtype=wp.int32),  # [M] sorted pair slots
     pair_gauss: wp.array(dtype=wp.int32),  # [M] Gaussian of each slot
     splat_g: wp.array(dtype=vec8),  # [N] per Gaussian (projection's)
-    rgbz_g: wp.array(dtype=wp.vec4),  # [N] per Gaussian colour + depth (ignored when with_color == 0)
-    with_color: int,
+    rgbz_g: wp.array(dtype=wp.vec4),  # [N] per Gaussian colour + depth (read when with_color == 1)
+    depths_g: wp.array(dtype=float),  # [N] per Gaussian depth (read when with_color == 2)
+    with_color: int,  # 0: splats only; 1: colour and depth from rgbz_g; 2: depth only, from depths_g
     splats: wp.array(dtype=vec8),  # [M] out, in sorted order
     splat_rgbz: wp.array(dtype=wp.vec4),  # [M] out: r, g, b, depth
 ):
     j = offset + wp.tid()
     g = pair_gauss[slots[j]]
     splats[j] = splat_g[g]
-    if with_color != 0:
+    if with_color == 1:
         splat_rgbz[j] = rgbz_g[g]
+    elif with_color == 2:
+        splat_rgbz[j] = wp.vec4(0.0, 0.0, 0.0, depths_g[g])
 
 
 @wp.kernel
@@ -208,78 +211,107 @@ def rasterize_forward(
         n_contrib[y, x] = last[k]
 
 
-@wp.kernel
-def rasterize_alpha(
-    offset: int,
-    cam: Camera,
-    seg: int,  # pixels per thread
-    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
-    splats: wp.array(dtype=vec8),  # [M] packed, sorted
-    alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
-):
-    tr = tile_row(offset + wp.tid(), cam, seg)
-    tile = tr[0]
-    x0 = tr[1]
-    y = tr[2]
-    nx = tr[3]
-    if nx <= 0:
-        return
-    fy = float(y)
-    T = vec16(1.0)
-    done = int(0)
-    full = (1 << nx) - 1
-    for j in range(ranges[tile, 0], ranges[tile, 1]):
-        s = splats[j]
-        dy = fy - s[1]
-        span = row_span(s, dy, x0, nx)
-        if span[0] > span[1]:
-            continue
-        bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
-        if done & bits == bits:
-            continue
-        e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
-        E = e[0]
-        F = e[1]
-        for k in range(span[0], span[1] + 1):
-            if (done >> k) & 1 == 0:
-                a = wp.min(ALPHA_MAX, s[5] * E)
-                if a >= ALPHA_MIN:
-                    Tn = T[k] * (1.0 - a)
-                    if Tn < T_MIN:
-                        done = done | (1 << k)
-                    else:
-                        T[k] = Tn
-            E = E * F
-            F = F * s[6]
-        if done == full:
-            break
-    for k in range(nx):
-        alpha[y, x0 + k] = 1.0 - T[k]
+def _alpha_kernel(with_depth: bool):
+    """The coverage kernel of 1-16 pixels a thread, with or without the accumulated depth (two compiled variants):
+    the rules of :func:`mgso_kernels.splat.raster_tile._alpha_tile_kernel` (3DGS's blend for the transmittance,
+    plus a pixel's stop once an accumulated Gaussian took its transmittance below ``t_stop``)."""
+
+    @wp.kernel
+    def rasterize_alpha(
+        offset: int,
+        cam: Camera,
+        seg: int,  # pixels per thread
+        ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+        splats: wp.array(dtype=vec8),  # [M] packed, sorted
+        splat_rgbz: wp.array(dtype=wp.vec4),  # [M] packed, sorted: depth in [3] (read only with depth)
+        t_stop: float,  # the coverage stop; <= T_MIN: the full render's rule only
+        alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
+        depth: wp.array2d(dtype=float),  # [H, W] out with depth, sum w z (unnormalised); else not written
+    ):
+        tr = tile_row(offset + wp.tid(), cam, seg)
+        tile = tr[0]
+        x0 = tr[1]
+        y = tr[2]
+        nx = tr[3]
+        if nx <= 0:
+            return
+        fy = float(y)
+        T = vec16(1.0)
+        D = vec16(0.0)
+        done = int(0)
+        full = (1 << nx) - 1
+        for j in range(ranges[tile, 0], ranges[tile, 1]):
+            s = splats[j]
+            dy = fy - s[1]
+            span = row_span(s, dy, x0, nx)
+            if span[0] > span[1]:
+                continue
+            bits = ((1 << (span[1] - span[0] + 1)) - 1) << span[0]
+            if done & bits == bits:
+                continue
+            e = span_exp_start(s, float(x0 + span[0]) - s[0], dy)
+            E = e[0]
+            F = e[1]
+            z = float(0.0)
+            if wp.static(with_depth):
+                z = splat_rgbz[j][3]
+            for k in range(span[0], span[1] + 1):
+                if (done >> k) & 1 == 0:
+                    a = wp.min(ALPHA_MAX, s[5] * E)
+                    if a >= ALPHA_MIN:
+                        Tk = T[k]
+                        Tn = Tk * (1.0 - a)
+                        if Tn < T_MIN:
+                            done = done | (1 << k)
+                        else:
+                            if wp.static(with_depth):
+                                D[k] = D[k] + a * Tk * z
+                            T[k] = Tn
+                            if Tn < t_stop:
+                                done = done | (1 << k)
+                E = E * F
+                F = F * s[6]
+            if done == full:
+                break
+        for k in range(nx):
+            alpha[y, x0 + k] = 1.0 - T[k]
+            if wp.static(with_depth):
+                depth[y, x0 + k] = D[k]
+
+    return rasterize_alpha
+
+
+rasterize_alpha = _alpha_kernel(False)
+rasterize_alpha_depth = _alpha_kernel(True)   # the coverage alpha and the accumulated depth
 
 
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats, splat_rgbz, device: str,
-                       threads: int | None = None, min_chunk: int = 4096) -> None:
-    """Copy the sorted pairs' Gaussian data into contiguous arrays (``rgbz_g=None``: alpha-only)."""
+                       threads: int | None = None, min_chunk: int = 4096, depths_g=None) -> None:
+    """Copy the sorted pairs' Gaussian data into contiguous arrays: with ``rgbz_g`` their colour and depth too;
+    without it but with ``depths_g`` (N,) their depth only (``splat_rgbz[:, 3]``, for the coverage depth); with
+    neither the blending data only (alpha-only)."""
     from ..runtime import launch_split
 
     if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
         raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
     if n_pairs == 0:
         return
-    with_color = 0 if rgbz_g is None else 1
-    rgbz_g = rgbz_g if rgbz_g is not None else _dummy_vec4(device)
-    launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, with_color, splats, splat_rgbz], device,
-                 threads=threads, min_chunk=min_chunk)
+    with_color = 1 if rgbz_g is not None else (2 if depths_g is not None else 0)
+    rgbz_g = rgbz_g if rgbz_g is not None else _dummy(wp.vec4, 1, device)
+    depths_g = depths_g if depths_g is not None else _dummy(wp.float32, 1, device)
+    launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats,
+                                        splat_rgbz], device, threads=threads, min_chunk=min_chunk)
 
 
 _dummies: dict = {}
 
 
-def _dummy_vec4(device):
-    key = ("vec4", str(device))
+def _dummy(dtype, ndim: int, device):
+    """A one-element array standing in for an argument a kernel variant does not read."""
+    key = (dtype, ndim, str(device))
     if key not in _dummies:
-        _dummies[key] = wp.zeros(1, dtype=wp.vec4, device=device)
+        _dummies[key] = wp.zeros((1,) * ndim, dtype=dtype, device=device)
     return _dummies[key]
 
 
@@ -312,18 +344,30 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
 
 
 def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, threads: int | None = None,
-                           min_chunk: int = 4096, seg: int = TILE_SIZE) -> None:
-    """Accumulated alpha only (H, W): the cheap path for coverage tests."""
+                           min_chunk: int = 4096, seg: int = TILE_SIZE, splat_rgbz=None, depth=None,
+                           t_stop: float = 0.0) -> None:
+    """Accumulated alpha (H, W), and with ``depth`` (H, W) the accumulated depth ``sum w z`` (``splat_rgbz``
+    packed with the depths): the cheap path for coverage tests. ``t_stop``: a pixel also stops once an accumulated
+    Gaussian took its transmittance below this (0: the full render's alpha and depth)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
+    with_depth = depth is not None
+    if with_depth:
+        check_array(depth, "depth", wp.float32, (cam.height, cam.width), device)
+        if splat_rgbz is None:
+            raise ValueError("rasterize_alpha: the depth needs splat_rgbz packed with the depths")
+    else:
+        splat_rgbz, depth = _dummy(wp.vec4, 1, device), _dummy(wp.float32, 2, device)
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import rasterize_alpha_tile
+        from .raster_tile import rasterize_alpha_depth_tile, rasterize_alpha_tile
 
-        launch_split(rasterize_alpha_tile, dim, [cam, ranges, splats, alpha], device, threads=threads,
+        launch_split(rasterize_alpha_depth_tile if with_depth else rasterize_alpha_tile, dim,
+                     [cam, ranges, splats, splat_rgbz, float(t_stop), alpha, depth], device, threads=threads,
                      min_chunk=max(1, min_chunk // seg))
         return
-    launch_split(rasterize_alpha, dim, [cam, seg, ranges, splats, alpha], device, threads=threads,
+    launch_split(rasterize_alpha_depth if with_depth else rasterize_alpha, dim,
+                 [cam, seg, ranges, splats, splat_rgbz, float(t_stop), alpha, depth], device, threads=threads,
                  min_chunk=max(1, min_chunk // seg), align=per_tile)

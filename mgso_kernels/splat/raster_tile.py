@@ -48,8 +48,8 @@ wp.set_module_options({
     "cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -mllvm -slp-schedule-budget=1000000",
 })
 
-__all__ = ["TILE_PIXELS", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_backward_tile",
-           "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
+__all__ = ["TILE_PIXELS", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
+           "rasterize_backward_tile", "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE  # ``pixels_per_thread`` value that selects these kernels
 
@@ -252,71 +252,104 @@ def rasterize_forward_tile(
             n_contrib[y, x] = int(L[r, k])
 
 
-@wp.kernel
-def rasterize_alpha_tile(
-    offset: int,
-    cam: Camera,
-    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
-    splats: wp.array(dtype=vec8),  # [M] packed, sorted
-    alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
-):
-    tl = tile_of(offset + wp.tid(), cam)
-    tile = tl[0]
-    x0 = tl[1]
-    y0 = tl[2]
-    nx = tl[3] % 32
-    ny = tl[3] // 32
-    T = mat16(1.0)
-    row_done = vec16i(0)
-    full = (1 << nx) - 1
-    rows_left = ny
-    fy0 = float(y0)
-    fx0 = float(x0)
-    for j in range(ranges[tile, 0], ranges[tile, 1]):
-        s = splats[j]
-        mx = s[0]
-        my = s[1]
-        a = s[2]
-        b = s[3]
-        c = s[4]
-        op = s[5]
-        r2 = s[7]
-        det = a * c - b * b
-        inv_a = 1.0 / a
-        rows = tile_rows(my, a, r2, det, fy0, ny)
-        dx0 = fx0 - mx
-        for r in range(rows[0], rows[1] + 1):
-            done = row_done[r]
-            if done == full:
-                continue
-            dy = fy0 + float(r) - my
-            m = row_span_mask(mx, a, b, r2, det, inv_a, dy, x0, nx) & ~done
-            if m == 0:
-                continue
-            cyy = -0.5 * c * dy * dy
-            bdy = b * dy
-            Tr = T[r]
-            newly = int(0)
-            for k in range(LANES):
-                dx = dx0 + float(k)
-                al = wp.min(ALPHA_MAX, op * exp_lane(lane_power(a, dx, cyy, bdy)))
-                ok = wp.where(al >= ALPHA_MIN, float((m >> k) & 1), 0.0)
-                Tk = Tr[k]
-                Tn = Tk * (1.0 - al)
-                stop = wp.where(Tn < T_MIN, ok, 0.0)
-                Tr[k] = wp.where(ok - stop > 0.0, Tn, Tk)
-                newly = newly | (int(stop) << k)
-            T[r] = Tr
-            if newly != 0:
-                done = done | newly
-                row_done[r] = done
+def _alpha_tile_kernel(with_depth: bool):
+    """The coverage kernel, with or without the accumulated depth (``wp.static``: two compiled variants).
+
+    3DGS's blend for the transmittance only (no colour, nothing saved for a backward pass), plus the coverage stop:
+    a pixel also stops once the Gaussian it has just accumulated took its transmittance below ``t_stop``. With
+    ``t_stop <= T_MIN`` (1e-4) that never happens and alpha (and depth) are the full render's bit for bit; with
+    ``t_stop = 0.01`` alpha is exact wherever it is below 0.99 and at least 0.99 elsewhere, and the depth sum
+    misses at most a weight of 0.01 (what a seeding's coverage test needs, for about 40 % less blending on a dense
+    map; docs/seeding.md).
+    """
+
+    @wp.kernel
+    def rasterize_alpha_tile(
+        offset: int,
+        cam: Camera,
+        ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+        splats: wp.array(dtype=vec8),  # [M] packed, sorted
+        splat_rgbz: wp.array(dtype=wp.vec4),  # [M] packed, sorted: depth in [3] (read only with depth)
+        t_stop: float,  # the coverage stop (see above); <= T_MIN: the full render's rule only
+        alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
+        depth: wp.array2d(dtype=float),  # [H, W] out with depth, sum w z (unnormalised); else not written
+    ):
+        tl = tile_of(offset + wp.tid(), cam)
+        tile = tl[0]
+        x0 = tl[1]
+        y0 = tl[2]
+        nx = tl[3] % 32
+        ny = tl[3] // 32
+        T = mat16(1.0)
+        D = mat16(0.0)
+        row_done = vec16i(0)
+        full = (1 << nx) - 1
+        rows_left = ny
+        fy0 = float(y0)
+        fx0 = float(x0)
+        for j in range(ranges[tile, 0], ranges[tile, 1]):
+            s = splats[j]
+            mx = s[0]
+            my = s[1]
+            a = s[2]
+            b = s[3]
+            c = s[4]
+            op = s[5]
+            r2 = s[7]
+            det = a * c - b * b
+            inv_a = 1.0 / a
+            rows = tile_rows(my, a, r2, det, fy0, ny)
+            z = float(0.0)
+            if wp.static(with_depth):
+                z = splat_rgbz[j][3]
+            dx0 = fx0 - mx
+            for r in range(rows[0], rows[1] + 1):
+                done = row_done[r]
                 if done == full:
-                    rows_left -= 1
-        if rows_left == 0:
-            break
-    for r in range(ny):
-        for k in range(nx):
-            alpha[y0 + r, x0 + k] = 1.0 - T[r, k]
+                    continue
+                dy = fy0 + float(r) - my
+                m = row_span_mask(mx, a, b, r2, det, inv_a, dy, x0, nx) & ~done
+                if m == 0:
+                    continue
+                cyy = -0.5 * c * dy * dy
+                bdy = b * dy
+                Tr = T[r]
+                Dr = D[r]
+                newly = int(0)
+                for k in range(LANES):
+                    dx = dx0 + float(k)
+                    al = wp.min(ALPHA_MAX, op * exp_lane(lane_power(a, dx, cyy, bdy)))
+                    ok = wp.where(al >= ALPHA_MIN, float((m >> k) & 1), 0.0)
+                    Tk = Tr[k]
+                    Tn = Tk * (1.0 - al)
+                    stop = wp.where(Tn < T_MIN, ok, 0.0)
+                    acc = ok - stop
+                    if wp.static(with_depth):
+                        Dr[k] = Dr[k] + acc * al * Tk * z
+                    Tr[k] = wp.where(acc > 0.0, Tn, Tk)
+                    covered = wp.where(Tn < t_stop, acc, 0.0)  # accumulated, and now below the coverage stop
+                    newly = newly | (int(stop + covered) << k)
+                T[r] = Tr
+                if wp.static(with_depth):
+                    D[r] = Dr
+                if newly != 0:
+                    done = done | newly
+                    row_done[r] = done
+                    if done == full:
+                        rows_left -= 1
+            if rows_left == 0:
+                break
+        for r in range(ny):
+            for k in range(nx):
+                alpha[y0 + r, x0 + k] = 1.0 - T[r, k]
+                if wp.static(with_depth):
+                    depth[y0 + r, x0 + k] = D[r, k]
+
+    return rasterize_alpha_tile
+
+
+rasterize_alpha_tile = _alpha_tile_kernel(False)
+rasterize_alpha_depth_tile = _alpha_tile_kernel(True)   # the coverage alpha and the accumulated depth
 
 
 def _backward_tile_kernel(with_absgrad: bool):

@@ -150,6 +150,44 @@ def test_render_alpha_matches_forward(wp_device):
         rast.backward(out, np.zeros((48, 64, 3), np.float32))
 
 
+@pytest.mark.parametrize("seg", [16, TILE_SIZE * TILE_SIZE])
+def test_coverage_with_depth_and_its_stop_match_the_twin(wp_device, seg):
+    """render_alpha(with_depth=True): without the stop the full render's alpha and depth; with t_stop = 0.01 the
+    twin's, which equal the full render's wherever a pixel stays below 0.99 (the seeding's coverage test)."""
+    rng = np.random.default_rng(23)
+    cam = _camera(rng, 64, 48)
+    scene = ref.random_scene(rng, 60, cam, 0)
+    rast = Rasterizer(wp_device, pixels_per_thread=seg)
+    p4 = [scene[k] for k in ("means", "log_scales", "quats", "opacity_logits")]
+    out = rast.forward(*p4, scene["sh"], _wcam(cam))
+    full = {k: getattr(out, k).numpy().copy() for k in ("alpha", "depth")}
+    exact = rast.render_alpha(*p4, _wcam(cam), with_depth=True)
+    if wp.get_device(wp_device).is_cpu:  # the same operations in the same order (measured: equal on the CPU)
+        assert np.array_equal(exact.alpha.numpy(), full["alpha"])
+        assert np.array_equal(exact.depth.numpy(), full["depth"])
+    np.testing.assert_allclose(exact.alpha.numpy(), full["alpha"], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(exact.depth.numpy(), full["depth"], atol=1e-6 * full["depth"].max(), rtol=0)
+    assert rast.render_alpha(*p4, _wcam(cam)).depth is None
+    cov = rast.render_alpha(*p4, _wcam(cam), with_depth=True, t_stop=0.01)
+    a, d = cov.alpha.numpy(), cov.depth.numpy()
+    r = ref.render(*p4, scene["sh"], cam, t_stop=0.01)
+    np.testing.assert_allclose(a, r["alpha"], atol=2e-5, rtol=0)
+    np.testing.assert_allclose(d, r["depth"], atol=1e-4 * r["depth"].max(), rtol=0)
+    # the stop does something here (against the exact render above: 42 % of the pixels stop early), and only
+    # where a pixel's alpha reached 0.99; the rest, thin pixels among them, is the full render's
+    stopped = np.abs(a - full["alpha"]) > 1e-5
+    assert 0.2 < stopped.mean() < 0.8 and np.all(a[stopped] >= 0.99 - 1e-6)
+    thin = full["alpha"] < 0.98
+    assert thin.mean() > 0.2
+    np.testing.assert_allclose(a[thin], full["alpha"][thin], atol=1e-6, rtol=0)
+    # the expected depth of a stopped pixel misses at most a weight of 0.01 (measured: 0.5 % of the farthest depth)
+    zmax = float(r["proj"]["depths"][r["proj"]["valid"]].max())
+    err = np.abs(d / np.maximum(a, 1e-6) - full["depth"] / np.maximum(full["alpha"], 1e-6))[a > 0.5]
+    assert 0 < err.max() < 0.012 * zmax
+    with pytest.raises(ValueError, match="t_stop"):
+        rast.render_alpha(*p4, _wcam(cam), t_stop=1.0)
+
+
 def test_split_forward_is_bitwise_identical(wp_device):
     if not wp.get_device(wp_device).is_cpu:
         pytest.skip("splitting only applies to CPU launches")
