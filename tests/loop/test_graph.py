@@ -96,12 +96,15 @@ def dense_solve(initial, edges, fixed=0):
 
     def jacobian(x, h=1e-6):
         J = np.zeros((7 * len(edges), 7 * len(free)))
+        P = poses_of(x)
         for m, k in enumerate(free):
             for c in range(7):
-                plus, minus = x.copy(), x.copy()
-                plus[7 * m + c] += h
-                minus[7 * m + c] -= h
-                Pp, Pm = poses_of(plus), poses_of(minus)
+                plus, minus = x[7 * m:7 * m + 7].copy(), x[7 * m:7 * m + 7].copy()
+                plus[c] += h
+                minus[c] -= h
+                Pp, Pm = list(P), list(P)  # only node k moves: the others' poses are the same numbers
+                Pp[k] = sim3_exp(plus) @ initial[k]
+                Pm[k] = sim3_exp(minus) @ initial[k]
                 for e in touching[k]:
                     J[7 * e:7 * e + 7, 7 * m + c] = (edge_residual(e, Pp) - edge_residual(e, Pm)) / (2 * h)
         return J
