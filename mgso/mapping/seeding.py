@@ -333,7 +333,8 @@ class SeedCandidates:
 
     ``uv`` (C, 2) pixels, ``depth`` (C,) camera z, ``means`` (C, 3) world, ``colors`` (C, 3) RGB radiance in
     [0, 1], ``kinds`` (C,) :class:`PointKind`; ``num_points_in`` (the message's), ``num_invalid`` (dropped: inverse
-    depth not finite and positive, outside the image, weight or kind filtered), ``fill`` (the fill's counts).
+    depth not finite and positive, outside the image, weight or kind filtered), ``num_too_far`` (dropped: deeper
+    than ``max_depth_factor`` times the median depth of the message's valid points), ``fill`` (the fill's counts).
     """
 
     uv: np.ndarray
@@ -344,6 +345,7 @@ class SeedCandidates:
     num_points_in: int
     num_invalid: int
     fill: FillPoints
+    num_too_far: int = 0
 
     @property
     def n(self) -> int:
@@ -365,6 +367,13 @@ def make_candidates(msg: KeyframeSeedInput, cfg: SeedingConfig) -> SeedCandidate
         ok &= kinds != PointKind.IMMATURE
     if msg.weights is not None and cfg.min_point_weight > 0:
         ok &= msg.weights >= cfg.min_point_weight
+    too_far = np.zeros_like(ok)
+    if cfg.max_depth_factor > 0 and ok.any():
+        # DSO's active points whose inverse depth the window drove to nearly zero (no parallax to hold it) sit
+        # thousands to 1e10 times farther than the rest: as Gaussians they are junk, and the map's extent with them
+        # (docs/seeding.md). Dropped before the fill, so that they do not spoil their triangles either.
+        too_far[ok] = idepth[ok] * (cfg.max_depth_factor * np.median(1.0 / idepth[ok])) < 1.0
+        ok &= ~too_far
     uv_p = uv[ok]
     z_p = 1.0 / idepth[ok]
     if cfg.fill:
@@ -384,7 +393,8 @@ def make_candidates(msg: KeyframeSeedInput, cfg: SeedingConfig) -> SeedCandidate
         uv=all_uv, depth=all_z, means=backproject(all_uv, all_z, cam, msg.cam_to_world),
         colors=np.clip(colors, 0.0, 1.0).astype(np.float32),
         kinds=np.concatenate([kinds[ok], np.full(fill.n, int(PointKind.FILL), np.int8)]).astype(np.int8),
-        num_points_in=msg.num_points, num_invalid=int((~ok).sum()), fill=fill)
+        num_points_in=msg.num_points, num_invalid=int((~ok).sum() - too_far.sum()), fill=fill,
+        num_too_far=int(too_far.sum()))
 
 
 # -------------------------------------------------------------------------------------------- visibility
@@ -461,7 +471,8 @@ class SeedResult:
     """Counts of one keyframe's seeding (what happened, not printed).
 
     ``num_points_in``: points in the message; ``num_invalid``: dropped before anything (bad inverse depth, outside
-    the image, kind/weight filtered); ``num_candidates``: usable points + fill points; ``num_fill``: fill points;
+    the image, kind/weight filtered); ``num_too_far``: dropped as far beyond the message's median depth
+    (``max_depth_factor``); ``num_candidates``: usable points + fill points; ``num_fill``: fill points;
     ``num_triangles`` / ``num_large_triangles`` / ``num_rejected_discontinuity``: the Delaunay fill's triangles;
     ``num_rejected_visibility``: candidates where the map's alpha was already >= the threshold; ``num_survivors``:
     candidates left; ``num_added``: Gaussians added (0 when ``skipped_too_few``); ``num_dropped_capacity``:
@@ -472,6 +483,7 @@ class SeedResult:
     status: SeedStatus
     num_points_in: int = 0
     num_invalid: int = 0
+    num_too_far: int = 0
     num_candidates: int = 0
     num_fill: int = 0
     num_triangles: int = 0
@@ -538,7 +550,8 @@ def plan_seeds(msg: KeyframeSeedInput, cfg: SeedingConfig, alpha: np.ndarray | N
         expected = d_sum / np.maximum(a, 1e-6)
         keep |= np.abs(expected - cand.depth) > cfg.depth_tolerance * cand.depth
     survivors = int(keep.sum())
-    counts = dict(num_points_in=cand.num_points_in, num_invalid=cand.num_invalid, num_candidates=cand.n,
+    counts = dict(num_points_in=cand.num_points_in, num_invalid=cand.num_invalid, num_too_far=cand.num_too_far,
+                  num_candidates=cand.n,
                   num_fill=cand.fill.n, num_triangles=cand.fill.num_triangles,
                   num_large_triangles=cand.fill.num_large,
                   num_rejected_discontinuity=cand.fill.num_rejected_discontinuity,

@@ -148,6 +148,29 @@ def test_bad_points_are_dropped_and_kinds_filtered(seq, cam):
     assert sd.make_candidates(msg, dataclasses.replace(off, min_point_weight=0.5)).num_invalid == 4 + 1
 
 
+def test_points_drifted_to_zero_inverse_depth_are_dropped_before_the_fill(seq, cam):
+    """DSO's active points whose inverse depth went to nearly zero (measured on 7-Scenes: 1e3-1e10 times the median
+    depth) are not seeded, and do not spoil the triangles around them. Control: ``max_depth_factor=0`` seeds them."""
+    uv = _grid_points(cam, step=20)            # triangles of 200 px^2: the fill fills them
+    msg0 = _message(seq, cam, uv)
+    idepth = msg0.idepths.copy()
+    far = np.array([10, 20, 30])
+    idepth[far] = [1e-9, 1e-4, 1.0 / (150.0 * np.median(1.0 / msg0.idepths))]
+    idepth[5] = 1.0 / (50.0 * np.median(1.0 / msg0.idepths))      # far, but within the limit: kept
+    msg = sd.KeyframeSeedInput(msg0.image, cam, msg0.cam_to_world, uv, idepth)
+    cfg = SeedingConfig()
+    c = sd.make_candidates(msg, cfg)
+    assert c.num_too_far == 3 and c.num_invalid == 0 and c.num_points == len(uv) - 3
+    assert c.depth.max() < 51.0 * np.median(1.0 / msg0.idepths)
+    plan = sd.plan_seeds(msg, cfg)
+    assert plan.result.num_too_far == 3 and plan.gaussians.n == c.n
+    ctrl = sd.make_candidates(msg, dataclasses.replace(cfg, max_depth_factor=0.0))
+    assert ctrl.num_too_far == 0 and ctrl.depth.max() == pytest.approx(1e9)
+    # the far vertices' triangles straddle a depth jump: the fill skips them with the points in, fills them without
+    assert ctrl.fill.num_rejected_discontinuity > c.fill.num_rejected_discontinuity
+    assert c.fill.n > ctrl.fill.n
+
+
 # ------------------------------------------------------------------------------------------ Delaunay fill
 def _plane_points(normal, d, cam, uv):
     """Camera-frame z of the plane n . X = d seen at pixels uv: 1/z = n . K^-1 [u, v, 1] / d (affine in u, v)."""
