@@ -263,6 +263,11 @@ class TrackingConfig:
                                             "tried on the next frame and it always becomes a keyframe)")
     retrack_threshold: float = opt(1.5, "try the next motion hypothesis until the RMSE is below this x the last "
                                         "frame's (setting_reTrackThreshold)")
+    realtime_hypothesis_budget_ms: float = opt(33.0, "real time only (--realtime, live sources): once a motion "
+                                                     "hypothesis has tracked well, stop trying the others after "
+                                                     "this many ms of the frame, even above retrack_threshold (DSO "
+                                                     "tries all 31 then: 350-470 ms at 320x240, and the frames "
+                                                     "behind are dropped; docs/tracking.md); 0 = DSO's rule always")
     coarse_rotation_hypotheses: bool = opt(True, "after constant/double/half/zero motion also try 26 small "
                                                  "rotations of the constant-motion guess (trackNewCoarse)")
     coarse_rotation_delta: float = opt(0.02, "quaternion component of those rotations, about 2.3 degrees "
@@ -382,6 +387,7 @@ class TrackingConfig:
         c.ge(0, "coarse_lambda_extrapolation_limit", "coarse_min_step")
         c.within(0, 1, "coarse_saturated_ratio")  # a share of the residuals
         c.ge(1, "coarse_max_cutoff_repeat")  # the cutoff multiplier starts at 1
+        c.ge(0, "realtime_hypothesis_budget_ms")
         c.ge(1, "coarse_abort_factor")  # below 1 a hypothesis better than the best so far would be abandoned
         c.within(0, 1, "coarse_rotation_delta", open_lo=True)  # a quaternion component
         for name in ("affine_opt_a", "affine_opt_b"):

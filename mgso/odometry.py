@@ -860,6 +860,7 @@ class Odometry:
         return max(int(b.index) - int(a.index) - dups, 1)
 
     def _track_coarse(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:
+        t0 = time.perf_counter()
         self._swap_reference()
         cfg = self.config.tracking
         ref = self.tracker.reference
@@ -868,7 +869,9 @@ class Odometry:
         hyps = motion_hypotheses(ref_c2w, last, prelast, rotations=cfg.coarse_rotation_hypotheses,
                                  rotation_delta=cfg.coarse_rotation_delta)
         aff0 = prev.affine if (prev is not None and prev.pose_valid) else (0.0, 0.0)
-        tr = self.tracker.track_frame(pyr, exposure, hyps, aff0)
+        budget = cfg.realtime_hypothesis_budget_ms
+        deadline = t0 + budget / 1000.0 if self.map_thread and budget > 0 else None   # real time only
+        tr = self.tracker.track_frame(pyr, exposure, hyps, aff0, deadline=deadline)
         reason = self._loss(tr)
         if reason is not None:
             return self._lose(rec, pyr, exposure, rgb, tr, reason)

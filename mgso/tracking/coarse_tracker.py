@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -525,10 +526,14 @@ class CoarseTracker:
 
     # ----------------------------------------------------------------------------------------- one frame
     def track_frame(self, pyramid: ImagePyramid, exposure: float, hypotheses: list[np.ndarray],
-                    affine_init=(0.0, 0.0)) -> TrackResult:
+                    affine_init=(0.0, 0.0), deadline: float | None = None) -> TrackResult:
         """DSO ``trackNewCoarse``: try the ``ref_to_new`` hypotheses in order, keep the best level-0 RMSE, stop
         once it is below ``retrack_threshold`` x the last frame's. Updates ``last_rmse`` and the reference's
-        ``first_rmse`` (on the first frame tracked against it)."""
+        ``first_rmse`` (on the first frame tracked against it).
+
+        ``deadline`` (a ``time.perf_counter()`` value; real time only): once a hypothesis has tracked well, stop
+        trying the others when the deadline has passed, even above the re-track threshold (the frames behind this
+        one are waiting; the hypotheses of such a frame end within 4e-4 of each other, docs/window.md)."""
         ref = self.reference
         if ref is None:
             raise RuntimeError("CoarseTracker has no reference: set_reference first")
@@ -554,6 +559,8 @@ class CoarseTracker:
                     if not np.isfinite(achieved[i]) or achieved[i] > res.rmse[i]:
                         achieved[i] = res.rmse[i]
             if have_good and achieved[0] < self.last_rmse[0] * c.retrack_threshold:
+                break
+            if have_good and deadline is not None and time.perf_counter() >= deadline:
                 break
         if not have_good:
             log.info("coarse tracking failed for every hypothesis (%d tried)", tried)

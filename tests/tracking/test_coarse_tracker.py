@@ -194,6 +194,37 @@ def test_tracker_finds_affine_brightness(wp_device, seq320):
     assert all(r.affine == (0.0, 0.0) for r in fixed)
 
 
+def test_a_passed_deadline_keeps_the_first_hypothesis_that_tracked_well(wp_device, seq320):
+    """Real time: while no hypothesis is below the re-track threshold (here: a last RMSE no frame reaches) DSO tries
+    them all; with a deadline that has passed the search ends at the first that tracked well, with its pose.
+    Controls: without a deadline every hypothesis is tried; a first hypothesis that fails does not end it."""
+    import time
+
+    cfg = TrackingConfig()
+    geo, ref = reference_from_true_depth(seq320, cfg)
+    pyr = ImagePyramid(geo).build(gray_of(seq320.images[2]))
+    truth = se3_inverse(seq320.cam_to_world[2]) @ seq320.cam_to_world[0]      # ref_to_new of frame 2
+    hyps = [se3_exp([0.002 * k, 0, 0, 0, 0, 0]) @ truth for k in range(6)]
+
+    def track(hypotheses, deadline):
+        tracker = CoarseTracker(geo, cfg)
+        tracker.set_reference(ref)
+        tracker.last_rmse[:] = 1e-3            # nothing is below 1.5 x this: DSO would try every hypothesis
+        return tracker.track_frame(pyr, 0.0, hypotheses, deadline=deadline)
+
+    past = time.perf_counter() - 1.0
+    full, cut = track(hyps, None), track(hyps, past)
+    assert full.ok and full.hypotheses_tried == len(hyps)
+    assert cut.ok and cut.hypotheses_tried == 1
+    for r in (full, cut):
+        err = se3_log(r.ref_to_new @ se3_inverse(truth))
+        assert np.linalg.norm(err[:3]) < 0.003 and np.linalg.norm(err[3:]) < 0.002
+    far = se3_exp([0, 0, 0, 0.6, 0.0, 0.0]) @ truth                            # 34 degrees off: fails
+    assert not track([far], past).ok
+    r = track([far] + hyps, past)
+    assert r.ok and r.hypotheses_tried == 2
+
+
 def test_tracker_reports_failure_on_a_black_frame(wp_device, seq320):
     cfg = TrackingConfig()
     geo, ref = reference_from_true_depth(seq320, cfg)

@@ -305,6 +305,35 @@ def test_the_speed_check_follows_a_camera_that_speeds_up(wp_device, seq160, monk
     assert check(30, 30.0, other_chain=True) is None
 
 
+def test_only_real_time_tracking_has_a_hypothesis_deadline(wp_device, seq160):
+    """``tracking.realtime_hypothesis_budget_ms`` gives the tracker a deadline with the mapping thread (real time)
+    only, the frame's start plus the budget; the deterministic mode keeps DSO's rule (no deadline), and so does a
+    budget of 0."""
+    import time
+
+    k = seq160.intrinsics
+    for split, budget, expect in ((False, 33.0, False), (True, 33.0, True), (True, 0.0, False)):
+        cfg = apply_overrides(Config(), [f"tracking.realtime_hypothesis_budget_ms={budget}"])
+        odo = Odometry(geometry_for(k.width, k.height, k.fx, k.fy, k.cx, k.cy, cfg), cfg, map_thread=split)
+        seen = []
+        track_frame = odo.tracker.track_frame
+
+        def spy(*a, deadline=None, **kw):
+            seen.append((time.perf_counter(), deadline))
+            return track_frame(*a, deadline=deadline, **kw)
+
+        odo.tracker.track_frame = spy
+        for f in frames_of(seq160)[:14]:
+            odo.process(f)
+        odo.finish()
+        assert seen, "no frame was tracked"
+        if expect:
+            # the deadline is the budget after the frame's start, which is before the call (by far less than 0.5 s)
+            assert all(d is not None and -0.5 < d - t <= budget / 1000.0 for t, d in seen)
+        else:
+            assert all(d is None for _, d in seen)
+
+
 def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
     """``map_thread=True`` (DSO's split, issue 13): keyframes after the initialisation are made on the odometry's
     mapping thread while the caller tracks on; every frame still gets a pose, the map's messages all arrive (one
