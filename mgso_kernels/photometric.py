@@ -459,16 +459,20 @@ def make_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, heig
     return s
 
 
+AFFINE_EXP_LIMIT = 80.0  # |a_t - a_h| beyond this is clamped in affine_from_to (exp(88.7) overflows float32)
+
+
 def affine_from_to(a_h: float, b_h: float, a_t: float, b_t: float, exposure_h: float = 1.0,
                    exposure_t: float = 1.0) -> tuple[float, float]:
     """DSO ``AffLight::fromToVecExposure``: ``(a_rel, b_rel)`` with ``I_t ~ a_rel * I_h + b_rel``.
 
     ``a_rel = exp(a_t - a_h) * t_t / t_h``, ``b_rel = b_t - a_rel * b_h``; an exposure of 0 (unknown) sets both
-    exposures to 1.
+    exposures to 1. The exponent is clamped to +-80 (a brightness ratio of 5e34, far beyond any image pair): a
+    window whose affine has diverged gives a ratio that still fits the kernels' float32, not an OverflowError.
     """
     if exposure_h == 0 or exposure_t == 0:
         exposure_h = exposure_t = 1.0
-    a = math.exp(a_t - a_h) * exposure_t / exposure_h
+    a = math.exp(min(max(a_t - a_h, -AFFINE_EXP_LIMIT), AFFINE_EXP_LIMIT)) * exposure_t / exposure_h
     return a, b_t - a * b_h
 
 

@@ -50,7 +50,7 @@ class Pair:
 def affine_from_to(a_h, b_h, a_t, b_t, exposure_h=1.0, exposure_t=1.0):
     if exposure_h == 0 or exposure_t == 0:
         exposure_h = exposure_t = 1.0
-    a = np.exp(a_t - a_h) * exposure_t / exposure_h
+    a = np.exp(np.clip(a_t - a_h, -80.0, 80.0)) * exposure_t / exposure_h   # the kernels' float32 range
     return a, b_t - a * b_h
 
 

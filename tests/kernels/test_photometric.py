@@ -184,6 +184,13 @@ def test_affine_model_is_dso_from_to():
     a, b = ph.affine_from_to(0.1, 3.0, -0.2, -5.0, 10.0, 12.0)
     assert a == pytest.approx(np.exp(-0.3) * 1.2) and b == pytest.approx(-5.0 - a * 3.0)
     assert ph.affine_from_to(0.1, 3.0, -0.2, -5.0, 0.0, 12.0)[0] == pytest.approx(np.exp(-0.3))  # unknown exposure
+    # a diverged window's affine (a real-time run's lost segment reached float32's overflow): a ratio that fits
+    # float32, not an OverflowError (math.exp(800) raises); the twin agrees; within the limit nothing changes
+    for d in (800.0, -800.0, 90.0):
+        a, b = ph.affine_from_to(0.0, 1.0, d, 0.0)
+        assert np.isfinite(np.float32(a)) and np.isfinite(np.float32(b))
+        assert a == pytest.approx(np.exp(np.sign(d) * 80.0)) and a == pytest.approx(ref.affine_from_to(0, 1, d, 0)[0])
+    assert ph.affine_from_to(0.0, 0.0, 79.0, 0.0)[0] == pytest.approx(np.exp(79.0))
     with pytest.raises(ValueError, match="4x4"):
         ph.make_frame_pair(np.eye(3))
     with pytest.raises(ValueError, match="focal"):
