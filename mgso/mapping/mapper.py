@@ -92,6 +92,7 @@ class MapperStats:
     points_coalesced: int = 0
     gaussians_seeded: int = 0               # added by seeding (keyframes and marginalised points)
     seeds_skipped_too_few: int = 0          # seedings that added nothing (fewer than min_new_gaussians survived)
+    points_too_far: int = 0                 # DSO points not seeded: deeper than max_depth_factor x their median
     steps: int = 0                          # training steps, all of them
     train_seconds: float = 0.0              # wall time inside training steps
     final_steps: int = 0                    # steps of the final refinement (included in steps)
@@ -585,6 +586,7 @@ class Mapper:
         self.stats.seed_seconds += time.perf_counter() - t0
         self.stats.gaussians_seeded += res.num_added
         self.stats.seeds_skipped_too_few += int(res.skipped_too_few)
+        self.stats.points_too_far += res.num_too_far
         self.stats.seed_results.append(res)
         log.debug("seeding keyframe %d: %s, %d candidates, %d added, %d Gaussians", res.keyframe_id,
                   res.status.value, res.num_candidates, res.num_added, self.gmap.n)

@@ -119,6 +119,24 @@ def test_keyframes_seed_views_and_train(wp_device, seq, cam):
     assert stats.final_steps == 4 and stats.steps == 10 and stats.stopped_by == "stop"
 
 
+def test_points_too_far_are_counted_in_the_stats(wp_device, seq, cam):
+    """A keyframe whose message holds 4 points at nearly zero inverse depth: the mapper's stats (metrics.json's
+    ``mapper.points_too_far``) count them, and no Gaussian lies that far; with ``max_depth_factor=0`` none is
+    counted and the map reaches them."""
+    for factor, far in ((100.0, 4), (0.0, 0)):
+        mp = Mapper(_cfg(f"mapping.seeding.max_depth_factor={factor}"), device=wp_device)
+        msg = _kf(seq, cam, 0)
+        idepth = msg.idepths.copy()
+        idepth[[3, 30, 60, 90]] = 1e-7
+        mp.submit(KeyframeMessage(0, 0, float(seq.timestamps[0]), seq.images[0], cam, seq.cam_to_world[0],
+                                  msg.points_uv, idepth))
+        mp.process_pending()
+        st = mp.stop()
+        assert st.points_too_far == far and st.as_dict()["points_too_far"] == far
+        reach = np.linalg.norm(mp.gmap.means.numpy() - seq.cam_to_world[0][:3, 3], axis=1).max()
+        assert (reach < 100.0) == (far > 0), reach
+
+
 @pytest.mark.parametrize("mode", ["odometry", "exposure_time", "none"])
 def test_exposure_modes_set_each_views_brightness_model(wp_device, seq, cam, mode):
     """``mapping.mapper.exposure``: DSO's affine and the exposure time (odometry), the exposure time alone, or
