@@ -367,13 +367,12 @@ def make_candidates(msg: KeyframeSeedInput, cfg: SeedingConfig) -> SeedCandidate
         ok &= kinds != PointKind.IMMATURE
     if msg.weights is not None and cfg.min_point_weight > 0:
         ok &= msg.weights >= cfg.min_point_weight
-    too_far = np.zeros_like(ok)
+    num_invalid = int((~ok).sum())
     if cfg.max_depth_factor > 0 and ok.any():
         # DSO's active points whose inverse depth the window drove to nearly zero (no parallax to hold it) sit
         # thousands to 1e10 times farther than the rest: as Gaussians they are junk, and the map's extent with them
         # (docs/seeding.md). Dropped before the fill, so that they do not spoil their triangles either.
-        too_far[ok] = idepth[ok] * (cfg.max_depth_factor * np.median(1.0 / idepth[ok])) < 1.0
-        ok &= ~too_far
+        ok &= idepth * (cfg.max_depth_factor * np.median(1.0 / idepth[ok])) >= 1.0
     uv_p = uv[ok]
     z_p = 1.0 / idepth[ok]
     if cfg.fill:
@@ -393,8 +392,8 @@ def make_candidates(msg: KeyframeSeedInput, cfg: SeedingConfig) -> SeedCandidate
         uv=all_uv, depth=all_z, means=backproject(all_uv, all_z, cam, msg.cam_to_world),
         colors=np.clip(colors, 0.0, 1.0).astype(np.float32),
         kinds=np.concatenate([kinds[ok], np.full(fill.n, int(PointKind.FILL), np.int8)]).astype(np.int8),
-        num_points_in=msg.num_points, num_invalid=int((~ok).sum() - too_far.sum()), fill=fill,
-        num_too_far=int(too_far.sum()))
+        num_points_in=msg.num_points, num_invalid=num_invalid, fill=fill,
+        num_too_far=int((~ok).sum()) - num_invalid)
 
 
 # -------------------------------------------------------------------------------------------- visibility
