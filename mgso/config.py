@@ -727,6 +727,15 @@ class MapperConfig:
                                       "steps even it out (7-Scenes 640x480, uniform sampling: 22.26 dB with 20 a "
                                       "keyframe + 1,300, 22.36 dB with 40 + 300 but its last frames at 13.9 dB; "
                                       "the oracle 21.54 against 21.18 dB; docs/mapping.md); 0 = none")
+    running_max_pixels: int = opt(80_000, "real time: while the stream runs, train each view at the finest level of "
+                                          "its pyramid with at most this many pixels (a 640x480 view at 320x240: a "
+                                          "step 2.9x cheaper on the 2-core CPU, docs/mgso.md); the final "
+                                          "refinement trains at full resolution; 0 = full resolution")
+    running_train_share: float = opt(0.25, "real time: the share of the mapper's busy time kept for training while "
+                                           "messages wait (a mapper that trains only when its queue is empty never "
+                                           "trains on a small CPU: seeding the keyframes fills what the odometry "
+                                           "leaves; docs/mgso.md), unless half the queue is full; 0 = train only "
+                                           "when the queue is empty")
     queue_size: int = opt(1024, "bounded message queue (odometry -> mapper): a few hundred keyframes of a typical run "
                                 "with their pose updates fit, so the odometry waits only when the mapper is hopelessly "
                                 "behind (each wait is counted and reported)")
@@ -771,7 +780,8 @@ class MapperConfig:
 
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)
-        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every")
+        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every", "running_max_pixels")
+        c.within(0, 1, "running_train_share", open_hi=True)    # a share of 1 would never handle a message
         c.within(0, 1, "prune_opacity", open_hi=True)
         c.ge(0, "grow_grad2d")
         c.ge(1, "queue_size", "min_train_views")

@@ -327,6 +327,8 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
                                         else None),
             "mapping_steps_running": st.steps - st.final_steps, "mapping_steps_final": st.final_steps,
+            # of the steps while running: those taken while messages waited (the training share), and their level
+            "mapping_steps_while_behind": st.steps_while_behind, "running_level": st.running_level,
             "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
             "mapper_cpu_share": result.mapper_cpu_share,
             "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds,

@@ -400,7 +400,9 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
                  f"({result.frames_dropped} dropped); mapper in a {rt['mapper_in']}"
                  + (f" ({rt['mapper_priority']})" if rt.get("mapper_priority") else "")
                  + f": {rt['mapping_steps_running']} "
-                 f"steps while the camera ran, {rt['mapping_steps_final']} after"
+                 f"steps while the camera ran"
+                 + (f" (at 1/{2 ** rt['running_level']} resolution)" if rt.get("running_level") else "")
+                 + f", {rt['mapping_steps_final']} after"
                  + (f", {100 * share:.0f}% of the CPU" if share is not None else "")
                  + (f"; the odometry waited for the map {rt['queue_waits']} times ({rt['queue_wait_seconds']:.1f} s)"
                     if rt["queue_waits"] else ""))

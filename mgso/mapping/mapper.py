@@ -107,6 +107,10 @@ class MapperStats:
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
     queue_wait_seconds: float = 0.0
     max_queue_depth: int = 0                # most messages waiting at once (seen at submit)
+    # real time: the pyramid level of the steps while the stream ran (mapping.mapper.running_max_pixels), and the
+    # steps taken while messages waited (mapping.mapper.running_train_share)
+    running_level: int = 0
+    steps_while_behind: int = 0
     image_blocks: int = 0                   # mapper's process: shared-memory blocks of keyframe images it took
     loop_corrections: int = 0               # LoopCorrection messages applied
     gaussians_moved: int = 0                # Gaussians moved by them (each time it moved)
@@ -318,21 +322,51 @@ class Mapper:
         self._thread = threading.Thread(target=self._run, name="mgso-mapper", daemon=True)
         self._thread.start()
 
+    def running_level(self) -> int:
+        """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most
+        ``running_max_pixels`` pixels (0: off), at least 16 pixels a side (the newest view's size)."""
+        limit = self.cfg.running_max_pixels
+        if limit <= 0 or self._latest_kid is None or self._latest_kid not in self.views:
+            return 0
+        cam = self.views[self._latest_kid].camera
+        level = 0
+        while (cam.width >> level) * (cam.height >> level) > limit and cam.width >> (level + 1) >= 16 \
+                and cam.height >> (level + 1) >= 16:
+            level += 1
+        return level
+
+    def _owes_training(self, busy: float, trained: float) -> bool:
+        """Real time, messages waiting: whether the steps taken meanwhile (``trained`` seconds) are behind
+        ``running_train_share`` of the time (with ``busy``, the seconds handling messages), with the queue at most
+        half full (beyond that the odometry's waits come closer: the messages go first)."""
+        share = self.cfg.running_train_share
+        return (share > 0 and trained < share / (1.0 - share) * busy and self.can_train()
+                and not self._interrupt.is_set() and self.queue.qsize() < self.cfg.queue_size // 2)
+
     def _run(self) -> None:
         cpu0 = time.thread_time()
         self._coalesce_points = True
+        busy = trained = 0.0        # seconds handling messages, and training while messages waited
         try:
             while True:
                 self.safe_point()
+                if self._owes_training(busy, trained):
+                    t0 = time.perf_counter()
+                    self._step(self.running_level())
+                    trained += time.perf_counter() - t0
+                    self.stats.steps_while_behind += 1
+                    continue
                 try:
                     msg = self.queue.get_nowait()
                 except queue.Empty:
+                    t0 = time.perf_counter()
                     self._flush_points()            # caught up: the points that waited, one seeding a keyframe
+                    busy += time.perf_counter() - t0
                     if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
                         return
                     if self.can_train() and not self._interrupt.is_set():
-                        self._step()
+                        self._step(self.running_level())
                         continue
                     try:
                         msg = self.queue.get(timeout=0.05)
@@ -341,7 +375,9 @@ class Mapper:
                 if isinstance(msg, Stop):
                     self._finish(msg)
                     return
+                t0 = time.perf_counter()
                 self.handle(msg)
+                busy += time.perf_counter() - t0
         except BaseException as exc:  # handed to the odometry side at its next submit / at stop
             log.exception("the mapping thread failed")
             self._error = exc
@@ -630,9 +666,12 @@ class Mapper:
         """Whether a training step can run: enough views and at least one Gaussian."""
         return len(self.views) >= self.cfg.min_train_views and self.gmap.n > 0
 
-    def _step(self) -> StepResult:
+    def _step(self, level: int = 0) -> StepResult:
+        """One training step; ``level``: at least this pyramid level (the real-time steps while the stream runs)."""
         t0 = time.perf_counter()
-        r = self.trainer.step()
+        r = self.trainer.step(min_level=level)
+        if level:
+            self.stats.running_level = level
         self.stats.train_seconds += time.perf_counter() - t0
         self.stats.steps += 1
         self._last_step = r

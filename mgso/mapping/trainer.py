@@ -303,15 +303,16 @@ class Trainer:
         return self.gmap.scene_extent
 
     # -------------------------------------------------------------------------------------------- steps
-    def step(self, view_id: int | None = None) -> StepResult:
-        """One training step on ``view_id`` (default: the sampler's choice)."""
+    def step(self, view_id: int | None = None, min_level: int = 0) -> StepResult:
+        """One training step on ``view_id`` (default: the sampler's choice), at the pyramid schedule's level or
+        ``min_level``, whichever is coarser (the real-time mapper's cheaper steps while the stream runs)."""
         if len(self.views) == 0:
             raise ValueError("Trainer.step: no views to train on")
         self.update_scene_extent()
         vid = self.sampler.next_view(self.views) if view_id is None else int(view_id)
         view = self.views[vid]
         every = self.cfg.train.metrics_every
-        result = self.train_step(self.gmap, view, self.step_count, level=self.pyramid_level(view),
+        result = self.train_step(self.gmap, view, self.step_count, level=max(self.pyramid_level(view), min_level),
                                  with_psnr=every > 0 and self.step_count % every == 0)
         view.uses += 1
         self.step_count += 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 
@@ -285,6 +286,58 @@ def test_a_mapper_behind_seeds_each_hosts_points_once(wp_device, seq, cam):
     # the same points reach the map: the waiting ones are distinct points, so little is covered twice
     n_behind, n_each = behind.gmap.n, each.gmap.n
     assert n_each > 0 and 0.9 * n_each <= n_behind <= 1.1 * n_each, (n_behind, n_each)
+
+
+def test_a_mapper_behind_keeps_a_share_for_training_at_a_coarser_level(wp_device, seq, cam):
+    """Real time on a small CPU: seeding the keyframes fills the core the odometry leaves, and a mapper that trained
+    only when its queue was empty made 1-2 steps while a 640x480 camera ran (docs/mgso.md). With a training share it
+    trains while messages wait, at the running level (a cheaper step), and refines at full resolution."""
+    def run(share):
+        cfg = _cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.seeding.min_new_gaussians=1",
+                   f"mapping.mapper.running_train_share={share}", "mapping.mapper.running_max_pixels=1200",
+                   "mapping.mapper.final_iterations=3")
+        mp = Mapper(cfg, device=wp_device)
+        levels, step = [], mp.trainer.step
+
+        def spy(*args, **kw):
+            r = step(*args, **kw)
+            levels.append(r.level)
+            return r
+
+        mp.trainer.step = spy
+        for m in _backlog(seq, cam):
+            mp.submit(m)                              # a backlog of 8 before the thread starts
+        mp.start()
+        return mp.stop(timeout=60), levels
+
+    st, levels = run(0.5)
+    assert st.keyframes == 2 and st.point_messages == 6 and st.final_steps == 3
+    assert st.steps_while_behind > 0 and st.running_level == 1          # 80x60 -> 40x30 = 1,200 pixels
+    assert levels[:-3] == [1] * (st.steps - 3) and levels[-3:] == [0, 0, 0]
+    # the control: without a share nothing trains while messages wait (a step may come when the queue is empty
+    # before Stop arrives)
+    st0, levels0 = run(0)
+    assert st0.steps_while_behind == 0 and st0.keyframes == 2 and levels0[-3:] == [0, 0, 0]
+    assert st0.steps - 3 < st.steps - 3
+
+
+def test_the_running_level_and_when_training_is_owed(wp_device, seq, cam):
+    mp = Mapper(_cfg("mapping.mapper.queue_size=4"), device=wp_device)
+    assert mp.running_level() == 0                                      # no view yet
+    mp.submit(_kf(seq, cam, 0))
+    mp.process_pending()
+    for pixels, level in ((80_000, 0), (4_800, 0), (4_799, 1), (1_200, 1), (1_199, 1), (1, 1), (0, 0)):
+        mp.cfg = dataclasses.replace(mp.cfg, running_max_pixels=pixels)
+        assert mp.running_level() == level, pixels      # 80x60, 40x30; not 20x15 (a level keeps 16 pixels a side)
+    assert mp._owes_training(busy=3.0, trained=0.9)                     # share 0.25: a third of the busy time
+    assert not mp._owes_training(busy=3.0, trained=1.0)
+    for _ in range(2):
+        mp.queue.put(PoseUpdate({}))
+    assert not mp._owes_training(busy=3.0, trained=0.0)                 # half the queue full: messages first
+    mp.queue.get()
+    assert mp._owes_training(busy=3.0, trained=0.0)
+    mp.cfg = dataclasses.replace(mp.cfg, running_train_share=0.0)
+    assert not mp._owes_training(busy=3.0, trained=0.0)
 
 
 def test_mapping_thread_failure_reaches_the_sender(wp_device, seq, cam):
