@@ -33,10 +33,13 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 **Modes.** Deterministic (:meth:`process_pending`, in the caller's thread): messages in order, a fixed
 ``mapping.mapper.iterations_per_keyframe`` steps after each keyframe message; the same map on every CPU run.
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
-queue only while it has nothing to train. The real-time system runs the same loop in a process of its own
+queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
+its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels`` (the
+final refinement at full resolution). The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
-(:meth:`request_snapshot`, :meth:`request_render`), answered at the next safe point (:meth:`safe_point`). :meth:`submit` puts a message on the bounded queue; when it is full the
-caller waits (backpressure), and every wait is counted in :class:`MapperStats`.
+(:meth:`request_snapshot`, :meth:`request_render`), answered at the next safe point (:meth:`safe_point`).
+:meth:`submit` puts a message on the bounded queue; when it is full the caller waits (backpressure), and every wait
+is counted in :class:`MapperStats`.
 
 Ownership: the map, the views and the trainer are changed only by the thread that runs the mapper (the caller's in
 deterministic mode, the mapping thread in real time). Read them after :meth:`stop` (or between
