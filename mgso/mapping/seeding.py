@@ -493,7 +493,7 @@ class SeedResult:
     num_added: int = 0
     num_dropped_capacity: int = 0
     seconds: float = 0.0
-    coverage_rendered: bool = True      # False: fewer candidates than min_new_gaussians, so no render was needed
+    coverage_rendered: bool = True      # False: fewer candidates than min_new_gaussians or a full map (no render)
 
     @property
     def skipped_too_few(self) -> bool:
@@ -638,11 +638,20 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     ``created_step = step``). Call it between training iterations (it changes the map's structure).
 
     When the map has room for only part of the survivors, an evenly strided subset is added and the rest is counted
-    in ``num_dropped_capacity`` (the map never grows here: ``mapping.capacity`` is a hard budget).
+    in ``num_dropped_capacity`` (the map never grows here: ``mapping.capacity`` is a hard budget). A map already full
+    is not rendered: the result is ``MAP_FULL`` with every point offered in ``num_dropped_capacity``.
     """
     t0 = time.perf_counter()
     if not cfg.enabled:
         return SeedResult(msg.keyframe_id, SeedStatus.DISABLED, num_points_in=msg.num_points)
+    if gmap.n >= gmap.capacity:
+        # nothing can be added, so nothing is rendered or planned (a long real-time run's map at its capacity spent a
+        # coverage render of 500,000 Gaussians on each of its last 51 seedings); the points offered count as dropped
+        log.warning("seeding keyframe %s: the map is full (%d Gaussians), %d points not seeded", msg.keyframe_id,
+                    gmap.n, msg.num_points)
+        return SeedResult(msg.keyframe_id, SeedStatus.MAP_FULL, num_points_in=msg.num_points,
+                          num_dropped_capacity=msg.num_points, coverage_rendered=False,
+                          seconds=time.perf_counter() - t0)
     cand = make_candidates(msg, cfg)
     if cand.n < max(cfg.min_new_gaussians, 1):
         # the survivors of the visibility filter are a subset of the candidates: too few whatever the map covers,

@@ -465,6 +465,9 @@ def test_seed_keyframe_respects_the_capacity(seq, cam, rast, wp_device):
     assert gm.n == 300 and r.num_added == 300 and r.num_dropped_capacity == len(uv) - 300
     r2 = sd.seed_keyframe(gm, rast, _message(seq, cam, uv, frame=1), SeedingConfig(visibility_threshold=1.0), 1)
     assert r2.status is sd.SeedStatus.MAP_FULL and gm.n == 300
+    # a full map is not rendered (nothing could be added): every point offered counts as dropped
+    assert not r2.coverage_rendered and r2.num_dropped_capacity == r2.num_points_in == len(uv)
+    assert r.coverage_rendered                      # the control: a map with room renders its coverage
 
 
 def test_disabled_seeding_adds_nothing(seq, cam, rast, wp_device):
