@@ -736,6 +736,12 @@ class MapperConfig:
                                            "trains on a small CPU: seeding the keyframes fills what the odometry "
                                            "leaves; docs/mgso.md), unless half the queue is full; 0 = train only "
                                            "when the queue is empty")
+    defer_seeding_above: int = opt(128, "real time: with at least this many messages queued, a keyframe's seeding "
+                                        "waits like the marginalised points (seeded with its host's points once "
+                                        "the queue is empty, a second at a time), so that a mapper behind the "
+                                        "camera catches up on its messages and the queue does not fill (on 2 cores "
+                                        "it filled in 80 s of a 640x480 camera and the odometry waited; "
+                                        "docs/mgso.md); 0 = never")
     queue_size: int = opt(1024, "bounded message queue (odometry -> mapper): a few hundred keyframes of a typical run "
                                 "with their pose updates fit, so the odometry waits only when the mapper is hopelessly "
                                 "behind (each wait is counted and reported)")
@@ -780,7 +786,8 @@ class MapperConfig:
 
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)
-        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every", "running_max_pixels")
+        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every", "running_max_pixels",
+             "defer_seeding_above")
         c.within(0, 1, "running_train_share", open_hi=True)    # a share of 1 would never handle a message
         c.within(0, 1, "prune_opacity", open_hi=True)
         c.ge(0, "grow_grad2d")

@@ -64,6 +64,7 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "keyframes_sent": m.get("keyframes", {}).get("sent"), "keyframes_in_map": m.get("keyframes", {}).get("in_map"),
         "mapping_steps_running": st.get("steps", 0) - st.get("final_steps", 0),
         "mapping_steps_while_behind": st.get("steps_while_behind"), "running_level": st.get("running_level"),
+        "mapper_queue_at_end": st.get("stream_ended_at_depth"), "mapper_catch_up_s": st.get("catch_up_seconds"),
         "mapping_steps_final": st.get("final_steps"), "queue_waits": st.get("queue_waits"),
         "queue_wait_s": st.get("queue_wait_seconds"), "mapper_queue_max": st.get("max_queue_depth"),
         "mapper_cpu_s": st.get("cpu_seconds"), "mapper_seed_s": st.get("seed_seconds"),

@@ -329,6 +329,10 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "mapping_steps_running": st.steps - st.final_steps, "mapping_steps_final": st.final_steps,
             # of the steps while running: those taken while messages waited (the training share), and their level
             "mapping_steps_while_behind": st.steps_while_behind, "running_level": st.running_level,
+            # messages still queued when the stream ended, and the seconds the mapper took to apply them (and to
+            # seed the points that waited) before its final refinement
+            "mapper_queue_at_end": st.stream_ended_at_depth if st.stream_ended_at_depth >= 0 else None,
+            "mapper_catch_up_seconds": st.catch_up_seconds,
             "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
             "mapper_cpu_share": result.mapper_cpu_share,
             "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds,

@@ -403,6 +403,8 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
                  f"steps while the camera ran"
                  + (f" (at 1/{2 ** rt['running_level']} resolution)" if rt.get("running_level") else "")
                  + f", {rt['mapping_steps_final']} after"
+                 + (f"; {rt['mapper_queue_at_end']} messages still queued when the camera stopped, applied in "
+                    f"{rt['mapper_catch_up_seconds']:.1f} s" if rt.get("mapper_queue_at_end") else "")
                  + (f", {100 * share:.0f}% of the CPU" if share is not None else "")
                  + (f"; the odometry waited for the map {rt['queue_waits']} times ({rt['queue_wait_seconds']:.1f} s)"
                     if rt["queue_waits"] else ""))

@@ -35,7 +35,8 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels`` (the
-final refinement at full resolution). The real-time system runs the same loop in a process of its own
+final refinement at full resolution). Far behind (``defer_seeding_above``), a keyframe's seeding waits with its
+marginalised points until the queue is empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
 (:meth:`request_snapshot`, :meth:`request_render`), answered at the next safe point (:meth:`safe_point`).
 :meth:`submit` puts a message on the bounded queue; when it is full the caller waits (backpressure), and every wait
@@ -74,6 +75,8 @@ from mgso.observers import Observer
 __all__ = ["Mapper", "MapperStats", "MapperError", "MapUpdate", "MapState"]
 
 log = logging.getLogger(__name__)
+
+_FLUSH_BUDGET_S = 1.0   # real time: seconds of waiting seedings done each time the queue is empty (Mapper._run)
 
 
 class MapperError(RuntimeError):
@@ -114,6 +117,12 @@ class MapperStats:
     # steps taken while messages waited (mapping.mapper.running_train_share)
     running_level: int = 0
     steps_while_behind: int = 0
+    # real time: keyframe seedings deferred while the queue was deep (mapping.mapper.defer_seeding_above)
+    seedings_deferred: int = 0
+    # real time: messages still queued when the stream ended (-1: not seen), and the seconds from then until the
+    # last was applied and the waiting points seeded (before the final refinement)
+    stream_ended_at_depth: int = -1
+    catch_up_seconds: float = 0.0
     image_blocks: int = 0                   # mapper's process: shared-memory blocks of keyframe images it took
     loop_corrections: int = 0               # LoopCorrection messages applied
     gaussians_moved: int = 0                # Gaussians moved by them (each time it moved)
@@ -237,10 +246,19 @@ class Mapper:
         self.final_threads: int | None = None
         # Called as the final refinement begins (the mapper's process: its priority back to normal where allowed).
         self.before_final = None
+        # Real time: set when the stream has ended (stop() was called; the mapper's process: by the main process,
+        # before Stop is queued). The messages still queued then are applied on the final refinement's threads and
+        # priority, without the training share: the odometry is done and waits for the map (_end_of_stream).
+        self.stream_ended = threading.Event()
+        self._final_resources = False
+        self._end_t0 = 0.0
         # Real time: point messages' points by host keyframe, waiting while messages are queued (the mapper is
         # behind); seeded when the queue is empty, before a loop correction and at the end (_flush_points).
         self._coalesce_points = False
         self._pending_points: dict[int, list[tuple]] = {}
+        # Real time, behind the camera: keyframes' own seedings, waiting with their points (mapping.mapper.
+        # defer_seeding_above); each keyframe also holds its place in _pending_points' order.
+        self._pending_keyframes: dict[int, KeyframeSeedInput] = {}
 
     def load_kernels(self) -> None:
         """Compile or load every kernel module the mapper launches, now (real time: before the camera plays; a
@@ -344,7 +362,8 @@ class Mapper:
         half full (beyond that the odometry's waits come closer: the messages go first)."""
         share = self.cfg.running_train_share
         return (share > 0 and trained < share / (1.0 - share) * busy and self.can_train()
-                and not self._interrupt.is_set() and self.queue.qsize() < self.cfg.queue_size // 2)
+                and not self._interrupt.is_set() and not self.stream_ended.is_set()
+                and self.queue.qsize() < self.cfg.queue_size // 2)
 
     def _run(self) -> None:
         cpu0 = time.thread_time()
@@ -363,7 +382,10 @@ class Mapper:
                     msg = self.queue.get_nowait()
                 except queue.Empty:
                     t0 = time.perf_counter()
-                    self._flush_points()            # caught up: the points that waited, one seeding a keyframe
+                    # caught up: the seedings that waited, a host keyframe at a time, for a second at most (a long
+                    # flush would let the queue fill meanwhile); all of them once the run is ending
+                    ending = self._interrupt.is_set() or self.stream_ended.is_set()
+                    self._flush_points(None if ending else _FLUSH_BUDGET_S)
                     busy += time.perf_counter() - t0
                     if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
@@ -397,6 +419,7 @@ class Mapper:
             return self.stats
         if not refine:
             self._interrupt.set()          # apply what is queued (views, poses, seeds), then stop without training
+        self.stream_ended.set()
         if self._thread is None:
             self.submit(Stop(refine))
             self.process_pending()
@@ -415,15 +438,37 @@ class Mapper:
         self._raise_if_failed()
         return self.stats
 
+    def _take_final_resources(self) -> None:
+        """Once: the final refinement's threads (``final_threads``) and priority (``before_final``)."""
+        if self._final_resources:
+            return
+        self._final_resources = True
+        from mgso_kernels import runtime
+
+        if self.final_threads is not None:
+            runtime.set_cpu_threads(self.final_threads)
+        if self.before_final is not None:
+            self.before_final()
+
+    def _end_of_stream(self) -> None:
+        """The stream has ended while messages may still be queued (a mapper behind the camera): the rest of its
+        work, seeding included, gets the final refinement's resources at once (a 640x480 run of 83 s on 2 cores
+        left 209 s of it, docs/mgso.md)."""
+        if self.stats.stream_ended_at_depth < 0:
+            self.stats.stream_ended_at_depth = self.queue.qsize()
+            self._end_t0 = time.perf_counter()
+        self._take_final_resources()
+
     def _finish(self, msg: Stop) -> None:
+        if self._thread is not None and self.stream_ended.is_set():
+            self._end_of_stream()
         self._flush_points()
+        if self.stats.stream_ended_at_depth >= 0:
+            self.stats.catch_up_seconds = time.perf_counter() - self._end_t0
         if msg.refine and not self._interrupt.is_set():
             from mgso_kernels import runtime
 
-            if self.final_threads is not None:
-                runtime.set_cpu_threads(self.final_threads)
-            if self.before_final is not None:
-                self.before_final()
+            self._take_final_resources()
             self.stats.final_threads = runtime.cpu_threads() if self.cfg.final_iterations > 0 else 0
             self.refine(self.cfg.final_iterations)
             # an interrupt during the refinement ends it early (train() checks it between steps)
@@ -467,7 +512,14 @@ class Mapper:
         seed_in = msg.seed_input(exposure=exposure)
         if self.refines_poses:
             seed_in = dataclasses.replace(seed_in, cam_to_world=view.cam_to_world)
-        res = self._seed(seed_in, self.mc.seeding)
+        res = None
+        if self._coalesce_points and 0 < self.cfg.defer_seeding_above <= self.queue.qsize():
+            # behind the camera: the view now (poses and training follow it), its seeding with its points later
+            self._pending_points.setdefault(kid, [])
+            self._pending_keyframes[kid] = seed_in
+            self.stats.seedings_deferred += 1
+        else:
+            res = self._seed(seed_in, self.mc.seeding)
         if self.mc.train.depth_weight > 0 and msg.num_points:
             view.set_depth_points(msg.points_uv, 1.0 / np.asarray(msg.idepths, np.float64))
         view.fixed_pose = len(self.views) == 0          # the first keyframe holds the map's gauge
@@ -557,12 +609,22 @@ class Mapper:
         seed_in = _as_seed_input(self.views[host], uv, idepth, colors, weights)
         self._seed(seed_in, dataclasses.replace(self.mc.seeding, fill=False))
 
-    def _flush_points(self) -> None:
-        """Seed the points that waited (real time), host by host in the order they first arrived."""
+    def _flush_points(self, budget: float | None = None) -> None:
+        """Seed what waited (real time), host by host in the order they first arrived: a keyframe's own seeding
+        deferred while the mapper was behind (from the view's pose now: a pose update in between moved it), then
+        its points. ``budget``: seconds after which the rest waits for the next call (None: everything)."""
+        t0 = time.perf_counter()
         while self._pending_points:
+            if budget is not None and time.perf_counter() - t0 >= budget:
+                return
             host = next(iter(self._pending_points))
             parts = self._pending_points.pop(host)
-            if host in self.views:
+            seed_in = self._pending_keyframes.pop(host, None)
+            if host not in self.views:
+                continue
+            if seed_in is not None:
+                self._seed(dataclasses.replace(seed_in, cam_to_world=self.views[host].cam_to_world), self.mc.seeding)
+            if parts:
                 self._seed_points(host, parts)
 
     def exposure_for(self, affine: tuple[float, float], exposure_ms: float | None) -> tuple[float, float]:
@@ -718,6 +780,8 @@ class Mapper:
         requests (:mod:`mgso.mapping.snapshot`)."""
         if self.safe_point_hook is not None:
             self.safe_point_hook()
+        if self._thread is not None and self.stream_ended.is_set() and not self._final_resources:
+            self._end_of_stream()
         if not self.board.pending:
             return
         want, cap, render = self.board.take_requests()

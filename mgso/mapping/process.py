@@ -251,7 +251,7 @@ def restore_priority(got: str, nice: int) -> str:
 
 
 def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: bool, messages, released, requests,
-                 events, interrupt) -> None:
+                 events, interrupt, stream_ended) -> None:
     """The mapper process (spawned): a :class:`Mapper` draining ``messages``, then its :class:`MapState` back."""
     for sig in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)):
         if sig is not None:
@@ -289,6 +289,8 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: boo
                     SnapshotBoard.request_render(board, req[2], req[3], req[4])
             if interrupt.is_set():
                 mapper._interrupt.set()
+            if stream_ended.is_set():
+                mapper.stream_ended.set()         # the rest of the queue on every core (Mapper._end_of_stream)
             now = time.monotonic()
             if now - last_check[0] > _PARENT_CHECK_S:
                 last_check[0] = now
@@ -376,10 +378,11 @@ class MapperProcess:
         self._requests = ctx.Queue()
         self._events = ctx.Queue()
         self._interrupt = ctx.Event()
+        self._stream_ended = ctx.Event()
         self._proc = ctx.Process(
             target=_mapper_main, name="mgso-mapper",
             args=(self.config, self.device, self.threads, self.nice, self.idle, self._messages, self._released,
-                  self._requests, self._events, self._interrupt),
+                  self._requests, self._events, self._interrupt, self._stream_ended),
             daemon=True)
         # The child needs nothing of the caller's main module (the target and its arguments are mgso's): do not let
         # spawn run it again there, which would rerun a user's script that has no `if __name__ == "__main__"` guard
@@ -542,6 +545,7 @@ class MapperProcess:
             raise RuntimeError("MapperProcess.stop: the process was never started")
         if not refine:
             self._interrupt.set()
+        self._stream_ended.set()        # before Stop: what is still queued is applied on every core
         if not self._stop_sent and not self._done.is_set():
             self._stop_sent = True
             try:

@@ -288,6 +288,50 @@ def test_a_mapper_behind_seeds_each_hosts_points_once(wp_device, seq, cam):
     assert n_each > 0 and 0.9 * n_each <= n_behind <= 1.1 * n_each, (n_behind, n_each)
 
 
+def test_a_mapper_far_behind_defers_keyframe_seedings_to_their_points(wp_device, seq, cam):
+    """With the queue deep, a keyframe becomes a view at once and its seeding waits with its host's points, so the
+    mapper gets through its messages (on 2 cores the queue filled in 80 s of a 640x480 camera and the odometry
+    waited). Each host is then seeded keyframe first, then its points, in the order the hosts came."""
+    def run(defer):
+        cfg = _cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.seeding.min_new_gaussians=1",
+                   f"mapping.mapper.defer_seeding_above={defer}", "mapping.mapper.running_train_share=0")
+        mp = Mapper(cfg, device=wp_device)
+        for m in _backlog(seq, cam):
+            mp.submit(m)                              # a backlog of 8 before the thread starts
+        mp.start()
+        return mp, mp.stop(refine=False, timeout=60)
+
+    deep, st = run(2)
+    assert st.seedings_deferred == 2 and st.keyframes == 2 and st.point_messages == 6
+    assert [r.keyframe_id for r in st.seed_results] == [0, 0, 4, 4]     # each host's keyframe, then its points
+    # the control: never deferred, the keyframes are seeded as they come
+    each, st0 = run(0)
+    assert st0.seedings_deferred == 0 and [r.keyframe_id for r in st0.seed_results] == [0, 4, 0, 4]
+    assert 0.9 * each.gmap.n <= deep.gmap.n <= 1.1 * each.gmap.n, (deep.gmap.n, each.gmap.n)
+
+
+def test_a_deferred_seeding_follows_its_view_and_waits_for_its_budget(wp_device, seq, cam):
+    mp = Mapper(_cfg("mapping.mapper.defer_seeding_above=1", "mapping.seeding.fill=false"), device=wp_device)
+    mp._coalesce_points = True                  # as the real-time loop runs it
+    moved = seq.cam_to_world[0] @ se3_exp([0.2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    kf = _kf(seq, cam, 0)
+    mp.submit(kf)
+    mp.submit(PoseUpdate({0: moved}))            # queued behind it: the keyframe's seeding is deferred
+    mp.process_pending()
+    assert mp.stats.seedings_deferred == 1 and mp.gmap.n == 0 and 0 in mp.views
+    mp._flush_points(budget=0.0)                 # no time left: it waits
+    assert mp.gmap.n == 0
+    mp._flush_points()
+    assert mp.gmap.n > 0 and mp.stats.seed_results[-1].keyframe_id == 0
+    # seeded from where the view is now: the keyframe's points back-projected with the moved pose
+    means = mp.gmap.means.numpy().astype(np.float64)
+    truth = backproject(kf.points_uv, 1.0 / kf.idepths, cam, moved)
+    old = backproject(kf.points_uv, 1.0 / kf.idepths, cam, kf.cam_to_world)
+    d_new = np.linalg.norm(means[:, None] - truth[None], axis=2).min(axis=1)
+    d_old = np.linalg.norm(means[:, None] - old[None], axis=2).min(axis=1)
+    assert np.median(d_new) < 1e-4 and np.median(d_old) > 0.1
+
+
 def test_a_mapper_behind_keeps_a_share_for_training_at_a_coarser_level(wp_device, seq, cam):
     """Real time on a small CPU: seeding the keyframes fills the core the odometry leaves, and a mapper that trained
     only when its queue was empty made 1-2 steps while a 640x480 camera ran (docs/mgso.md). With a training share it
@@ -308,17 +352,56 @@ def test_a_mapper_behind_keeps_a_share_for_training_at_a_coarser_level(wp_device
         for m in _backlog(seq, cam):
             mp.submit(m)                              # a backlog of 8 before the thread starts
         mp.start()
+        for _ in range(1200):                         # the stream goes on until the backlog is applied
+            if mp.stats.point_messages == 6:
+                break
+            threading.Event().wait(0.05)
         return mp.stop(timeout=60), levels
 
     st, levels = run(0.5)
     assert st.keyframes == 2 and st.point_messages == 6 and st.final_steps == 3
     assert st.steps_while_behind > 0 and st.running_level == 1          # 80x60 -> 40x30 = 1,200 pixels
+    assert st.history[1][2] >= 1                    # a step between the two keyframes, with 6 messages waiting
     assert levels[:-3] == [1] * (st.steps - 3) and levels[-3:] == [0, 0, 0]
-    # the control: without a share nothing trains while messages wait (a step may come when the queue is empty
-    # before Stop arrives)
+    # the control: without a share nothing trains while messages wait (steps come once the queue is empty)
     st0, levels0 = run(0)
     assert st0.steps_while_behind == 0 and st0.keyframes == 2 and levels0[-3:] == [0, 0, 0]
-    assert st0.steps - 3 < st.steps - 3
+    assert levels0[0] == 1 and st0.history[1][2] == 0       # no step before both keyframes were applied
+
+
+@pytest.mark.parametrize("final_threads", [2, None])
+def test_what_is_queued_when_the_stream_ends_is_applied_on_the_final_threads(wp_device, seq, cam, final_threads):
+    """A mapper behind the camera still has messages queued when the stream ends; the odometry is done then, so the
+    rest (seedings included) runs on the final refinement's threads at once, without the training share (a 640x480
+    run of 83 s on 2 cores left 209 s of it, on one thread). The control: no final threads, nothing changes."""
+    from mgso_kernels import runtime
+
+    setting = runtime.cpu_threads_setting()
+    runtime.set_cpu_threads(1)
+    try:
+        mp = Mapper(_cfg("mapping.mapper.final_iterations=0", "mapping.mapper.running_train_share=0.5"),
+                    device=wp_device)
+        mp.final_threads = final_threads
+        seen, handle = [], mp.handle
+
+        def spy(msg):
+            seen.append(runtime.cpu_threads())
+            return handle(msg)
+
+        mp.handle = spy
+        for m in _backlog(seq, cam):
+            mp.submit(m)
+        mp.start()
+        st = mp.stop(timeout=60)
+        assert st.keyframes == 2 and st.point_messages == 6 and st.steps_while_behind == 0
+        assert 0 < st.stream_ended_at_depth <= 8 and st.catch_up_seconds > 0
+        # the thread may take a message before stop() sets the event; the rest run on the final threads
+        if final_threads == 2:
+            assert seen[-1] == 2 and seen.count(2) >= len(seen) - 1
+        else:
+            assert set(seen) == {1}
+    finally:
+        runtime.set_cpu_threads(setting)
 
 
 def test_the_running_level_and_when_training_is_owed(wp_device, seq, cam):
