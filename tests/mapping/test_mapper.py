@@ -395,9 +395,9 @@ def test_what_is_queued_when_the_stream_ends_is_applied_on_the_final_threads(wp_
         st = mp.stop(timeout=60)
         assert st.keyframes == 2 and st.point_messages == 6 and st.steps_while_behind == 0
         assert 0 < st.stream_ended_at_depth <= 8 and st.catch_up_seconds > 0
-        # the thread may take a message before stop() sets the event; the rest run on the final threads
+        # the thread may take a message or two before stop() sets the event; the rest run on the final threads
         if final_threads == 2:
-            assert seen[-1] == 2 and seen.count(2) >= len(seen) - 1
+            assert seen[-1] == 2 and seen.count(2) >= len(seen) - 2
         else:
             assert set(seen) == {1}
     finally:
