@@ -68,7 +68,7 @@ from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gau
                                   plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
-from mgso.mapping.trainer import StepResult, Trainer, TrainStep
+from mgso.mapping.trainer import StepResult, Trainer, TrainStep, usable_level
 from mgso.mapping.views import LeastUsedSampler, NewestOrRandomSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
@@ -253,7 +253,7 @@ class Mapper:
         self._final_resources = False
         self._end_t0 = 0.0
         # Real time: point messages' points by host keyframe, waiting while messages are queued (the mapper is
-        # behind); seeded when the queue is empty, before a loop correction and at the end (_flush_points).
+        # behind); seeded when the queue is empty, before a loop correction and at the end (_flush_waiting).
         self._coalesce_points = False
         self._pending_points: dict[int, list[tuple]] = {}
         # Real time, behind the camera: keyframes' own seedings, waiting with their points (mapping.mapper.
@@ -351,10 +351,9 @@ class Mapper:
             return 0
         cam = self.views[self._latest_kid].camera
         level = 0
-        while (cam.width >> level) * (cam.height >> level) > limit and cam.width >> (level + 1) >= 16 \
-                and cam.height >> (level + 1) >= 16:
+        while (cam.width >> level) * (cam.height >> level) > limit:
             level += 1
-        return level
+        return usable_level(cam, level)
 
     def _owes_training(self, busy: float, trained: float) -> bool:
         """Real time, messages waiting: whether the steps taken meanwhile (``trained`` seconds) are behind
@@ -385,7 +384,7 @@ class Mapper:
                     # caught up: the seedings that waited, a host keyframe at a time, for a second at most (a long
                     # flush would let the queue fill meanwhile); all of them once the run is ending
                     ending = self._interrupt.is_set() or self.stream_ended.is_set()
-                    self._flush_points(None if ending else _FLUSH_BUDGET_S)
+                    self._flush_waiting(None if ending else _FLUSH_BUDGET_S)
                     busy += time.perf_counter() - t0
                     if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
@@ -462,7 +461,7 @@ class Mapper:
     def _finish(self, msg: Stop) -> None:
         if self._thread is not None and self.stream_ended.is_set():
             self._end_of_stream()
-        self._flush_points()
+        self._flush_waiting()
         if self.stats.stream_ended_at_depth >= 0:
             self.stats.catch_up_seconds = time.perf_counter() - self._end_t0
         if msg.refine and not self._interrupt.is_set():
@@ -489,7 +488,7 @@ class Mapper:
         elif isinstance(msg, PointsMessage):
             self._on_points(msg)
         elif isinstance(msg, LoopCorrection):
-            self._flush_points()                # seeded where the views were when the points arrived
+            self._flush_waiting()                # seeded where the views were when the points arrived
             self._on_loop_correction(msg)
         elif isinstance(msg, Stop):
             raise ValueError("Mapper.handle: Stop ends the stream (use stop())")
@@ -609,7 +608,7 @@ class Mapper:
         seed_in = _as_seed_input(self.views[host], uv, idepth, colors, weights)
         self._seed(seed_in, dataclasses.replace(self.mc.seeding, fill=False))
 
-    def _flush_points(self, budget: float | None = None) -> None:
+    def _flush_waiting(self, budget: float | None = None) -> None:
         """Seed what waited (real time), host by host in the order they first arrived: a keyframe's own seeding
         deferred while the mapper was behind (from the view's pose now: a pose update in between moved it), then
         its points. ``budget``: seconds after which the rest waits for the next call (None: everything)."""

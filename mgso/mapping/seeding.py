@@ -666,14 +666,9 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     g = plan.gaussians
     if g.n == 0:
         return _replace(res, seconds=time.perf_counter() - t0)
-    room = gmap.capacity - gmap.n
+    room = gmap.capacity - gmap.n       # > 0: a full map returned above
     dropped = 0
     if room < g.n:
-        if room <= 0:
-            log.warning("seeding keyframe %s: the map is full (%d Gaussians), %d seeds dropped", msg.keyframe_id,
-                        gmap.n, g.n)
-            return _replace(res, status=SeedStatus.MAP_FULL, num_added=0, num_dropped_capacity=g.n,
-                            seconds=time.perf_counter() - t0)
         sel = np.linspace(0, g.n - 1, room).round().astype(np.int64)
         dropped = g.n - room
         g = GaussianArrays(g.means[sel], g.log_scales[sel], g.quats[sel], g.opacity_logits[sel], g.sh[sel])

@@ -258,6 +258,13 @@ class TrainStep:
         return rgb
 
 
+def usable_level(camera, level: int) -> int:
+    """``level``, lowered until ``camera``'s image at that pyramid level is at least 16 pixels wide and high."""
+    while level > 0 and (camera.width >> level < 16 or camera.height >> level < 16):
+        level -= 1
+    return level
+
+
 class Trainer:
     """Trains ``gmap`` on the views of ``views``: sampler, pyramid schedule, scene extent, step counter.
 
@@ -288,10 +295,7 @@ class Trainer:
         tc = self.cfg.train
         if tc.pyramid_levels <= 1 or tc.pyramid_uses <= 0:
             return 0
-        level = max(0, tc.pyramid_levels - 1 - view.uses // tc.pyramid_uses)
-        while level > 0 and (view.camera.width >> level < 16 or view.camera.height >> level < 16):
-            level -= 1
-        return level
+        return usable_level(view.camera, max(0, tc.pyramid_levels - 1 - view.uses // tc.pyramid_uses))
 
     def update_scene_extent(self) -> float:
         """3DGS's scene extent (``scene_extent_margin`` x the largest camera distance from the cameras' centroid),

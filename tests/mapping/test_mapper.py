@@ -319,9 +319,9 @@ def test_a_deferred_seeding_follows_its_view_and_waits_for_its_budget(wp_device,
     mp.submit(PoseUpdate({0: moved}))            # queued behind it: the keyframe's seeding is deferred
     mp.process_pending()
     assert mp.stats.seedings_deferred == 1 and mp.gmap.n == 0 and 0 in mp.views
-    mp._flush_points(budget=0.0)                 # no time left: it waits
+    mp._flush_waiting(budget=0.0)                 # no time left: it waits
     assert mp.gmap.n == 0
-    mp._flush_points()
+    mp._flush_waiting()
     assert mp.gmap.n > 0 and mp.stats.seed_results[-1].keyframe_id == 0
     # seeded from where the view is now: the keyframe's points back-projected with the moved pose
     means = mp.gmap.means.numpy().astype(np.float64)
