@@ -21,8 +21,9 @@ the mean squared pixel shift of the point centre under ``+-t`` alone (translatio
 Reduction: one thread owns a block of ``points_per_block`` points, accumulates in float64 registers and writes one
 row of a partial-sum buffer; the launcher sums the rows in float64. No atomics, so the result is bitwise the same
 single or split over CPU cores (docs/tracking_kernels.md: 16,000 fp32 outer products summed one by one lost 3e-6
-relative). On the CPU, DSO's one residual a point runs as the lane kernel (:data:`LANE_KERNELS`: the same residuals,
-the system summed 8 points at a time), which a GPU does not use: the two devices agree to float64 round-off.
+relative). Only the upper triangle of ``H`` is accumulated, element by element into a 36-vector: on the CPU this
+form takes half the time of the earlier ones (an 8x8 ``wp.outer`` a residual, or 8 float64 lanes summed at the
+block's end; docs/tracking_kernels.md, "One kernel for both devices").
 DSO divides ``H`` and ``b`` by the number of terms and scales blocks by ``SCALE_XI_*``/``SCALE_A/B``; that
 preconditioning belongs to the solver and is not applied here.
 """
@@ -37,19 +38,16 @@ import warp as wp
 from . import runtime
 from .image import bilinear_inside, finite, sample_dI
 from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gradient_weight, huber_weight,
-                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project8, project_RKi,
-                          sample8, vec8f)
+                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f)
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
-    "make_track_params", "reduce_tracking_system", "REDUCE_KERNELS", "LANE_KERNELS", "LANE_POINTS_PER_BLOCK",
-    "track_system", "COARSE_CUTOFF_TH",
+    "make_track_params", "reduce_tracking_system", "REDUCE_KERNELS", "track_system", "COARSE_CUTOFF_TH",
 ]
 
 wp.set_module_options({"enable_backward": False})
 
 POINTS_PER_BLOCK = 32  # points per reduction block (one thread each)
-LANE_POINTS_PER_BLOCK = 128  # the same for the CPU's lane kernel (its lanes are summed once a block)
 SPLIT_MIN_POINTS = 4096  # residuals a chunk needs before a launch is split over the CPU cores
 COARSE_CUTOFF_TH = 20.0  # DSO setting_coarseCutoffTH
 
@@ -65,8 +63,8 @@ SLOT_FLOW_RT = 77
 SLOT_FLOW_COUNT = 78
 NUM_SLOTS = 79
 
-mat88d = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
+vec36d = wp.types.vector(length=36, dtype=wp.float64)  # the upper triangle of a symmetric 8x8, row by row
 
 
 class TrackState:
@@ -137,10 +135,24 @@ def block_setup(blk: int, n: int, pair: FramePair, cam: Intrinsics, photo: Photo
 
 
 @wp.func
+def write_system(partials: wp.array2d(dtype=wp.float64), blk: int, H: vec36d, g: vec8d):
+    """A block's ``H`` (given as its upper triangle, row by row; written to both halves) and ``b`` into its
+    partial row."""
+    q = int(0)
+    for a in range(8):
+        for b in range(8):
+            if b >= a:
+                partials[blk, SLOT_H + a * 8 + b] = H[q]
+                partials[blk, SLOT_H + b * 8 + a] = H[q]
+                q += 1
+        partials[blk, SLOT_B + a] = g[a]
+
+
+@wp.func
 def coarse_residual(u: float, v: float, idp: float, host_color: float, live: bool, RKi: wp.mat33, pair: FramePair,
                     cam: Intrinsics, dI_t: wp.array2d(dtype=wp.vec3), photo: PhotometricParams, cutoff_th: float,
                     max_energy: float):
-    """One residual of the coarse tracker (both kernels): the host pixel ``(u, v)`` with inverse depth ``idp`` and
+    """One residual of the coarse tracker: the host pixel ``(u, v)`` with inverse depth ``idp`` and
     intensity ``host_color`` in the new frame. Returns ``(r, W, energy, state, in_bounds, saturated, J)``: ``r`` 0
     when not in bounds, ``W`` the weight in the system (0 unless within the cutoff), ``state`` a :class:`TrackState`,
     ``J`` the 8 Jacobian entries (the pose part 0 when not in bounds). ``live`` false: the residual counts nowhere.
@@ -156,8 +168,7 @@ def coarse_residual_of_sample(kk: wp.vec2, nrm: wp.vec3, s: wp.vec3, idp: float,
                               pair: FramePair, cam: Intrinsics, photo: PhotometricParams, cutoff_th: float,
                               max_energy: float):
     """:func:`coarse_residual` from the projection ``(kk, nrm)`` (:func:`project_RKi`) and the sample ``s`` there
-    (:func:`sample_dI`): the lane kernel projects and samples its 8 points first, so that their loads issue
-    together."""
+    (:func:`sample_dI`)."""
     ku = kk[0]
     kv = kk[1]
     front = nrm[2] > 0.0
@@ -204,7 +215,7 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
         n = host_uv.shape[0]
         start, end, max_energy, Ki, RKi, next_flow = block_setup(blk, n, pair, cam, photo, params)
         npat = ref_color.shape[1]
-        H = mat88d()
+        H = vec36d()  # the upper triangle of H, row by row (symmetric: the lower half is written from it)
         g = vec8d()
         sums = vec8d()  # energy, counts, flow sums (see counted)
         for i in range(start, end):
@@ -228,120 +239,25 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                 if wp.static(store_jacobians):
                     jacobian[i, k] = jf
                 if wp.static(with_system):
-                    jd = vec8d(jf)
+                    # element by element into the triangle (all indices static once the loops unroll): the same
+                    # products as wp.outer(W J, J), without an 8x8 temporary a residual
                     wd = wp.float64(wgt)
-                    H += wp.outer(wd * jd, jd)
-                    g += (wd * wp.float64(r)) * jd
-        for a in range(8):
-            for b in range(8):
-                partials[blk, SLOT_H + a * 8 + b] = H[a, b]
-            partials[blk, SLOT_B + a] = g[a]
+                    wr = wd * wp.float64(r)
+                    q = int(0)
+                    for a in range(8):
+                        ja = wp.float64(jf[a])
+                        wa = wd * ja
+                        g[a] = g[a] + wr * ja
+                        for b in range(8):
+                            if b >= a:
+                                H[q] = H[q] + wa * wp.float64(jf[b])
+                                q += 1
+        write_system(partials, blk, H, g)
         for q in range(7):
             partials[blk, SLOT_ENERGY + q] = sums[q]
 
     return reduce_tracking_system
 
-
-mat88_lanes = wp.types.matrix(shape=(8, 8), dtype=wp.float64)  # [parameter, lane]
-mat64_lanes = wp.types.matrix(shape=(64, 8), dtype=wp.float64)  # [8 a + b, lane], the upper triangle used
-LANES = wp.constant(8)
-
-
-@wp.func
-def lane_sum(v: vec8d) -> wp.float64:
-    """The 8 lanes summed in a fixed tree (the same bits on every launch, single or split)."""
-    return ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
-
-
-def _make_lane_kernel(with_system: bool):
-    """The CPU form of the one-residual-a-point kernel (DSO's coarse tracker, ``ref_color [N, 1]``): each residual
-    is computed as in :func:`_make_reduce_kernel`, then the system is accumulated for 8 points at once, one float64
-    lane each (as DSO's SSE accumulators take 4), only the upper triangle, and the lanes are summed at the block's
-    end. Warp's CPU compiler keeps the scalar form's 8x8 accumulator out of registers; this form is 20 % faster a
-    residual (docs/tracking_kernels.md). The sums are the scalar kernel's terms in another order (float64: equal to
-    round-off); on a GPU the scalar kernel stays (a thread's lanes would be local memory there)."""
-
-    @wp.kernel
-    def reduce_tracking_system_lanes(offset: int,
-                                     host_uv: wp.array(dtype=wp.vec2),
-                                     idepth: wp.array(dtype=float),
-                                     ref_color: wp.array2d(dtype=float),  # [N, 1]
-                                     pair: FramePair,
-                                     cam: Intrinsics,
-                                     dI_t: wp.array2d(dtype=wp.vec3),
-                                     photo: PhotometricParams,
-                                     params: TrackParams,
-                                     residual: wp.array2d(dtype=float),
-                                     weight: wp.array2d(dtype=float),
-                                     state: wp.array2d(dtype=wp.int32),
-                                     jacobian: wp.array2d(dtype=vec8f),  # unused (no stored Jacobians here)
-                                     partials: wp.array2d(dtype=wp.float64)):
-        blk = offset + wp.tid()
-        n = host_uv.shape[0]
-        start, end, max_energy, Ki, RKi, next_flow = block_setup(blk, n, pair, cam, photo, params)
-        Hl = mat64_lanes()
-        gl = mat88_lanes()
-        sums = vec8d()  # energy, counts, flow sums (see counted)
-        for g0 in range(start, end, LANES):
-            J = mat88_lanes()
-            w_l = vec8d()
-            wr_l = vec8d()
-            # the 8 projections, then the 8 samples, then the residuals: the samples' loads issue together (a
-            # fifth less time than one point at a time, as the window's sample_pattern)
-            u = vec8f()
-            v = vec8f()
-            d = vec8f()
-            for k in range(LANES):
-                ii = wp.min(g0 + k, end - 1)  # a lane past the block's end repeats its last point with weight 0
-                c = host_uv[ii]
-                u[k] = c[0]
-                v[k] = c[1]
-                d[k] = idepth[ii]
-            kx, ky, un, vn, dr = project8(u, v, d, RKi, pair.t, cam)
-            sI, sx, sy = sample8(dI_t, kx, ky)
-            for k in range(LANES):
-                i = g0 + k
-                live = i < end
-                ii = wp.min(i, end - 1)
-                c = wp.vec2(u[k], v[k])  # the point as loaded above
-                idp = d[k]
-                if live and ii == next_flow:
-                    next_flow += params.flow_stride
-                    sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
-                r, wgt, e, st, ok, sat, jf = coarse_residual_of_sample(
-                    wp.vec2(kx[k], ky[k]), wp.vec3(un[k], vn[k], dr[k]), wp.vec3(sI[k], sx[k], sy[k]), idp,
-                    ref_color[ii, 0], live, pair, cam, photo, params.cutoff_th, max_energy)
-                sums = counted(sums, e, ok, sat)
-                if live:
-                    residual[ii, 0] = r
-                    weight[ii, 0] = wgt
-                    state[ii, 0] = st
-                for a in range(8):
-                    J[a, k] = wp.float64(jf[a])
-                w_l[k] = wp.float64(wgt)
-                wr_l[k] = wp.float64(wgt) * wp.float64(r)
-            if wp.static(with_system):
-                for a in range(8):
-                    wa = wp.cw_mul(w_l, J[a])
-                    gl[a] = gl[a] + wp.cw_mul(wr_l, J[a])
-                    for b in range(8):
-                        if b >= a:  # a and b are unrolled constants: no branch is generated
-                            Hl[a * 8 + b] = Hl[a * 8 + b] + wp.cw_mul(wa, J[b])
-        for a in range(8):
-            for b in range(8):
-                if b >= a:
-                    partials[blk, SLOT_H + a * 8 + b] = lane_sum(Hl[a * 8 + b])
-                else:
-                    partials[blk, SLOT_H + a * 8 + b] = lane_sum(Hl[b * 8 + a])
-            partials[blk, SLOT_B + a] = lane_sum(gl[a])
-        for q in range(7):
-            partials[blk, SLOT_ENERGY + q] = sums[q]
-
-    return reduce_tracking_system_lanes
-
-
-# with_system -> the CPU kernel of one residual a point
-LANE_KERNELS = {True: _make_lane_kernel(True), False: _make_lane_kernel(False)}
 
 # (with_system, store_jacobians) -> kernel. All variants are defined at import so the module compiles once.
 REDUCE_KERNELS = {
@@ -392,20 +308,12 @@ class TrackWorkspace:
     """
 
     def __init__(self, capacity: int, pattern_size: int = 1, device: str | None = None,
-                 store_jacobians: bool = False, points_per_block: int | None = None, lanes: bool | None = None):
+                 store_jacobians: bool = False, points_per_block: int = POINTS_PER_BLOCK):
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if pattern_size not in (1, 8):
             raise ValueError(f"pattern_size must be 1 (DSO coarse tracker) or 8 (pattern), got {pattern_size}")
         self.device = runtime.device_or_cpu(device)
-        # the CPU's lane kernel takes one residual a point and stores no Jacobians (``lanes=None``: whenever it can;
-        # False: the scalar kernel, for comparisons); it sums its lanes once a block, so its blocks are larger
-        can = pattern_size == 1 and not store_jacobians and wp.get_device(self.device).is_cpu
-        if lanes and not can:
-            raise ValueError("the lane kernel needs pattern_size 1, no stored Jacobians and a CPU device")
-        self.lanes = can if lanes is None else bool(lanes)
-        if points_per_block is None:
-            points_per_block = LANE_POINTS_PER_BLOCK if self.lanes else POINTS_PER_BLOCK
         if points_per_block < 1:
             raise ValueError(f"points_per_block must be >= 1, got {points_per_block}")
         self.capacity = int(capacity)
@@ -518,10 +426,7 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
         raise ValueError(f"cutoff_th must be > 0, got {cutoff_th}")
     ws.n = n
     photo, params = ws.params(huber_th, grad_c2, border_lo, border_hi, cutoff_th, flow_stride)
-    if ws.lanes:
-        kernel = LANE_KERNELS[bool(with_system)]
-    else:
-        kernel = REDUCE_KERNELS[(True, True) if ws.store_jacobians else (bool(with_system), False)]
+    kernel = REDUCE_KERNELS[(True, True) if ws.store_jacobians else (bool(with_system), False)]
     blocks = ws.num_blocks
     if blocks:
         # split over the cores only from SPLIT_MIN_POINTS points a chunk: a split launch costs ~0.3 ms more than a

@@ -102,29 +102,28 @@ def test_reduction_is_exact_float64_sum_of_the_kernels_terms(wp_device, setup):
     assert got.num_inliers == inl.sum() > 10000
 
 
-def test_lane_kernel_is_the_scalar_kernels_sums(wp_device, setup):
-    """The CPU's one-residual-a-point workspace takes the lane kernel; its system must be the float64 sum of the
-    scalar kernel's per-residual terms (which a workspace that stores Jacobians runs), and its per-residual outputs
-    the scalar kernel's."""
+def test_the_system_is_the_float64_sum_of_the_residuals_terms(wp_device, setup):
+    """The kernel accumulates only the upper triangle of ``H`` (element by element); the system must be the float64
+    sum of the per-residual terms that a workspace storing Jacobians reports, symmetric, and the per-residual outputs
+    must not depend on whether Jacobians are stored."""
     _, dI_h, dI_t, uv, idepth = setup
-    uv, idepth = uv[:1995], idepth[:1995]  # the last block ends inside a group of 8 lanes
+    uv, idepth = uv[:1995], idepth[:1995]  # the last block ends part-way
     col = ref_colors(dI_h, uv, 1)
     T = make_pose(so3_exp([0.003, 0.002, -0.004]), [0.012, 0.0, -0.01])
     pair = ph.make_frame_pair(T, 0.05, 2.0, 0.1, -3.0)
     cam = ph.make_intrinsics(**CAM, width=W, height=H)
     dI_tw = wp.array(dI_t, dtype=wp.vec3, device=wp_device)
-    lanes = tk.TrackWorkspace(len(uv), 1, wp_device)
+    plain = tk.TrackWorkspace(len(uv), 1, wp_device)
     scalar = tk.TrackWorkspace(len(uv), 1, wp_device, store_jacobians=True)
-    assert lanes.lanes == wp.get_device(wp_device).is_cpu and not scalar.lanes
-    got = tk.track_system(uv, idepth, col, pair, cam, dI_tw, lanes, flow_stride=7)
+    got = tk.track_system(uv, idepth, col, pair, cam, dI_tw, plain, flow_stride=7)
     ref_s = tk.track_system(uv, idepth, col, pair, cam, dI_tw, scalar, flow_stride=7)
     for name in ("residual", "weight", "state"):
-        np.testing.assert_array_equal(getattr(lanes, name).numpy(), getattr(scalar, name).numpy(), err_msg=name)
+        np.testing.assert_array_equal(getattr(plain, name).numpy(), getattr(scalar, name).numpy(), err_msg=name)
     J = scalar.jacobian.numpy().astype(np.float64).reshape(-1, 8)
     Wt = scalar.weight.numpy().astype(np.float64).ravel()
     r = scalar.residual.numpy().astype(np.float64).ravel()
     inl = scalar.state.numpy().ravel() == tk.TrackState.IN
-    assert 1000 < inl.sum() < len(uv)  # some residuals out of the system: their lanes must add nothing
+    assert 1000 < inl.sum() < len(uv)  # some residuals out of the system: they must add nothing
     H64 = np.einsum("k,ki,kj->ij", Wt[inl], J[inl], J[inl])
     b64 = np.einsum("k,ki,k->i", Wt[inl], J[inl], r[inl])
     np.testing.assert_allclose(got.H, H64, rtol=1e-10, atol=1e-12 * np.abs(H64).max())
