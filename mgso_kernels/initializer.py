@@ -71,8 +71,9 @@ SLOT_ENERGY = 144  # photometric energy of all points (new where good, else the 
 SLOT_NUM_GOOD = 145  # points good after this evaluation
 NUM_SLOTS = 146
 
-mat88d = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
+vec36d = wp.types.vector(length=36, dtype=wp.float64)  # the upper triangle of a symmetric 8x8, row by row
+vec64d = wp.types.vector(length=64, dtype=wp.float64)  # an 8x8, row by row
 
 
 @wp.struct
@@ -97,6 +98,18 @@ class InitParams:
 
 
 # ---------------------------------------------------------------------------------------------- kernel
+@wp.func
+def add_upper(H: vec36d, a: int, row: vec8f) -> vec36d:
+    """``H`` (an upper triangle, row by row) plus row ``a`` of a symmetric matrix from its diagonal on, in float64
+    (``a`` a constant: the indices are static once inlined)."""
+    q = a * 8 - (a * (a - 1)) // 2  # where row a starts
+    for b in range(8):
+        if b >= a:
+            H[q] = H[q] + wp.float64(row[b])
+            q += 1
+    return H
+
+
 @wp.kernel
 def accumulate_init_system(offset: int,
                            uv: wp.array(dtype=wp.vec2),  # [N] first-frame pixels of this level
@@ -119,9 +132,9 @@ def accumulate_init_system(offset: int,
     end = wp.min(start + params.points_per_block, n)
     R = params.R
     t = params.t
-    H = mat88d()
+    H = vec36d()  # the upper triangle (every point's J J^T is symmetric to the bit: written to both halves)
     g = vec8d()
-    Hs = mat88d()
+    Hs = vec64d()  # all 64 (its lower half rounds on its own, as wp.outer)
     gs = vec8d()
     e_sum = wp.float64(0.0)
     n_good = int(0)
@@ -224,17 +237,30 @@ def accumulate_init_system(offset: int,
             last_hessian_new[i] = jd
         e_sum += wp.float64(e_new)
         n_good += wp.where(good_new, 1, 0)
-        Hp = wp.matrix_from_rows(vec8d(h0), vec8d(h1), vec8d(h2), vec8d(h3), vec8d(h4), vec8d(h5), vec8d(h6),
-                                 vec8d(h7))
-        H += wp.where(good_new, Hp, mat88d())
-        g += wp.where(good_new, vec8d(gp), vec8d())
         wsc = wp.where(good_new, jb9r, wp.float64(0.0))
-        Hs += wp.outer(wsc * jbd, jbd)
-        gs += (wsc * jb8r) * jbd
+        if good_new:  # element by element into the sums (static indices once unrolled): no 8x8 temporaries
+            H = add_upper(H, 0, h0)
+            H = add_upper(H, 1, h1)
+            H = add_upper(H, 2, h2)
+            H = add_upper(H, 3, h3)
+            H = add_upper(H, 4, h4)
+            H = add_upper(H, 5, h5)
+            H = add_upper(H, 6, h6)
+            H = add_upper(H, 7, h7)
+            for a in range(8):
+                wa = wsc * jbd[a]
+                for b in range(8):
+                    Hs[a * 8 + b] = Hs[a * 8 + b] + wa * jbd[b]
+            g += vec8d(gp)
+            gs += (wsc * jb8r) * jbd
+    q = int(0)
     for a in range(8):
         for b in range(8):
-            partials[blk, SLOT_H + a * 8 + b] = H[a, b]
-            partials[blk, SLOT_HSC + a * 8 + b] = Hs[a, b]
+            if b >= a:
+                partials[blk, SLOT_H + a * 8 + b] = H[q]
+                partials[blk, SLOT_H + b * 8 + a] = H[q]
+                q += 1
+            partials[blk, SLOT_HSC + a * 8 + b] = Hs[a * 8 + b]
         partials[blk, SLOT_B + a] = g[a]
         partials[blk, SLOT_BSC + a] = gs[a]
     partials[blk, SLOT_ENERGY] = e_sum

@@ -246,7 +246,9 @@ def linearize_pairs_kernel(offset: int,
             yy = wp.float64(s_yy)
             px = xx * x + xy * y
             py = xy * x + yy * y
-            Hb_pp += wp.outer(px, x) + wp.outer(py, y)
+            for i in range(6):  # element by element (static indices): wp.outer's 6x6 temporaries cost more
+                for jj in range(6):
+                    Hb_pp[i, jj] = Hb_pp[i, jj] + (px[i] * x[jj] + py[i] * y[jj])
             bb_p += wp.float64(s_rx) * x + wp.float64(s_ry) * y
             hx = wp.float64(s_hx)
             hy = wp.float64(s_hy)
