@@ -46,7 +46,7 @@ import warp as wp
 
 from . import runtime
 from .image import finite, sample_dI
-from .photometric import PATTERN, huber_weight, in_margins, vec8f
+from .photometric import PATTERN, huber_weight, in_margins, vec8f, vec36d, write_symmetric8
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "INIT_BORDER_LO", "INIT_BORDER_HI", "InitParams", "InitSystem",
@@ -72,7 +72,6 @@ SLOT_NUM_GOOD = 145  # points good after this evaluation
 NUM_SLOTS = 146
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
-vec36d = wp.types.vector(length=36, dtype=wp.float64)  # the upper triangle of a symmetric 8x8, row by row
 vec64d = wp.types.vector(length=64, dtype=wp.float64)  # an 8x8, row by row
 
 
@@ -253,13 +252,9 @@ def accumulate_init_system(offset: int,
                     Hs[a * 8 + b] = Hs[a * 8 + b] + wa * jbd[b]
             g += vec8d(gp)
             gs += (wsc * jb8r) * jbd
-    q = int(0)
+    write_symmetric8(partials, blk, SLOT_H, H)
     for a in range(8):
         for b in range(8):
-            if b >= a:
-                partials[blk, SLOT_H + a * 8 + b] = H[q]
-                partials[blk, SLOT_H + b * 8 + a] = H[q]
-                q += 1
             partials[blk, SLOT_HSC + a * 8 + b] = Hs[a * 8 + b]
         partials[blk, SLOT_B + a] = g[a]
         partials[blk, SLOT_BSC + a] = gs[a]

@@ -53,7 +53,7 @@ __all__ = [
     "make_intrinsics", "make_frame_pair", "make_photometric_params", "affine_from_to",
     "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "PatternSample",
     "project8", "sample8", "sample_pattern",
-    "pose_jacobian",
+    "pose_jacobian", "vec36d", "write_symmetric8",
     "huber_weight", "gradient_weight", "photometric_residual",
     "evaluate_patch_kernel", "extract_patterns_kernel", "PatchResiduals", "evaluate_patches", "HostPatterns",
     "extract_patterns",
@@ -73,6 +73,7 @@ vec6f = wp.types.vector(length=6, dtype=wp.float32)
 vec8f = wp.types.vector(length=8, dtype=wp.float32)
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 mat82f = wp.types.matrix(shape=(8, 2), dtype=wp.float32)
+vec36d = wp.types.vector(length=36, dtype=wp.float64)  # the upper triangle of a symmetric 8x8, row by row
 PATTERN = wp.constant(mat82f(*[float(v) for v in PATTERN_NP.reshape(-1)]))
 
 
@@ -305,6 +306,19 @@ def pose_jacobian(grad: wp.vec2, n: wp.vec3, idepth: float, fx: float, fy: float
     dy = grad[1] * fy
     return vec6f(nid * dx, nid * dy, -nid * (un * dx + vn * dy), -(un * vn * dx + dy * (1.0 + vn * vn)),
                  un * vn * dy + dx * (1.0 + un * un), un * dy - vn * dx)
+
+
+@wp.func
+def write_symmetric8(partials: wp.array2d(dtype=wp.float64), row: int, offset: int, H: vec36d):
+    """A symmetric 8x8 given as its upper triangle ``H`` (row by row; the kernels sum only those 36 entries, element
+    by element, docs/tracking_kernels.md) into ``partials[row, offset:offset + 64]``, row-major, both halves."""
+    q = int(0)
+    for a in range(8):
+        for b in range(8):
+            if b >= a:
+                partials[row, offset + a * 8 + b] = H[q]
+                partials[row, offset + b * 8 + a] = H[q]
+                q += 1
 
 
 @wp.func

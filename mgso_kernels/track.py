@@ -38,7 +38,8 @@ import warp as wp
 from . import runtime
 from .image import bilinear_inside, finite, sample_dI
 from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gradient_weight, huber_weight,
-                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f)
+                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f, vec36d,
+                          write_symmetric8)
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
@@ -64,7 +65,6 @@ SLOT_FLOW_COUNT = 78
 NUM_SLOTS = 79
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
-vec36d = wp.types.vector(length=36, dtype=wp.float64)  # the upper triangle of a symmetric 8x8, row by row
 
 
 class TrackState:
@@ -136,15 +136,9 @@ def block_setup(blk: int, n: int, pair: FramePair, cam: Intrinsics, photo: Photo
 
 @wp.func
 def write_system(partials: wp.array2d(dtype=wp.float64), blk: int, H: vec36d, g: vec8d):
-    """A block's ``H`` (given as its upper triangle, row by row; written to both halves) and ``b`` into its
-    partial row."""
-    q = int(0)
+    """A block's ``H`` (given as its upper triangle) and ``b`` into its partial row."""
+    write_symmetric8(partials, blk, SLOT_H, H)
     for a in range(8):
-        for b in range(8):
-            if b >= a:
-                partials[blk, SLOT_H + a * 8 + b] = H[q]
-                partials[blk, SLOT_H + b * 8 + a] = H[q]
-                q += 1
         partials[blk, SLOT_B + a] = g[a]
 
 
