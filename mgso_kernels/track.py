@@ -143,32 +143,23 @@ def write_system(partials: wp.array2d(dtype=wp.float64), blk: int, H: vec36d, g:
 
 
 @wp.func
-def coarse_residual(u: float, v: float, idp: float, host_color: float, live: bool, RKi: wp.mat33, pair: FramePair,
+def coarse_residual(u: float, v: float, idp: float, host_color: float, RKi: wp.mat33, pair: FramePair,
                     cam: Intrinsics, dI_t: wp.array2d(dtype=wp.vec3), photo: PhotometricParams, cutoff_th: float,
                     max_energy: float):
     """One residual of the coarse tracker: the host pixel ``(u, v)`` with inverse depth ``idp`` and
     intensity ``host_color`` in the new frame. Returns ``(r, W, energy, state, in_bounds, saturated, J)``: ``r`` 0
     when not in bounds, ``W`` the weight in the system (0 unless within the cutoff), ``state`` a :class:`TrackState`,
-    ``J`` the 8 Jacobian entries (the pose part 0 when not in bounds). ``live`` false: the residual counts nowhere.
+    ``J`` the 8 Jacobian entries (the pose part 0 when not in bounds).
     Branch-free on purpose: Warp merges every variable assigned under a condition with a select, and selecting the
-    8x8 float64 accumulator per residual costs more than the residual itself; invalid residuals get weight 0."""
+    float64 accumulators per residual costs more than the residual itself; invalid residuals get weight 0."""
     kk, nrm = project_RKi(u, v, idp, RKi, pair.t, cam)
     s = sample_dI(dI_t, kk[0], kk[1])  # clamped: memory-safe even when outside
-    return coarse_residual_of_sample(kk, nrm, s, idp, host_color, live, pair, cam, photo, cutoff_th, max_energy)
-
-
-@wp.func
-def coarse_residual_of_sample(kk: wp.vec2, nrm: wp.vec3, s: wp.vec3, idp: float, host_color: float, live: bool,
-                              pair: FramePair, cam: Intrinsics, photo: PhotometricParams, cutoff_th: float,
-                              max_energy: float):
-    """:func:`coarse_residual` from the projection ``(kk, nrm)`` (:func:`project_RKi`) and the sample ``s`` there
-    (:func:`sample_dI`)."""
     ku = kk[0]
     kv = kk[1]
     front = nrm[2] > 0.0
     inside = in_margins(ku, kv, cam.width, cam.height, photo.border_lo, photo.border_hi)
     inside = inside and bilinear_inside(ku, kv, cam.width, cam.height)
-    ok = live and front and inside and finite(s[0])  # DSO checks the intensity only
+    ok = front and inside and finite(s[0])  # DSO checks the intensity only
     hc = host_color - pair.b_h
     r = wp.where(ok, (s[0] - pair.b_t) - pair.a_rel * hc, 0.0)
     sat = ok and wp.abs(r) > cutoff_th
@@ -224,7 +215,7 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
                 if npat == 8:
                     u = u + PATTERN[k, 0]
                     v = v + PATTERN[k, 1]
-                r, wgt, e, st, ok, sat, jf = coarse_residual(u, v, idp, ref_color[i, k], True, RKi, pair, cam, dI_t,
+                r, wgt, e, st, ok, sat, jf = coarse_residual(u, v, idp, ref_color[i, k], RKi, pair, cam, dI_t,
                                                              photo, params.cutoff_th, max_energy)
                 sums = counted(sums, e, ok, sat)
                 residual[i, k] = r

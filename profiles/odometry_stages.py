@@ -18,8 +18,8 @@ kernels included. Each stage is wrapped and charged its own time, its callees' w
   ``init_system`` (the initialiser's).
 
 Figures are CPU ms a frame (over all frames of the sequence) and the stage's call count; ``total`` is the thread's
-CPU over the run. On a shared machine compare runs taken one after the other, not across days. The trajectory is
-the same bits as ``profiles/odometry.py``'s with ``--threads 1`` (the wrappers only time).
+CPU over the run. On a shared machine compare runs taken one after the other, not across days. The wrappers only
+read the clock around the calls they wrap.
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ unchanged (about 36 s for all modules the first time on the 2-core machine, mill
 
 from __future__ import annotations
 
+import ctypes
 import importlib
 import pkgutil
 from pathlib import Path
@@ -27,7 +28,7 @@ def _kernel_modules() -> list[str]:
     names = []
     for pkg in (mgso_kernels, mgso_kernels.splat):
         for info in pkgutil.iter_modules(pkg.__path__, pkg.__name__ + "."):
-            if info.ispkg or info.name.rsplit(".", 1)[-1] in ("runtime",):
+            if info.ispkg or info.name == "mgso_kernels.runtime":
                 continue
             mod = importlib.import_module(info.name)
             if any(isinstance(v, wp.Kernel) and v.module.name == mod.__name__ for v in vars(mod).values()) or any(
@@ -47,7 +48,7 @@ def _ptx_arch() -> int:
 
         core = context.runtime.core
         n = int(core.wp_nvrtc_supported_arch_count())
-        archs = (n * __import__("ctypes").c_int)()
+        archs = (n * ctypes.c_int)()
         core.wp_nvrtc_supported_archs(archs)
         supported = sorted(int(a) for a in archs)
     except Exception as e:  # noqa: BLE001 - any failure here means: no CUDA compiler in this Warp build
