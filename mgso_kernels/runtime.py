@@ -19,6 +19,7 @@ Nothing here runs at import time: importing ``mgso_kernels`` neither initialises
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -253,6 +254,17 @@ def _get_pool(n: int) -> ThreadPoolExecutor:
         return _pool
 
 
+_CPU_DEVICES: dict[str, bool] = {}
+
+
+def _is_cpu(device: str) -> bool:
+    """``wp.get_device(device).is_cpu``, remembered by name (4 us a launch otherwise)."""
+    got = _CPU_DEVICES.get(device)
+    if got is None:
+        got = _CPU_DEVICES[device] = bool(wp.get_device(device).is_cpu)
+    return got
+
+
 def split_ranges(dim: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
     """Split ``range(dim)`` into at most ``parts`` contiguous ranges whose inner borders are multiples of ``align``."""
     if dim <= 0:
@@ -270,6 +282,12 @@ def split_ranges(dim: int, parts: int, align: int = 1) -> list[tuple[int, int]]:
             out.append((lo, hi))
         start_block = end_block
     return out
+
+
+@functools.lru_cache(maxsize=1024)
+def _split_ranges(dim: int, parts: int, align: int) -> tuple[tuple[int, int], ...]:
+    """:func:`split_ranges` remembered (a launch's sizes repeat from iteration to iteration; 5 us each time)."""
+    return tuple(split_ranges(dim, parts, align))
 
 
 def ensure_loaded(kernel: Any, device: str) -> None:
@@ -308,23 +326,33 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     if not args or args[0].label != "offset":
         raise TypeError(f"launch_split: kernel {kernel.key!r} must take `offset: int` as its first parameter")
     n = threads if threads is not None else cpu_threads()
-    is_cpu = wp.get_device(device).is_cpu
+    is_cpu = _is_cpu(device)
     parts = 1 if not is_cpu else max(1, min(n, dim // max(1, min_chunk)))
-    ranges = split_ranges(dim, parts, align)
+    ranges = _split_ranges(dim, parts, align)
     if recorded is not None and not record_tape:
         # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key
+        arr = wp.array
         key = (id(kernel), kernel.key, str(device), tuple(ranges),
-               tuple(id(a) if isinstance(a, wp.array) else None for a in inputs))
+               tuple([id(a) if type(a) is arr or isinstance(a, arr) else None for a in inputs]))
         entry = recorded.get(key)
         if entry is None:
             if len(recorded) >= 16:
                 recorded.clear()
             cmds = _record(kernel, ranges, inputs, device)
-            recorded[key] = (cmds, [kernel, *(a for a in inputs if isinstance(a, wp.array))])
+            recorded[key] = (cmds, [kernel, *(a for a in inputs if isinstance(a, wp.array))], list(inputs))
         else:
-            cmds = entry[0]
+            cmds, _, last = entry
             for i, a in enumerate(inputs):
-                if not isinstance(a, wp.array):
+                if a is last[i] or key[4][i] is not None:
+                    # an array (part of the key) or the very object of the last launch: a struct is held by
+                    # reference (its fields as they are now), a scalar is the same value
+                    continue
+                last[i] = a
+                if wp.types.is_struct(a):
+                    ct = a.__ctype__()  # what Warp's pack_arg makes of a struct, without its chain of type tests
+                    for c in cmds:
+                        c.set_param_at_index_from_ctype(i + 1, ct)
+                else:
                     for c in cmds:
                         c.set_param_at_index(i + 1, a)
         return _run(cmds)

@@ -37,9 +37,9 @@ import warp as wp
 
 from . import runtime
 from .image import bilinear_inside, finite, sample_dI
-from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, gradient_weight, huber_weight,
-                          in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi, vec8f, vec36d,
-                          write_symmetric8)
+from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, fill_frame_pair, gradient_weight,
+                          huber_weight, in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi,
+                          vec8f, vec36d, write_symmetric8)
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
@@ -317,6 +317,8 @@ class TrackWorkspace:
         self.n = 0
         self._params: dict = {}
         self.launches: dict = {}  # runtime.launch_split's recorded launches (the same arrays every iteration)
+        self._pair = FramePair()  # frame_pair's struct: one object, so a recorded launch holds it by reference
+        self._checked: tuple | None = None  # track_system's last inputs, checked (wp.arrays only)
 
     @property
     def residual(self) -> wp.array:
@@ -348,6 +350,13 @@ class TrackWorkspace:
                 self._params.clear()
             self._params[key] = got
         return got
+
+    def frame_pair(self, target_from_host: np.ndarray, a_h: float = 0.0, b_h: float = 0.0, a_t: float = 0.0,
+                   b_t: float = 0.0, exposure_h: float = 1.0, exposure_t: float = 1.0) -> FramePair:
+        """:func:`~mgso_kernels.photometric.make_frame_pair` into the workspace's own struct, valid until the next
+        call: an iterative tracker passes the same object every iteration, so :func:`track_system`'s recorded launch
+        sets no parameter at all (16 us an iteration against a new struct's 20 us plus 3 us to set it)."""
+        return fill_frame_pair(self._pair, target_from_host, a_h, b_h, a_t, b_t, exposure_h, exposure_t)
 
     @property
     def num_blocks(self) -> int:
@@ -394,22 +403,31 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
     """
     ws = workspace
     dev = ws.device
-    uv = _as_warp("host_uv", host_uv, wp.vec2, (2,), dev)
-    n = uv.shape[0]
-    idp = _as_warp("idepth", idepth, wp.float32, (), dev)
-    col = _as_warp("ref_color", ref_color, wp.float32, (ws.pattern_size,), dev)
-    if idp.shape != (n,) or col.shape != (n, ws.pattern_size):
-        raise ValueError(f"host_uv has {n} points but idepth is {idp.shape} and ref_color {col.shape} "
-                         f"(expected ({n},) and ({n}, {ws.pattern_size}))")
-    if n > ws.capacity:
-        raise ValueError(f"{n} points exceed the TrackWorkspace capacity {ws.capacity}")
-    if not isinstance(dI_t, wp.array) or dI_t.dtype != wp.vec3 or dI_t.ndim != 2:
-        raise TypeError("dI_t must be a 2-D wp.array of vec3 (I, dx, dy)")
-    if (dI_t.shape[1], dI_t.shape[0]) != (cam.width, cam.height):
-        raise ValueError(f"dI_t is {dI_t.shape[1]}x{dI_t.shape[0]} but cam says {cam.width}x{cam.height}")
+    last = ws._checked
+    if (last is not None and host_uv is last[0] and idepth is last[1] and ref_color is last[2] and dI_t is last[3]
+            and cam is last[4] and cam.width == last[5] and cam.height == last[6]):
+        # the arrays of the last call (an iteration of the same level): checked then, and a wp.array's shape and
+        # dtype cannot change (12 us an iteration)
+        uv, idp, col = host_uv, idepth, ref_color
+    else:
+        uv = _as_warp("host_uv", host_uv, wp.vec2, (2,), dev)
+        n = uv.shape[0]
+        idp = _as_warp("idepth", idepth, wp.float32, (), dev)
+        col = _as_warp("ref_color", ref_color, wp.float32, (ws.pattern_size,), dev)
+        if idp.shape != (n,) or col.shape != (n, ws.pattern_size):
+            raise ValueError(f"host_uv has {n} points but idepth is {idp.shape} and ref_color {col.shape} "
+                             f"(expected ({n},) and ({n}, {ws.pattern_size}))")
+        if n > ws.capacity:
+            raise ValueError(f"{n} points exceed the TrackWorkspace capacity {ws.capacity}")
+        if not isinstance(dI_t, wp.array) or dI_t.dtype != wp.vec3 or dI_t.ndim != 2:
+            raise TypeError("dI_t must be a 2-D wp.array of vec3 (I, dx, dy)")
+        if (dI_t.shape[1], dI_t.shape[0]) != (cam.width, cam.height):
+            raise ValueError(f"dI_t is {dI_t.shape[1]}x{dI_t.shape[0]} but cam says {cam.width}x{cam.height}")
+        ws.n = n
+        given = (host_uv is uv and idepth is idp and ref_color is col)  # NumPy inputs are converted every call
+        ws._checked = (uv, idp, col, dI_t, cam, cam.width, cam.height) if given else None
     if not cutoff_th > 0:
         raise ValueError(f"cutoff_th must be > 0, got {cutoff_th}")
-    ws.n = n
     photo, params = ws.params(huber_th, grad_c2, border_lo, border_hi, cutoff_th, flow_stride)
     kernel = REDUCE_KERNELS[(True, True) if ws.store_jacobians else (bool(with_system), False)]
     blocks = ws.num_blocks
@@ -422,9 +440,8 @@ def track_system(host_uv, idepth, ref_color, pair: FramePair, cam: Intrinsics, d
                              min_chunk=max(1, SPLIT_MIN_POINTS // (ws.points_per_block * ws.pattern_size)),
                              threads=(threads if split else 1), recorded=ws.launches)
     part = ws.partials_host if ws.partials_host is not None else ws.partials_.numpy()
-    s = part[:blocks].sum(axis=0) if blocks else np.zeros(NUM_SLOTS)
-    return TrackingSystem(
-        H=s[SLOT_H:SLOT_H + 64].reshape(8, 8).copy(), b=s[SLOT_B:SLOT_B + 8].copy(), energy=float(s[SLOT_ENERGY]),
-        num_terms=int(s[SLOT_NUM_TERMS]), num_inliers=int(s[SLOT_NUM_INLIERS]),
-        num_saturated=int(s[SLOT_NUM_SATURATED]), flow_t_sum=float(s[SLOT_FLOW_T]),
-        flow_rt_sum=float(s[SLOT_FLOW_RT]), flow_count=int(s[SLOT_FLOW_COUNT]))
+    s = part[:blocks].sum(axis=0) if blocks else np.zeros(NUM_SLOTS)  # a new array: H and b may be views of it
+    e, terms, inl, sat, ft, frt, fc = s[SLOT_ENERGY:NUM_SLOTS].tolist()
+    return TrackingSystem(H=s[SLOT_H:SLOT_H + 64].reshape(8, 8), b=s[SLOT_B:SLOT_B + 8], energy=e,
+                          num_terms=int(terms), num_inliers=int(inl), num_saturated=int(sat), flow_t_sum=ft,
+                          flow_rt_sum=frt, flow_count=int(fc))

@@ -36,7 +36,7 @@ import warp as wp
 from mgso.arrays import unique
 from mgso_kernels.image import ImagePyramid, PyramidGeometry
 from mgso_kernels import runtime
-from mgso_kernels.photometric import PATTERN_NP, make_frame_pair, make_intrinsics, affine_from_to
+from mgso_kernels.photometric import PATTERN_NP, make_intrinsics, affine_from_to
 from mgso_kernels.track import TrackWorkspace, TrackingSystem, track_system
 
 from ..config import TrackingConfig
@@ -411,9 +411,10 @@ class CoarseTracker:
     def _system(self, lvl: int, T: np.ndarray, aff, exposure: float, dI: wp.array, cutoff: float) -> TrackingSystem:
         ref = self.reference
         L = ref.levels[lvl]
-        pair = make_frame_pair(T, ref.affine[0], ref.affine[1], aff[0], aff[1], ref.exposure, exposure)
+        ws = self.workspaces[lvl]
+        pair = ws.frame_pair(T, ref.affine[0], ref.affine[1], aff[0], aff[1], ref.exposure, exposure)
         c = self.config
-        return track_system(L.uv, L.idepth, L.color, pair, self.cams[lvl], dI, self.workspaces[lvl],
+        return track_system(L.uv, L.idepth, L.color, pair, self.cams[lvl], dI, ws,
                             cutoff_th=cutoff, huber_th=c.huber_th, flow_stride=c.coarse_flow_stride if lvl == 0 else 0)
 
     @staticmethod
