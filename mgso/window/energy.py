@@ -159,6 +159,8 @@ class WindowProblem:
                                             huber_th=tracking.huber_th, grad_c2=tracking.outlier_th_sum_component)
         self.images = window.dI0_  # [K, H, W] level-0 (I, dx, dy), indexed by slot
         self._cache: dict = {}  # linearize_window's plan and buffers (the pairs are fixed for the problem)
+        self._gauge_basis: np.ndarray | None = None  # orthogonalize's normalised nullspace columns
+        self._keys_zero: tuple | None = None  # keys()' parts at the linearisation points
         self.S = np.tile(frame_scale(), self.K)
         # gauge / affine priors on the scaled frame parameters
         self.frame_prior = np.zeros(self.nf)
@@ -243,18 +245,23 @@ class WindowProblem:
         w = self.window
         hs, gs = self._key_host, self._key_target
         T = w.world_to_cam_[gs] @ se3_inverse(w.world_to_cam_[hs])
-        T0 = w.world_to_cam_zero_[gs] @ se3_inverse(w.world_to_cam_zero_[hs])
         af, ex = w.affine_.tolist(), w.exposure_.tolist()  # Python floats: Window.affine_rel, a tenth of its cost
         a_rel = np.array([affine_from_to(*af[h], *af[g], ex[h], ex[g])[0] for h, g in self.keylist])
         aff = np.stack([a_rel, w.affine_[hs, 1], w.affine_[gs, 1]], axis=1).reshape(len(hs), 3)
-        R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
-        adj = np.zeros((len(hs), 6, 6))  # se3_adjoint(T0), (v, w) order
-        adj[:, :3, :3] = R0
-        adj[:, :3, 3:] = hat(t0) @ R0
-        adj[:, 3:, 3:] = R0
+        if self._keys_zero is None:  # the linearisation points do not move during the problem's life
+            T0 = w.world_to_cam_zero_[gs] @ se3_inverse(w.world_to_cam_zero_[hs])
+            R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
+            adj = np.zeros((len(hs), 6, 6))  # se3_adjoint(T0), (v, w) order
+            adj[:, :3, :3] = R0
+            adj[:, :3, 3:] = hat(t0) @ R0
+            adj[:, 3:, 3:] = R0
+            self._keys_zero = tuple(a.copy() for a in (R0, t0, adj, hs.astype(np.int32), gs.astype(np.int32)))
+            for a in self._keys_zero:
+                a.setflags(write=False)  # shared by every step's keys: read-only
+        R0, t0, adj, h32, g32 = self._keys_zero
         th = np.maximum(w.energy_th_[hs], w.energy_th_[gs]) if energy_th is None else np.asarray(energy_th)
-        return kw.WindowKeys(hs.astype(np.int32), gs.astype(np.int32), T[:, :3, :3].copy(), T[:, :3, 3].copy(),
-                             R0.copy(), t0.copy(), aff, th.astype(np.float64), adj)
+        return kw.WindowKeys(h32, g32, T[:, :3, :3].copy(), T[:, :3, 3].copy(), R0, t0, aff, th.astype(np.float64),
+                             adj)
 
     def linearize_pairs(self, keys: kw.WindowKeys | None = None) -> kw.PairLinearization:
         a = self.window.active
@@ -343,9 +350,11 @@ class WindowProblem:
 
     def orthogonalize(self, x: np.ndarray) -> np.ndarray:
         """Remove the gauge directions from a step (DSO ``orthogonalize`` with ``SOLVER_ORTHOGONALIZE_X``)."""
-        N = self.nullspaces()
-        norms = np.linalg.norm(N, axis=0)
-        N = N[:, norms > 1e-12] / norms[norms > 1e-12]
+        N = self._gauge_basis
+        if N is None:  # the linearisation points do not move during the problem's life: made once (0.4 ms a step)
+            N = self.nullspaces()
+            norms = np.linalg.norm(N, axis=0)
+            N = self._gauge_basis = N[:, norms > 1e-12] / norms[norms > 1e-12]
         if not N.shape[1]:
             return x
         return x - N @ np.linalg.lstsq(N, x, rcond=1e-10)[0]
