@@ -309,8 +309,11 @@ def test_the_reference_dso_row(bench_dir, tmp_path):
 
     fake = tmp_path / "dso_dataset"
     spec = tmp_path / "spec.yaml"
+    cpu_ms = {}
     for code, status in ((0, "ok"), (3, "failed")):
-        fake.write_text(f"#!/bin/sh\nexit {code}\n")
+        # the run that succeeds also spends CPU (a shell loop, ~0.3 s), so the row's process CPU must see the child's
+        busy = "i=0; while [ $i -lt 100000 ]; do i=$((i+1)); done\n" if code == 0 else ""
+        fake.write_text(f"#!/bin/sh\n{busy}exit {code}\n")
         fake.chmod(0o755)
         spec.write_text(f"data_root: {bench_dir / 'data'}\nstage: odometry\nseeds: [0, 1]\nsequences: [a, b]\n"
                         f"variants: {{odo: {{}}}}\nreference_dso: {{binary: {fake}}}\n")
@@ -320,8 +323,11 @@ def test_the_reference_dso_row(bench_dir, tmp_path):
         rec = run_task(t.as_dict(), str(tmp_path / f"run{code}"))
         assert rec["status"] == status, rec
         assert rec["metrics"]["dso"]["frames"] == 24 and rec["metrics"]["dso"]["returncode"] == code
+        cpu_ms[code] = rec["metrics"]["dso"]["process_cpu_ms_per_frame"] * 24
         if code:
             assert rec["error"] == "dso_dataset exited with 3"
+    # the DSO process's CPU time (getrusage of the children): the busy run's loop counted, the bare exit's nearly not
+    assert cpu_ms[0] > 50 and cpu_ms[3] < 0.5 * cpu_ms[0], cpu_ms
     fake.chmod(0o644)
     with pytest.raises(SpecError, match=r"reference_dso\.binary: .*not an executable file"):
         load_spec(spec)
