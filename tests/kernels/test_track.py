@@ -203,3 +203,36 @@ def test_gauss_newton_on_the_system_recovers_a_known_shift(wp_device):
     moved = np.array([CAM["fx"] * P[0] / P[2], CAM["fy"] * P[1] / P[2]]) + c
     np.testing.assert_allclose(moved - c, [1.5, -0.7], atol=0.05)
     assert np.exp(a_t) == pytest.approx(1.1, abs=0.01) and b_t == pytest.approx(4.0, abs=1.5)
+
+
+def test_a_reused_workspace_and_pair_give_a_fresh_ones_results(wp_device, setup):
+    """The tracker reuses one workspace a level and refills its own ``FramePair`` (``TrackWorkspace.frame_pair``);
+    ``track_system`` skips the checks of the arrays it saw last and the recorded launch sets only what changed. Two
+    references of different sizes and two poses, alternated on one workspace, give bitwise what a new workspace and a
+    new ``make_frame_pair`` give each time; the refilled struct equals ``make_frame_pair``'s field by field."""
+    _, dI_h, dI_t, uv, idepth = setup
+    cam = ph.make_intrinsics(**CAM, width=W, height=H)
+    dI = wp.array(dI_t, dtype=wp.vec3, device=wp_device)
+    refs = []
+    for n in (2000, 700):  # two references: the second smaller, so a stale point count would show
+        refs.append((wp.array(uv[:n], dtype=wp.vec2, device=wp_device),
+                     wp.array(idepth[:n], dtype=wp.float32, device=wp_device),
+                     wp.array(ref_colors(dI_h, uv[:n], 1), dtype=wp.float32, device=wp_device)))
+    poses = [make_pose(so3_exp([0.004, -0.006, 0.002]), [0.01, -0.004, 0.02]),
+             se3_exp([0.02, 0.0, -0.01, 0.0, 0.003, 0.0])]
+    ws = tk.TrackWorkspace(len(uv), 1, wp_device)
+    for step in range(6):
+        r, T = refs[step % 2], poses[(step // 2) % 2]
+        pair = ws.frame_pair(T, 0.05, 2.0, 0.1, -3.0, 1.0, 2.0)
+        fresh_pair = ph.make_frame_pair(T, 0.05, 2.0, 0.1, -3.0, 1.0, 2.0)
+        assert np.array_equal(np.asarray(pair.R), np.asarray(fresh_pair.R)) and np.array_equal(
+            np.asarray(pair.t), np.asarray(fresh_pair.t))
+        assert (pair.a_rel, pair.b_h, pair.b_t) == (fresh_pair.a_rel, fresh_pair.b_h, fresh_pair.b_t)
+        got = tk.track_system(*r, pair, cam, dI, ws)
+        want = tk.track_system(*r, fresh_pair, cam, dI, tk.TrackWorkspace(len(uv), 1, wp_device))
+        assert ws.n == r[0].shape[0]
+        assert np.array_equal(got.H, want.H) and np.array_equal(got.b, want.b), step
+        assert (got.energy, got.num_terms, got.num_inliers, got.flow_count) == (
+            want.energy, want.num_terms, want.num_inliers, want.flow_count), step
+    with pytest.raises(ValueError, match="finite 4x4"):
+        ws.frame_pair(np.full((4, 4), np.nan))
