@@ -157,7 +157,7 @@ def accumulate_init_system(offset: int,
         jr = float(0.0)
         jd = float(0.0)
         e_pt = float(0.0)
-        ms = float(1.0e10)
+        s_max = float(0.0)  # the largest squared pixel step a unit of inverse depth moves a valid pixel
         all_ok = bool(True)
         for k in range(8):
             hx = (c[0] + PATTERN[k, 0] - params.cx) * params.ifx
@@ -200,7 +200,7 @@ def accumulate_init_system(offset: int,
             rr = hws * res * m
             sx = dxdd * params.fx
             sy = dydd * params.fy
-            ms = wp.min(ms, wp.where(ok, 1.0 / wp.sqrt(sx * sx + sy * sy), 1.0e10))
+            s_max = wp.max(s_max, wp.where(ok, sx * sx + sy * sy, 0.0))
             jbv += dd * J
             jr += rr * dd
             jd += dd * dd
@@ -213,6 +213,10 @@ def accumulate_init_system(offset: int,
             h6 += J[6] * J
             h7 += J[7] * J
             gp += rr * J
+        # DSO's maxstep, min over the pixels of 1 / |step|, taken once at the largest step: a correctly rounded sqrt
+        # and reciprocal are monotonic, so this is the per-pixel minimum to the bit (one sqrt and one division a point
+        # instead of eight); no valid pixel (or no step) leaves 1e10
+        ms = wp.where(s_max > 0.0, wp.min(1.0 / wp.sqrt(s_max), 1.0e10), 1.0e10)
         good_new = good and all_ok and e_pt <= params.max_energy and finite(e_pt)
         # regularised inverse-depth terms (DSO: only for the points that stay good)
         idd = wp.float64(idn)
