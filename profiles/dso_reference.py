@@ -14,7 +14,7 @@ odometry does); mode 1 is "no photometric calibration". Prints one JSON line per
 frame (image decoding included, as in ``profiles/odometry.py``), the process's CPU time a frame
 (``process_cpu_ms_per_frame``: all its threads, user + system, from ``getrusage``; the figure to set beside
 ``profiles/odometry.py``'s ``cpu_ms_per_frame``), DSO's own "ms per frame (single core)" (``dso_cpu_ms_per_frame``:
-``clock()``, restarted on every frame until DSO's initialiser succeeds, so its initialisation is left out: 6-7 % of
+``clock()``, restarted on every frame until DSO's initialiser succeeds, so its initialisation is left out: 6-8 % of
 the process's CPU on both excerpts, 2026-12-03), and the ATE (Sim(3), ``evo_ape -as`` as mgso computes it) of
 DSO's ``result.txt``, which holds only the keyframes DSO marginalised (``setting_onlyLogKFPoses``).
 
