@@ -331,15 +331,14 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     ranges = _split_ranges(dim, parts, align)
     if recorded is not None and not record_tape:
         # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key
-        arr = wp.array
         key = (id(kernel), kernel.key, str(device), tuple(ranges),
-               tuple([id(a) if type(a) is arr or isinstance(a, arr) else None for a in inputs]))
+               tuple([id(a) if isinstance(a, wp.array) else None for a in inputs]))
         entry = recorded.get(key)
         if entry is None:
             if len(recorded) >= 16:
                 recorded.clear()
             cmds = _record(kernel, ranges, inputs, device)
-            recorded[key] = (cmds, [kernel, *(a for a in inputs if isinstance(a, wp.array))], list(inputs))
+            recorded[key] = (cmds, kernel, list(inputs))  # the inputs of the last launch, arrays kept alive
         else:
             cmds, _, last = entry
             for i, a in enumerate(inputs):

@@ -355,7 +355,7 @@ class TrackWorkspace:
                    b_t: float = 0.0, exposure_h: float = 1.0, exposure_t: float = 1.0) -> FramePair:
         """:func:`~mgso_kernels.photometric.make_frame_pair` into the workspace's own struct, valid until the next
         call: an iterative tracker passes the same object every iteration, so :func:`track_system`'s recorded launch
-        sets no parameter at all (16 us an iteration against a new struct's 20 us plus 3 us to set it)."""
+        sets no parameter at all (a 64-point iteration, pair and system: 45-55 us against 75-80 us, new structs)."""
         return fill_frame_pair(self._pair, target_from_host, a_h, b_h, a_t, b_t, exposure_h, exposure_t)
 
     @property
