@@ -90,12 +90,12 @@ class Linearization:
     """One linearisation of a :class:`WindowProblem` at its current state (scaled units where it matters)."""
 
     pairs: kw.PairLinearization
-    schur: kw.PointSchur
+    schur: kw.PointSchur | None  # None (and H, b, H_sc too): linearised for the energy only (``system=False``)
     energy: float  # total: photometric + priors
     energy_photo: float
-    H: np.ndarray  # [8K, 8K] scaled reduced-system matrix (without damping)
-    b: np.ndarray  # [8K] scaled reduced-system gradient
-    H_sc: np.ndarray  # [8K, 8K] scaled Schur term (in H with a minus sign; damping divides it by 1 + lambda)
+    H: np.ndarray | None  # [8K, 8K] scaled reduced-system matrix (without damping)
+    b: np.ndarray | None  # [8K] scaled reduced-system gradient
+    H_sc: np.ndarray | None  # [8K, 8K] scaled Schur term (in H with a minus sign; damping divides it by 1 + lambda)
 
 
 @dataclass
@@ -303,26 +303,33 @@ class WindowProblem:
             return eh, np.zeros_like(eh)
         return eh, eh * (d - self.idepth_prior_centre)
 
-    def linearize(self, keys: kw.WindowKeys | None = None) -> Linearization:
+    def linearize(self, keys: kw.WindowKeys | None = None, system: bool = True) -> Linearization:
+        """The pairs, the energy and (``system``) the reduced system at the current state; ``system=False`` leaves
+        the Schur complement and the system out (``None``): a linearisation no step is solved from (the last one of
+        :func:`optimize_window`) needs only the pairs and the energy."""
         keys = keys or self.keys()
         lin = self.linearize_pairs(keys)
-        eh, eb = self.point_extras()
-        sc = kw.schur_points(lin, keys, self.pair_key, self.point_start, self.K, eh, eb, device=self.device)
-        Htop, btop = self.top_system(keys, lin)
-        S = self.S
         delta = self.delta()
-        Hsc = sc.H_sc * np.outer(S, S)
-        H = Htop * np.outer(S, S) - Hsc + np.diag(self.frame_prior)
-        b = (btop - sc.b_sc) * S + self.frame_prior * delta
         e_photo = float(np.sum(lin.energy))
         d = self.window.active.idepth[self.points].astype(np.float64)
         e = e_photo + float(np.sum(self.frame_prior * delta * delta))
         if self.idepth_prior_centre is not None:
             e += float(np.sum(self.depth_prior * (d - self.idepth_prior_centre) ** 2))
-        if self.prior is not None and not self.prior.empty:
+        has_prior = self.prior is not None and not self.prior.empty
+        if has_prior:
+            e += self.prior.energy(delta)
+        if not system:
+            return Linearization(lin, None, e, e_photo, None, None, None)
+        eh, eb = self.point_extras()
+        sc = kw.schur_points(lin, keys, self.pair_key, self.point_start, self.K, eh, eb, device=self.device)
+        Htop, btop = self.top_system(keys, lin)
+        S = self.S
+        Hsc = sc.H_sc * np.outer(S, S)
+        H = Htop * np.outer(S, S) - Hsc + np.diag(self.frame_prior)
+        b = (btop - sc.b_sc) * S + self.frame_prior * delta
+        if has_prior:
             H = H + self.prior.H
             b = b + self.prior.gradient(delta)
-            e += self.prior.energy(delta)
         return Linearization(lin, sc, e, e_photo, H, b, Hsc)
 
     def nullspaces(self) -> np.ndarray:
@@ -425,8 +432,12 @@ def optimize_window(problem: WindowProblem, config: WindowConfig, timer: dict | 
             continue
         backup = problem.backup()
         problem.apply_step(dx_c, dx_d)
+        stop = it == s.iterations or (_can_break(problem, dx_c, s) and it >= s.min_iterations)
         t0 = time.perf_counter()
-        L_new = problem.linearize()
+        # the step that ends the loop is solved from no more: its linearisation is the energy and the pairs' states
+        # only (the Schur complement and the system were a third of a linearisation; DSO too accumulates its
+        # Hessians only to solve)
+        L_new = problem.linearize(system=not stop)
         tick("linearize", t0)
         if L_new.energy < L.energy or (s.force_accept and np.isfinite(L_new.energy)):
             L = L_new
@@ -437,18 +448,21 @@ def optimize_window(problem: WindowProblem, config: WindowConfig, timer: dict | 
             problem.restore(backup)
             lam *= s.lambda_reject
             continue  # the break test judges steps that were taken
-        # DSO doStepFromBackup's break test on the (scaled) step
-        nfr = max(len(problem.order), 1)
-        st = dx_c.reshape(-1, 8)[problem.order]
-        sum_t = float(np.sum(st[:, :3] ** 2)) / nfr
-        sum_r = float(np.sum(st[:, 3:6] ** 2)) / nfr
-        sum_a = float(np.sum(st[:, 6] ** 2)) / nfr
-        sum_b = float(np.sum(st[:, 7] ** 2)) / nfr
-        sum_nid = float(np.mean(np.abs(problem.window.active.idepth[problem.points]))) if len(problem.points) else 1
-        th = s.th_opt_iterations
-        can_break = (np.sqrt(sum_a) < 0.0005 * th and np.sqrt(sum_b) < 0.00005 * th
-                     and np.sqrt(sum_r) < 0.00005 * th and np.sqrt(sum_t) * sum_nid < 0.00005 * th)
-        if can_break and it >= s.min_iterations:
+        if stop:
             break
     return L, OptimizeStats(it, accepted, e0, L.energy, len(problem.pair_point), len(problem.points), times,
                              history)
+
+
+def _can_break(problem: WindowProblem, dx_c: np.ndarray, s: WindowConfig) -> bool:
+    """DSO ``doStepFromBackup``'s break test on the (scaled) step just applied (the inverse depths are the new ones)."""
+    nfr = max(len(problem.order), 1)
+    st = dx_c.reshape(-1, 8)[problem.order]
+    sum_t = float(np.sum(st[:, :3] ** 2)) / nfr
+    sum_r = float(np.sum(st[:, 3:6] ** 2)) / nfr
+    sum_a = float(np.sum(st[:, 6] ** 2)) / nfr
+    sum_b = float(np.sum(st[:, 7] ** 2)) / nfr
+    sum_nid = float(np.mean(np.abs(problem.window.active.idepth[problem.points]))) if len(problem.points) else 1
+    th = s.th_opt_iterations
+    return bool(np.sqrt(sum_a) < 0.0005 * th and np.sqrt(sum_b) < 0.00005 * th
+                and np.sqrt(sum_r) < 0.00005 * th and np.sqrt(sum_t) * sum_nid < 0.00005 * th)

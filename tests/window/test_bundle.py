@@ -278,3 +278,38 @@ def test_orthogonalize_from_projects_the_later_steps_only(wp_device, seq):
     along = [np.linalg.norm(N.T @ dx) / np.linalg.norm(dx) for _, dx in steps]
     assert along[0] > 1e-6 and along[1] > 1e-6, along
     assert along[2] < 1e-9 and along[3] < 1e-9, along
+
+
+@pytest.mark.parametrize("settings", [dict(iterations=4, th_opt_iterations=0.0),  # ends on its iteration count
+                                      dict(iterations=6, th_opt_iterations=1e6, min_iterations=2)])  # on the break
+def test_the_last_linearisation_skips_the_system_and_changes_nothing(wp_device, seq, settings, monkeypatch):
+    """The linearisation after the step that ends the loop is solved from no more: it is made without the Schur
+    complement and the reduced system, and the window ends bit for bit where linearising everything every time
+    leaves it (states, inverse depths, energies, pair states)."""
+    s = WindowConfig(**settings)
+    runs = {}
+    for variant in ("lazy", "full"):
+        w, _ = window_from_sequence(seq, FRAMES, points_per_kf=40, pose_noise=0.004, depth_noise=0.05)
+        p = WindowProblem(w, s, MarginalizationPrior(w.capacity), first_slots=(w.order[0],))
+        calls = []
+        linearize = WindowProblem.linearize
+
+        def recording(self, keys=None, system=True, _variant=variant, _calls=calls, _f=linearize):
+            _calls.append(system)
+            return _f(self, keys, system or _variant == "full")
+
+        monkeypatch.setattr(WindowProblem, "linearize", recording)
+        L, stats = optimize_window(p, s)
+        monkeypatch.undo()
+        runs[variant] = (w, L, stats, calls)
+    (w0, L0, st0, calls), (w1, L1, st1, _) = runs["lazy"], runs["full"]
+    assert st0.iterations == st1.iterations and st0.accepted == st1.accepted
+    assert st0.iterations < s.iterations if settings["th_opt_iterations"] > 1 else st0.iterations == s.iterations
+    assert calls == [True] * st0.iterations + [False]  # the first and every step solved from; not the last
+    assert L0.schur is None and L0.H is None and L1.schur is not None
+    assert L0.energy == L1.energy and st0.history == st1.history
+    np.testing.assert_array_equal(L0.pairs.state, L1.pairs.state)
+    np.testing.assert_array_equal(L0.pairs.energy, L1.pairs.energy)
+    np.testing.assert_array_equal(w0.world_to_cam_, w1.world_to_cam_)
+    np.testing.assert_array_equal(w0.affine_, w1.affine_)
+    np.testing.assert_array_equal(w0.active.idepth, w1.active.idepth)
