@@ -23,7 +23,7 @@ import numpy as np
 from ..camera import Calibration
 from ..config import InputConfig
 from .errors import DatasetError
-from .images import check_increasing
+from .images import check_increasing, decode_image, is_jpeg, read_bytes
 from .trajectory import Trajectory, matching_time_indices
 
 __all__ = ["Frame", "Sequence", "poses_at_times"]
@@ -186,6 +186,12 @@ class Sequence(abc.ABC):
     def _source(self, k: int) -> str:
         """Where underlying frame ``k`` comes from (a path), for messages."""
 
+    def _image_file(self, k: int) -> Path | None:
+        """The image file of underlying frame ``k`` when the layout keeps one file a frame (``_read`` decodes it as
+        stored), ``None`` otherwise (a video, an archive). :meth:`load` then reads the file once and decodes a JPEG's
+        gray straight from its luma plane, its colour only when the frame's RGB is asked for (keyframes)."""
+        return None
+
     def _read_depth(self, k: int) -> np.ndarray | None:
         """Depth of underlying frame ``k`` in metres, float32, input geometry; ``None`` when absent."""
         return None
@@ -225,21 +231,35 @@ class Sequence(abc.ABC):
             return float(1.0 / np.median(np.diff(ts)))
         return float(self.config.fps) / self.config.stride
 
-    def load_raw(self, i: int) -> np.ndarray:
-        """The raw decoded image of frame ``i`` (input geometry, as stored), with its size checked."""
-        k = self._k(i)
-        raw = self._read(k)
+    def _sized(self, raw: np.ndarray, k: int) -> np.ndarray:
         w, h = self.calibration.input_size
         if raw.shape[1] != w or raw.shape[0] != h:
             raise DatasetError(f"{self._source(k)}: image is {raw.shape[1]}x{raw.shape[0]} but the calibration "
                                f"({self.calibration.source or 'camera'}) and the other images are {w}x{h}")
         return raw
 
-    def load(self, i: int) -> Frame:
-        """Decode, photometrically correct and undistort frame ``i``."""
-        raw = self.load_raw(i)
+    def load_raw(self, i: int) -> np.ndarray:
+        """The raw decoded image of frame ``i`` (input geometry, as stored), with its size checked."""
         k = self._k(i)
-        gray_raw = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
+        return self._sized(self._read(k), k)
+
+    def load(self, i: int) -> Frame:
+        """Decode, photometrically correct and undistort frame ``i``.
+
+        A JPEG file's gray is its luma plane, decoded without the colour (what the reference DSO reads; within one
+        grey level of converting the decoded colour); the colour is decoded from the file's bytes, kept with the frame,
+        when its RGB is first asked for. Other images are decoded once, as stored, and converted."""
+        k = self._k(i)
+        path = self._image_file(k)
+        data = read_bytes(path) if path is not None else None
+        if data is not None and is_jpeg(data):
+            src = self._source(k)
+            gray_raw = self._sized(decode_image(data, src, gray=True), k)
+            raw_of: Callable[[], np.ndarray] = lambda: self._sized(decode_image(data, src), k)  # noqa: E731
+        else:
+            raw = self._sized(self._read(k) if data is None else decode_image(data, self._source(k)), k)
+            gray_raw = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
+            raw_of = lambda: raw  # noqa: E731
         try:
             gray = self.calibration.gray_from_raw(gray_raw, photometric=self.config.photometric)
         except DatasetError:
@@ -249,7 +269,7 @@ class Sequence(abc.ABC):
         calib = self.calibration
         exp = None if self._exp_all is None else float(self._exp_all[k])
         return Frame(i if i >= 0 else i + len(self), float(self._ts_all[k]), gray, exp, self._source(k),
-                     rgb_fn=lambda: calib.rgb_from_raw(raw), valid=calib.valid_mask)
+                     rgb_fn=lambda: calib.rgb_from_raw(raw_of()), valid=calib.valid_mask)
 
     __getitem__ = load
 

@@ -143,6 +143,9 @@ class TumRgbdSequence(Sequence):
     def _read(self, k: int) -> np.ndarray:
         return read_image(self._files[k])
 
+    def _image_file(self, k: int) -> Path:
+        return self._files[k]
+
     def _source(self, k: int) -> str:
         return str(self._files[k])
 
