@@ -246,9 +246,11 @@ class Sequence(abc.ABC):
     def load(self, i: int) -> Frame:
         """Decode, photometrically correct and undistort frame ``i``.
 
-        A JPEG file's gray is its luma plane, decoded without the colour (what the reference DSO reads; within one
-        grey level of converting the decoded colour); the colour is decoded from the file's bytes, kept with the frame,
-        when its RGB is first asked for. Other images are decoded once, as stored, and converted."""
+        A JPEG file's gray is its luma plane, decoded without the colour (what the reference DSO reads; the decoded
+        colour converted differs only where saturated colour clips: 0.8 % of 7-Scenes' pixels, at most 8 grey levels);
+        the colour is decoded from the file's bytes, kept with the frame, when its RGB is first asked for (a colour
+        decode that fails then raises the same :class:`DatasetError`). Other images are decoded once, as stored, and
+        converted."""
         k = self._k(i)
         path = self._image_file(k)
         data = read_bytes(path) if path is not None else None
