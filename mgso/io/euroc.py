@@ -215,9 +215,6 @@ class EurocSequence(Sequence):
                          groundtruth_source=gt_src, color=first.ndim == 3, name=root.resolve().name,
                          nominal_fps=None)  # measured: EuRoC-format recordings of other rigs differ
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 

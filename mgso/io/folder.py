@@ -93,9 +93,6 @@ class ImageFolderSequence(Sequence):
                          groundtruth=gt, groundtruth_source=gt_src, color=first.ndim == 3,
                          name=folder.resolve().name, nominal_fps=None if times.is_file() else config.fps)
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 

@@ -155,9 +155,6 @@ class KittiSequence(Sequence):
             raise DatasetError(f"{path}: {len(traj)} KITTI poses, but frame {ids.max()} is among the images")
         return traj.cam_to_world[ids]
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 

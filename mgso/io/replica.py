@@ -132,9 +132,6 @@ class ReplicaSequence(Sequence):
                          groundtruth_source=gt_src, color=first.ndim == 3, has_depth=bool(self._depth_files),
                          name=folder.resolve().name, nominal_fps=config.fps)
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..camera import Calibration
 from ..config import InputConfig
 from .errors import DatasetError
-from .images import check_increasing, decode_image, is_jpeg, read_bytes
+from .images import check_increasing, decode_image, is_jpeg, read_bytes, read_image
 from .trajectory import Trajectory, matching_time_indices
 
 __all__ = ["Frame", "Sequence", "poses_at_times"]
@@ -178,18 +178,24 @@ class Sequence(abc.ABC):
         return int(self._indices[i])
 
     # ------------------------------------------------------------------------------------------- raw access
-    @abc.abstractmethod
     def _read(self, k: int) -> np.ndarray:
-        """Raw decoded image of underlying frame ``k``: uint8/uint16, gray ``[H, W]`` or BGR ``[H, W, 3]``."""
+        """Raw decoded image of underlying frame ``k``: uint8/uint16, gray ``[H, W]`` or BGR ``[H, W, 3]``. By
+        default the layout's :meth:`_image_file`, decoded as stored; a layout without one file a frame (a video, an
+        archive) overrides this."""
+        path = self._image_file(k)
+        if path is None:
+            raise NotImplementedError(f"{type(self).__name__} has neither _read nor _image_file")
+        return read_image(path)
 
     @abc.abstractmethod
     def _source(self, k: int) -> str:
         """Where underlying frame ``k`` comes from (a path), for messages."""
 
     def _image_file(self, k: int) -> Path | None:
-        """The image file of underlying frame ``k`` when the layout keeps one file a frame (``_read`` decodes it as
-        stored), ``None`` otherwise (a video, an archive). :meth:`load` then reads the file once and decodes a JPEG's
-        gray straight from its luma plane, its colour only when the frame's RGB is asked for (keyframes)."""
+        """The image file of underlying frame ``k`` when the layout keeps one file a frame (:meth:`_read` decodes it
+        as stored), ``None`` otherwise (a video, an archive: those override :meth:`_read`). :meth:`load` then reads
+        the file once and decodes a JPEG's gray straight from its luma plane, its colour only when the frame's RGB is
+        asked for (keyframes)."""
         return None
 
     def _read_depth(self, k: int) -> np.ndarray | None:

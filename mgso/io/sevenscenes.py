@@ -129,9 +129,6 @@ class SevenScenesSequence(Sequence):
                 raise DatasetError(f"{f}: expected a 3x3 matrix (the depth camera's intrinsics)") from None
         return PinholeCamera(585.0, 585.0, 320.0, 240.0, *size)
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 

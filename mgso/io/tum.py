@@ -140,9 +140,6 @@ class TumRgbdSequence(Sequence):
             return [(depth_dir / f.name) if (depth_dir / f.name).is_file() else None for f in files]
         return [None] * len(ts)
 
-    def _read(self, k: int) -> np.ndarray:
-        return read_image(self._files[k])
-
     def _image_file(self, k: int) -> Path:
         return self._files[k]
 
