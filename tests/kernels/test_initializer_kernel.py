@@ -188,3 +188,25 @@ def test_empty_level(wp_device):
                        **outputs(0, np.zeros(0, np.float32)))
     assert s.num_good == 0 and s.energy == 0 and not np.any(s.H) and not np.any(s.Hsc)
     ik.smooth_idepths(ws, is_good=state["is_good"], iR=state["iR"], idepth=state["idepth"], reg_weight=0.8)
+
+
+def test_smooth_idepths_median_of_every_zero_one_pattern(wp_device):
+    """The median comes from a sorting network: checked on every assignment of 0, 1 or "not a good neighbour" to the
+    10 slots (3^10 points; by the 0-1 principle a comparator network that selects correctly on every 0-1 input does
+    on every input), with reg_weight 1 so that the output is the median itself."""
+    pool = 3  # point 0: value 0, point 1: value 1, point 2: not good
+    digits = np.arange(3 ** ik.NUM_NEIGHBOURS)[:, None] // 3 ** np.arange(ik.NUM_NEIGHBOURS)[None, :] % 3
+    n = pool + len(digits)
+    nb = np.concatenate([np.full((pool, ik.NUM_NEIGHBOURS), -1), digits]).astype(np.int64)
+    is_good = np.ones(n, bool)
+    is_good[2] = False
+    iR = np.full(n, 7.0, np.float32)
+    iR[:3] = (0.0, 1.0, 5.0)
+    idepth = np.full(n, 3.0, np.float32)
+    want = ref.smooth_idepths(nb, is_good, iR, idepth, 1.0)
+    ws = ik.InitWorkspace(np.zeros((n, 2), np.float32), np.zeros((n, 8), np.float32), wp_device, neighbours=nb)
+    got = iR.copy()
+    ik.smooth_idepths(ws, is_good=is_good, iR=got, idepth=idepth, reg_weight=1.0)
+    cnt = (digits < 2).sum(axis=1)
+    assert set(np.unique(want[pool:][cnt > 2])) == {0.0, 1.0}  # both medians occur; too few neighbours: unchanged
+    np.testing.assert_array_equal(got, want)
