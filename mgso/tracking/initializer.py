@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree
 
 from mgso_kernels import runtime
 from mgso_kernels.image import ImagePyramid, PyramidGeometry
-from mgso_kernels.initializer import InitWorkspace, init_system, make_init_params, smooth_idepths
+from mgso_kernels.initializer import InitWorkspace, init_system, smooth_idepths
 from mgso_kernels.photometric import PATTERN_NP
 
 from ..config import TrackingConfig
@@ -423,10 +423,11 @@ class CoarseInitializer:
             alpha_energy = self.alpha_k * npts
         else:
             alpha_opt = self.alpha_w
-        params = make_init_params(T, aff, cam.fx, cam.fy, cam.cx, cam.cy, wl, hl, huber_th=self.config.huber_th,
-                                  max_energy=8 * self.config.outlier_th * 20, alpha_opt=alpha_opt,
-                                  coupling_weight=self.coupling_weight)
-        s = init_system(self._workspaces[lvl], dI_new, params, idepth=p.idepth_new, is_good=p.is_good,
+        ws = self._workspaces[lvl]
+        params = ws.params(T, aff, cam.fx, cam.fy, cam.cx, cam.cy, wl, hl, huber_th=self.config.huber_th,
+                           max_energy=8 * self.config.outlier_th * 20, alpha_opt=alpha_opt,
+                           coupling_weight=self.coupling_weight)
+        s = init_system(ws, dI_new, params, idepth=p.idepth_new, is_good=p.is_good,
                         energy=p.energy, iR=p.iR, energy_new=p.energy_new, is_good_new=p.is_good_new,
                         jb_new=p.jb_new, maxstep=p.maxstep, last_hessian_new=p.last_hessian_new)
         H, b = s.H, s.b
