@@ -427,8 +427,8 @@ class InitWorkspace:
         self._aliases: dict[tuple[str, int], tuple[np.ndarray, wp.array]] = {}  # (name, id) -> (array, CPU alias)
         # what an iteration repeats, made once: the parameter struct (:meth:`params`), the checked and bound
         # per-point arrays of the last calls (the initialiser swaps two jb buffers: two sets), the recorded launches
-        # (runtime.launch_split) and, on the CPU, a NumPy view of the partial rows: 100 -> 40 us a call besides the
-        # kernel, 25-30 calls an initialiser frame
+        # (runtime.launch_split) and, on the CPU, a NumPy view of the partial rows: 100 -> 31 us a call besides the
+        # kernel (the struct 34 -> 7 us), 21-28 calls an initialiser frame
         self._params: InitParams | None = None
         self._params_key: tuple | None = None
         self._bound: dict[tuple, tuple] = {}
@@ -445,6 +445,7 @@ class InitWorkspace:
                 "maxstep": wp.zeros(cap, dtype=float, device=d),
                 "last_hessian_new": wp.zeros(cap, dtype=float, device=d),
             }
+            self._mirror = {k: v[:self.n] for k, v in self._mirror.items()}  # the live part, one view each
 
     @property
     def num_blocks(self) -> int:
@@ -515,7 +516,9 @@ def init_system(ws: InitWorkspace, dI_t: wp.array, params: InitParams, *, idepth
     Per-point inputs ``idepth [N] f32, is_good [N] bool, energy [N, 2] f32, iR [N] f32`` and outputs
     ``energy_new [N, 2] f32, is_good_new [N] bool, jb_new [N, 10] f64, maxstep [N] f32, last_hessian_new [N] f32``
     (written only where the point stays good) are C-contiguous NumPy arrays, updated in place. ``dI_t``: the new
-    frame's level ``(I, dx, dy)`` on the workspace's device. ``params``: :func:`make_init_params` for this level.
+    frame's level ``(I, dx, dy)`` on the workspace's device. ``params``: :func:`make_init_params` for this level, or
+    the workspace's own :meth:`InitWorkspace.params` (an iterating caller: the launch is then recorded once and
+    repeated with the struct's new fields).
     """
     n = ws.n
     objs = (idepth, is_good, energy, iR, energy_new, is_good_new, jb_new, maxstep, last_hessian_new, dI_t)
@@ -555,7 +558,7 @@ def init_system(ws: InitWorkspace, dI_t: wp.array, params: InitParams, *, idepth
     if ws.is_cpu:
         dev_arrays = bound
     else:
-        dev_arrays = {k: v[:n] for k, v in ws._mirror.items()}
+        dev_arrays = ws._mirror
         for name in _INPUTS:
             wp.copy(dev_arrays[name], bound[name])
     runtime.launch_split(accumulate_init_system, blocks,
