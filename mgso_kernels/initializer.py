@@ -46,7 +46,7 @@ import warp as wp
 
 from . import runtime
 from .image import finite, sample_dI
-from .photometric import PATTERN, huber_weight, in_margins, vec8f, vec36d, write_symmetric8
+from .photometric import PATTERN, huber_weight, in_margins, rt_first, vec8f, vec36d, write_pose, write_symmetric8
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "INIT_BORDER_LO", "INIT_BORDER_HI", "InitParams", "InitSystem",
@@ -96,10 +96,7 @@ class InitParams:
     points_per_block: int
 
 
-# R (row-major) then t as the struct's first 12 float32s: InitWorkspace.params writes them through a NumPy view of the
-# struct's memory (as photometric.fill_frame_pair); another layout (a future Warp) falls back to setting the fields
-_RT_FIRST = (InitParams.ctype.R.offset == 0 and InitParams.ctype.R.size == 36 and InitParams.ctype.t.offset == 36
-             and InitParams.ctype.t.size == 12)
+_RT_FIRST = rt_first(InitParams)  # InitWorkspace.params writes the pose through a view of the struct's memory
 
 
 # ---------------------------------------------------------------------------------------------- kernel
@@ -469,13 +466,7 @@ class InitWorkspace:
         T = np.asarray(first_to_new, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f"first_to_new must be 4x4, got {T.shape}")
-        if _RT_FIRST:
-            v = np.frombuffer(p.__ctype__(), dtype=np.float32, count=12)
-            v[:9] = T[:3, :3].ravel()  # float64 -> float32 rounds to nearest, as wp.mat33 of Python floats does
-            v[9:] = T[:3, 3]
-        else:
-            p.R = wp.mat33(*T[:3, :3].reshape(-1).tolist())
-            p.t = wp.vec3(*T[:3, 3].tolist())
+        write_pose(p, T, _RT_FIRST)
         p.a_exp = float(np.float32(math.exp(float(affine[0]))))
         p.b0 = float(affine[1])
         p.alpha_opt = float(alpha_opt)

@@ -50,7 +50,8 @@ __all__ = [
     "PATTERN_NP", "PATTERN_SIZE", "PATTERN", "PATTERN_PADDING", "HUBER_TH", "OUTLIER_TH", "OUTLIER_TH_SUM_COMPONENT",
     "ProjectionStatus", "STATUS_OK", "STATUS_OOB", "STATUS_BEHIND",
     "vec6f", "vec8f", "vec8i", "mat82f", "Intrinsics", "FramePair", "PhotometricParams", "PixelResidual",
-    "make_intrinsics", "make_frame_pair", "fill_frame_pair", "make_photometric_params", "affine_from_to",
+    "make_intrinsics", "make_frame_pair", "fill_frame_pair", "rt_first", "write_pose", "make_photometric_params",
+    "affine_from_to",
     "project_pixel", "inverse_K", "project_RKi", "projection_jacobians", "in_margins", "PatternSample",
     "project8", "sample8", "sample_pattern",
     "pose_jacobian", "vec36d", "write_symmetric8",
@@ -497,10 +498,29 @@ def make_frame_pair(target_from_host: np.ndarray, a_h: float = 0.0, b_h: float =
     return fill_frame_pair(FramePair(), target_from_host, a_h, b_h, a_t, b_t, exposure_h, exposure_t)
 
 
-# FramePair's R (row-major) then t as the struct's first 12 float32s: fill_frame_pair writes them through a NumPy view
-# of the struct's memory; another layout (a future Warp) falls back to setting the fields
-_RT_FIRST = (FramePair.ctype.R.offset == 0 and FramePair.ctype.R.size == 36 and FramePair.ctype.t.offset == 36
-             and FramePair.ctype.t.size == 12)
+def rt_first(struct_type) -> bool:
+    """Whether a Warp struct type's first 12 float32s are its ``R: mat33`` (row-major) then ``t: vec3`` fields, so
+    that :func:`write_pose` may write them through a NumPy view of an instance's memory (another layout, a future
+    Warp's, falls back to setting the fields)."""
+    c = struct_type.ctype
+    return (hasattr(c, "R") and hasattr(c, "t") and c.R.offset == 0 and c.R.size == 36 and c.t.offset == 36
+            and c.t.size == 12)
+
+
+def write_pose(p, T: np.ndarray, view: bool) -> None:
+    """A struct's ``R`` and ``t`` fields from a 4x4 pose ``T``, through a view of its memory when ``view``
+    (:func:`rt_first` of its type): 9 us against 20 us for new ``wp.mat33`` / ``wp.vec3`` values; the float64 ->
+    float32 rounding is the same (to nearest, as ``wp.mat33`` of Python floats)."""
+    if view:
+        v = np.frombuffer(p.__ctype__(), dtype=np.float32, count=12)
+        v[:9] = T[:3, :3].ravel()
+        v[9:] = T[:3, 3]
+    else:
+        p.R = wp.mat33(*T[:3, :3].reshape(-1).tolist())
+        p.t = wp.vec3(*T[:3, 3].tolist())
+
+
+_RT_FIRST = rt_first(FramePair)
 
 
 def fill_frame_pair(p: FramePair, target_from_host: np.ndarray, a_h: float = 0.0, b_h: float = 0.0, a_t: float = 0.0,
@@ -511,13 +531,7 @@ def fill_frame_pair(p: FramePair, target_from_host: np.ndarray, a_h: float = 0.0
     T = np.asarray(target_from_host, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise ValueError(f"target_from_host must be a finite 4x4 matrix, got shape {T.shape}")
-    if _RT_FIRST:
-        v = np.frombuffer(p.__ctype__(), dtype=np.float32, count=12)
-        v[:9] = T[:3, :3].ravel()  # float64 -> float32 rounds to nearest, as wp.mat33 of Python floats does
-        v[9:] = T[:3, 3]
-    else:
-        p.R = wp.mat33(*T[:3, :3].reshape(-1).tolist())
-        p.t = wp.vec3(*T[:3, 3].tolist())
+    write_pose(p, T, _RT_FIRST)
     p.a_rel = affine_from_to(a_h, b_h, a_t, b_t, exposure_h, exposure_t)[0]
     p.b_h = float(b_h)
     p.b_t = float(b_t)
