@@ -220,12 +220,14 @@ def test_workspace_params_and_repeated_calls_match_fresh_ones(wp_device):
     uv, col, state, lh = make_state(n, seed=5)
     dI_t = wp.array(ref_img.gradients(texture(H, W, seed=7))[0], dtype=wp.vec3, device=wp_device)
     ws = ik.InitWorkspace(uv, col, wp_device, points_per_block=16)
-    jbs = [np.zeros((n, 10)), np.zeros((n, 10))]
+    out = outputs(n, lh)  # the same array objects every call, refilled in place (jb: two buffers, alternating)
+    jbs = [out["jb_new"], np.zeros((n, 10))]
     sums = set()
     for k, case in enumerate(["small motion, brighter", "snapped, darker", "small motion, brighter", "identity"]):
         T, aff, alpha = POSES[case]
         kw = dict(huber_th=9.0, max_energy=8 * 144.0 * 20, alpha_opt=alpha, coupling_weight=1.0)
-        out = outputs(n, lh)
+        for key, v in outputs(n, lh).items():
+            out[key][...] = v
         out["jb_new"] = jbs[k % 2]
         s = ik.init_system(ws, dI_t, ws.params(T, aff, **CAM, width=W, height=H, **kw), **state, **out)
         fresh_ws = ik.InitWorkspace(uv, col, wp_device, points_per_block=16)
@@ -237,3 +239,4 @@ def test_workspace_params_and_repeated_calls_match_fresh_ones(wp_device):
             np.testing.assert_array_equal(out[key], want[key], err_msg=f"{case}: {key}")
         sums.add(float(s.H[0, 0]))
     assert len(sums) >= 3  # the poses gave different systems: a launch that kept its first pose would fail above
+    assert len(ws.launches) == 2  # one recorded launch a jb buffer, each repeated: the path the initialiser takes
