@@ -40,6 +40,7 @@ from .image import bilinear_inside, finite, sample_dI
 from .photometric import (PATTERN, FramePair, Intrinsics, PhotometricParams, fill_frame_pair, gradient_weight,
                           huber_weight, in_margins, inverse_K, make_photometric_params, pose_jacobian, project_RKi,
                           vec8f, vec36d, write_symmetric8)
+from .track_simd import coarse_block_simd
 
 __all__ = [
     "POINTS_PER_BLOCK", "NUM_SLOTS", "TrackParams", "TrackingSystem", "TrackWorkspace", "TrackState",
@@ -48,7 +49,8 @@ __all__ = [
 
 wp.set_module_options({"enable_backward": False})
 
-POINTS_PER_BLOCK = 32  # points per reduction block (one thread each)
+POINTS_PER_BLOCK = 32  # points per reduction block (one thread each) on a GPU
+CPU_POINTS_PER_BLOCK = 128  # on the CPU: the 8-point path sums its lanes and writes a row per 128 points
 SPLIT_MIN_POINTS = 4096  # residuals a chunk needs before a launch is split over the CPU cores
 COARSE_CUTOFF_TH = 20.0  # DSO setting_coarseCutoffTH
 
@@ -63,6 +65,8 @@ SLOT_FLOW_T = 76
 SLOT_FLOW_RT = 77
 SLOT_FLOW_COUNT = 78
 NUM_SLOTS = 79
+# mgso_kernels.track_simd.coarse_block_simd writes this layout
+assert (SLOT_H, SLOT_B, SLOT_ENERGY, SLOT_FLOW_COUNT, NUM_SLOTS) == (0, 64, 72, 78, 79)
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
@@ -81,6 +85,7 @@ class TrackParams:
     cutoff_th: float  # saturate |r| above this (DSO setting_coarseCutoffTH * levelCutoffRepeat)
     flow_stride: int  # flow indicators from every n-th point; 0 = off (DSO: 32 at level 0)
     points_per_block: int
+    simd: int  # 1: DSO's tracker (one residual a point) 8 points at a time on the CPU (coarse_block_simd); 0: scalar
 
 
 @wp.func
@@ -172,7 +177,9 @@ def coarse_residual(u: float, v: float, idp: float, host_color: float, RKi: wp.m
     wgt = wp.where(inl, hw * gw, 0.0)
     e = wp.where(inl, gw * hw * r * r * (2.0 - hw), wp.where(sat, max_energy, 0.0))
     st = wp.where(front, wp.where(ok, wp.where(sat, 3, 0), 1), 2)
-    jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), nrm, idp, cam.fx, cam.fy)
+    # not ok: every input 0, so the pose part is 0 even for a NaN or infinite inverse depth (0 * inf would reach H)
+    jp = pose_jacobian(wp.where(ok, wp.vec2(s[1], s[2]), wp.vec2(0.0)), wp.where(ok, nrm, wp.vec3(0.0)),
+                       wp.where(ok, idp, 0.0), cam.fx, cam.fy)
     jf = vec8f(jp[0], jp[1], jp[2], jp[3], jp[4], jp[5], -pair.a_rel * hc, -1.0)
     return r, wgt, e, st, ok, sat, jf
 
@@ -199,47 +206,54 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
         blk = offset + wp.tid()
         n = host_uv.shape[0]
         start, end, max_energy, Ki, RKi, next_flow = block_setup(blk, n, pair, cam, photo, params)
-        npat = ref_color.shape[1]
-        H = vec36d()  # the upper triangle of H, row by row (symmetric: the lower half is written from it)
-        g = vec8d()
-        sums = vec8d()  # energy, counts, flow sums (see counted)
-        for i in range(start, end):
-            c = host_uv[i]
-            idp = idepth[i]
-            if i == next_flow:
-                next_flow += params.flow_stride
-                sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
-            for k in range(npat):
-                u = c[0]
-                v = c[1]
-                if npat == 8:
-                    u = u + PATTERN[k, 0]
-                    v = v + PATTERN[k, 1]
-                r, wgt, e, st, ok, sat, jf = coarse_residual(u, v, idp, ref_color[i, k], RKi, pair, cam, dI_t,
-                                                             photo, params.cutoff_th, max_energy)
-                sums = counted(sums, e, ok, sat)
-                residual[i, k] = r
-                weight[i, k] = wgt
-                state[i, k] = st
-                if wp.static(store_jacobians):
-                    jacobian[i, k] = jf
-                if wp.static(with_system):
-                    # element by element into the triangle (all indices static once the loops unroll): the same
-                    # products as wp.outer(W J, J), without an 8x8 temporary a residual
-                    wd = wp.float64(wgt)
-                    wr = wd * wp.float64(r)
-                    q = int(0)
-                    for a in range(8):
-                        ja = wp.float64(jf[a])
-                        wa = wd * ja
-                        g[a] = g[a] + wr * ja
-                        for b in range(8):
-                            if b >= a:
-                                H[q] = H[q] + wa * wp.float64(jf[b])
-                                q += 1
-        write_system(partials, blk, H, g)
-        for q in range(7):
-            partials[blk, SLOT_ENERGY + q] = sums[q]
+        done = int(0)
+        if wp.static(not store_jacobians):
+            if params.simd != 0:  # the CPU's 8-point path where it applies (mgso_kernels.track_simd), else 0
+                done = coarse_block_simd(blk, start, end, next_flow, max_energy, Ki, RKi, host_uv, idepth, ref_color,
+                                         pair, cam, dI_t, photo, params.cutoff_th, params.flow_stride, residual,
+                                         weight, state, partials, wp.static(1 if with_system else 0))
+        if done == 0:
+            npat = ref_color.shape[1]
+            H = vec36d()  # the upper triangle of H, row by row (symmetric: the lower half is written from it)
+            g = vec8d()
+            sums = vec8d()  # energy, counts, flow sums (see counted)
+            for i in range(start, end):
+                c = host_uv[i]
+                idp = idepth[i]
+                if i == next_flow:
+                    next_flow += params.flow_stride
+                    sums = sums + flow_counts(c, idp, Ki, RKi, pair.t, cam)
+                for k in range(npat):
+                    u = c[0]
+                    v = c[1]
+                    if npat == 8:
+                        u = u + PATTERN[k, 0]
+                        v = v + PATTERN[k, 1]
+                    r, wgt, e, st, ok, sat, jf = coarse_residual(u, v, idp, ref_color[i, k], RKi, pair, cam, dI_t,
+                                                                 photo, params.cutoff_th, max_energy)
+                    sums = counted(sums, e, ok, sat)
+                    residual[i, k] = r
+                    weight[i, k] = wgt
+                    state[i, k] = st
+                    if wp.static(store_jacobians):
+                        jacobian[i, k] = jf
+                    if wp.static(with_system):
+                        # element by element into the triangle (all indices static once the loops unroll): the same
+                        # products as wp.outer(W J, J), without an 8x8 temporary a residual
+                        wd = wp.float64(wgt)
+                        wr = wd * wp.float64(r)
+                        q = int(0)
+                        for a in range(8):
+                            ja = wp.float64(jf[a])
+                            wa = wd * ja
+                            g[a] = g[a] + wr * ja
+                            for b in range(8):
+                                if b >= a:
+                                    H[q] = H[q] + wa * wp.float64(jf[b])
+                                    q += 1
+            write_system(partials, blk, H, g)
+            for q in range(7):
+                partials[blk, SLOT_ENERGY + q] = sums[q]
 
     return reduce_tracking_system
 
@@ -290,15 +304,23 @@ class TrackWorkspace:
     Owner: the coarse tracker (one per pyramid level, or one sized for level 0 shared by all levels). The live
     part of the last call is ``residual``/``weight``/``state`` (``[n, P]`` views); the full buffers carry a
     trailing underscore.
+
+    ``points_per_block``: points a thread sums (default :data:`CPU_POINTS_PER_BLOCK` on the CPU,
+    :data:`POINTS_PER_BLOCK` on a GPU, where threads are what is scarce). ``simd``: let the CPU take DSO's tracker
+    8 points at a time (:mod:`mgso_kernels.track_simd`; float32 lanes in each block's sums); False keeps the scalar
+    loop, whose block sums are float64 throughout.
     """
 
     def __init__(self, capacity: int, pattern_size: int = 1, device: str | None = None,
-                 store_jacobians: bool = False, points_per_block: int = POINTS_PER_BLOCK):
+                 store_jacobians: bool = False, points_per_block: int | None = None, simd: bool = True):
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if pattern_size not in (1, 8):
             raise ValueError(f"pattern_size must be 1 (DSO coarse tracker) or 8 (pattern), got {pattern_size}")
         self.device = runtime.device_or_cpu(device)
+        if points_per_block is None:
+            points_per_block = CPU_POINTS_PER_BLOCK if wp.get_device(self.device).is_cpu else POINTS_PER_BLOCK
+        self.simd = bool(simd)
         if points_per_block < 1:
             raise ValueError(f"points_per_block must be >= 1, got {points_per_block}")
         self.capacity = int(capacity)
@@ -345,7 +367,7 @@ class TrackWorkspace:
         got = self._params.get(key)
         if got is None:
             got = (make_photometric_params(huber_th, grad_c2, border_lo, border_hi),
-                   make_track_params(cutoff_th, flow_stride, self.points_per_block))
+                   make_track_params(cutoff_th, flow_stride, self.points_per_block, self.simd))
             if len(self._params) > 64:
                 self._params.clear()
             self._params[key] = got
@@ -364,11 +386,12 @@ class TrackWorkspace:
 
 
 def make_track_params(cutoff_th: float = COARSE_CUTOFF_TH, flow_stride: int = 32,
-                      points_per_block: int = POINTS_PER_BLOCK) -> TrackParams:
+                      points_per_block: int = POINTS_PER_BLOCK, simd: bool = True) -> TrackParams:
     p = TrackParams()
     p.cutoff_th = float(cutoff_th)
     p.flow_stride = int(flow_stride)
     p.points_per_block = int(points_per_block)
+    p.simd = int(bool(simd))
     return p
 
 

@@ -4,10 +4,11 @@
 
 Figures: pyramid + gradients at 640x480 and KITTI 1241x376 (cropped to 1232x368); coarse-tracking residuals + 8x8
 system for 2000 points x 8 pattern pixels and for a dense depth map (every pixel one residual, DSO's coarse
-tracker) at levels 0-3 of 640x480; the epipolar search of 2000 immature points; the NumPy pixel selection at
-640x480. Kernel figures come single-threaded (``single``) and split over the CPU cores (``split``). Points are in
-raster order, as DSO's depth map and pixel selection produce them. ``load_avg`` is the 1-minute load when the run
-ended: on a shared machine, compare figures only between runs with a similar load.
+tracker; ``single_scalar``: its scalar loop, without the CPU's 8-point path) at levels 0-3 of 640x480; the
+epipolar search of 2000 immature points; the NumPy pixel selection at 640x480. Kernel figures come
+single-threaded (``single``) and split over the CPU cores (``split``). Points are in raster order, as DSO's depth
+map and pixel selection produce them. ``load_avg`` is the 1-minute load when the run ended: on a shared machine,
+compare figures only between runs with a similar load.
 """
 
 from __future__ import annotations
@@ -92,6 +93,10 @@ def main() -> None:
         for split in (False, True):
             res["split" if split else "single"] = median_ms(
                 lambda: tk.track_system(uvw, idp, col, pair, cam, new_pyr.dI[level], ws, split=split), R, dev)
+        if pattern == 1:  # the scalar loop beside the CPU's 8-point path (mgso_kernels.track_simd; the same on a GPU)
+            sc = tk.TrackWorkspace(len(uv), pattern, dev, simd=False)
+            res["single_scalar"] = median_ms(
+                lambda: tk.track_system(uvw, idp, col, pair, cam, new_pyr.dI[level], sc, split=False), R, dev)
         res["residuals"] = int(len(uv) * pattern)
         return res
 
