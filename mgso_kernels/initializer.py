@@ -46,6 +46,7 @@ import warp as wp
 
 from . import runtime
 from .image import finite, sample_dI
+from .initializer_simd import init_block_simd
 from .photometric import PATTERN, huber_weight, in_margins, rt_first, vec8f, vec36d, write_pose, write_symmetric8
 
 __all__ = [
@@ -70,6 +71,8 @@ SLOT_BSC = 136  # 8
 SLOT_ENERGY = 144  # photometric energy of all points (new where good, else the last accepted)
 SLOT_NUM_GOOD = 145  # points good after this evaluation
 NUM_SLOTS = 146
+# mgso_kernels.initializer_simd.init_block_simd writes this layout
+assert (SLOT_H, SLOT_B, SLOT_HSC, SLOT_BSC, SLOT_ENERGY, SLOT_NUM_GOOD) == (0, 64, 72, 136, 144, 145)
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 vec64d = wp.types.vector(length=64, dtype=wp.float64)  # an 8x8, row by row
@@ -94,6 +97,7 @@ class InitParams:
     alpha_opt: wp.float64  # regulariser weight pulling inverse depths to 1 (0 once snapped)
     coupling: wp.float64  # coupling weight to iR, applied when alpha_opt == 0 (the caller passes 0 otherwise)
     points_per_block: int
+    simd: int  # 1: a point's 8 pixels as 8 lanes on the CPU (mgso_kernels.initializer_simd); 0: the scalar loop
 
 
 _RT_FIRST = rt_first(InitParams)  # InitWorkspace.params writes the pose through a view of the struct's memory
@@ -132,141 +136,149 @@ def accumulate_init_system(offset: int,
     n = uv.shape[0]
     start = blk * params.points_per_block
     end = wp.min(start + params.points_per_block, n)
-    R = params.R
-    t = params.t
-    H = vec36d()  # the upper triangle (every point's J J^T is symmetric to the bit: written to both halves)
-    g = vec8d()
-    Hs = vec64d()  # all 64 (its lower half rounds on its own, as wp.outer)
-    gs = vec8d()
-    e_sum = wp.float64(0.0)
-    n_good = int(0)
-    for i in range(start, end):
-        c = uv[i]
-        idn = idepth[i]
-        good = is_good[i]
-        # Branch-free per pixel (see track.py): invalid pixels are zeroed, as the NumPy twin masks them.
-        # this point's J J^T as 8 rows and J r, float32 over its 8 pixels (float64 from the point sums on):
-        # vec8 rows compile to a few vector instructions, an 8x8 float64 matrix value does not (3x slower)
-        h0 = vec8f()
-        h1 = vec8f()
-        h2 = vec8f()
-        h3 = vec8f()
-        h4 = vec8f()
-        h5 = vec8f()
-        h6 = vec8f()
-        h7 = vec8f()
-        gp = vec8f()
-        jbv = vec8f()
-        jr = float(0.0)
-        jd = float(0.0)
-        e_pt = float(0.0)
-        s_max = float(0.0)  # the largest squared pixel step a unit of inverse depth moves a valid pixel
-        all_ok = bool(True)
-        for k in range(8):
-            hx = (c[0] + PATTERN[k, 0] - params.cx) * params.ifx
-            hy = (c[1] + PATTERN[k, 1] - params.cy) * params.ify
-            p0 = R[0, 0] * hx + R[0, 1] * hy + R[0, 2] + t[0] * idn
-            p1 = R[1, 0] * hx + R[1, 1] * hy + R[1, 2] + t[1] * idn
-            p2 = R[2, 0] * hx + R[2, 1] * hy + R[2, 2] + t[2] * idn
-            iz = 1.0 / p2
-            uu = p0 * iz
-            vv = p1 * iz
-            nid = idn * iz
-            ku = params.fx * uu + params.cx
-            kv = params.fy * vv + params.cy
-            s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
-            rl = ref_color[i, k]
-            ok = in_margins(ku, kv, params.width, params.height, INIT_BORDER_LO, INIT_BORDER_HI) and nid > 0.0
-            ok = ok and finite(s[0]) and finite(rl)
-            all_ok = all_ok and ok
-            i0 = wp.where(ok, s[0], 0.0)
-            gx = wp.where(ok, s[1], 0.0)
-            gy = wp.where(ok, s[2], 0.0)
-            rl = wp.where(ok, rl, 0.0)
-            uu = wp.where(ok, uu, 0.0)
-            vv = wp.where(ok, vv, 0.0)
-            nid = wp.where(ok, nid, 0.0)
-            iz = wp.where(ok, iz, 0.0)
-            m = wp.where(ok, 1.0, 0.0)
-            res = i0 - params.a_exp * rl - params.b0
-            hw = huber_weight(res, params.huber_th)
-            e_pt += hw * res * res * (2.0 - hw)
-            dxdd = (t[0] - t[2] * uu) * iz
-            dydd = (t[1] - t[2] * vv) * iz
-            hws = wp.where(hw < 1.0, wp.sqrt(hw), hw)
-            dxi = hws * gx * params.fx * m
-            dyi = hws * gy * params.fy * m
-            J = vec8f(nid * dxi, nid * dyi, -nid * (uu * dxi + vv * dyi), -uu * vv * dxi - (1.0 + vv * vv) * dyi,
-                      (1.0 + uu * uu) * dxi + uu * vv * dyi, -vv * dxi + uu * dyi, -hws * params.a_exp * rl * m,
-                      -hws * m)
-            dd = (dxi * dxdd + dyi * dydd) * m
-            rr = hws * res * m
-            sx = dxdd * params.fx
-            sy = dydd * params.fy
-            s_max = wp.max(s_max, wp.where(ok, sx * sx + sy * sy, 0.0))
-            jbv += dd * J
-            jr += rr * dd
-            jd += dd * dd
-            h0 += J[0] * J
-            h1 += J[1] * J
-            h2 += J[2] * J
-            h3 += J[3] * J
-            h4 += J[4] * J
-            h5 += J[5] * J
-            h6 += J[6] * J
-            h7 += J[7] * J
-            gp += rr * J
-        # DSO's maxstep, min over the pixels of 1 / |step|, taken once at the largest step: a correctly rounded sqrt
-        # and reciprocal are monotonic, so this is the per-pixel minimum to the bit (one sqrt and one division a point
-        # instead of eight); no valid pixel (or no step) leaves 1e10
-        ms = wp.where(s_max > 0.0, wp.min(1.0 / wp.sqrt(s_max), 1.0e10), 1.0e10)
-        good_new = good and all_ok and e_pt <= params.max_energy and finite(e_pt)
-        # regularised inverse-depth terms (DSO: only for the points that stay good)
-        idd = wp.float64(idn)
-        jb8 = wp.float64(jr)
-        jb9 = wp.float64(jd)
-        jb8r = jb8 + params.alpha_opt * (idd - wp.float64(1.0)) + params.coupling * (idd - wp.float64(iR[i]))
-        jb9r = wp.float64(1.0) / (wp.float64(1.0) + jb9 + params.alpha_opt + params.coupling)
-        jbd = wp.where(good_new, vec8d(jbv), vec8d())
-        for a in range(8):
-            jb_new[i, a] = wp.where(good, wp.float64(jbv[a]), wp.float64(0.0))
-        jb_new[i, 8] = wp.where(good_new, jb8r, wp.where(good, jb8, wp.float64(0.0)))
-        jb_new[i, 9] = wp.where(good_new, jb9r, wp.where(good, jb9, wp.float64(0.0)))
-        e_old = energy[i, 0]
-        e_new = wp.where(good_new, e_pt, e_old)
-        energy_new[i, 0] = e_new
-        dr = idn - 1.0
-        energy_new[i, 1] = wp.where(good_new, dr * dr, energy[i, 1])
-        is_good_new[i] = good_new
-        maxstep[i] = wp.where(good, ms, 1.0e10)
-        if good_new:
-            last_hessian_new[i] = jd
-        e_sum += wp.float64(e_new)
-        n_good += wp.where(good_new, 1, 0)
-        wsc = wp.where(good_new, jb9r, wp.float64(0.0))
-        if good_new:  # element by element into the sums (static indices once unrolled): no 8x8 temporaries
-            H = add_upper(H, 0, h0)
-            H = add_upper(H, 1, h1)
-            H = add_upper(H, 2, h2)
-            H = add_upper(H, 3, h3)
-            H = add_upper(H, 4, h4)
-            H = add_upper(H, 5, h5)
-            H = add_upper(H, 6, h6)
-            H = add_upper(H, 7, h7)
+    done = int(0)
+    if params.simd != 0:  # the CPU's 8-lane path (mgso_kernels.initializer_simd); 0 on CUDA
+        done = init_block_simd(blk, start, end, params.R, params.t, params.a_exp, params.b0, params.fx, params.fy,
+                               params.cx, params.cy, params.ifx, params.ify, params.width, params.height,
+                               params.huber_th, params.max_energy, params.alpha_opt, params.coupling, uv, ref_color,
+                               idepth, is_good, energy, iR, dI_t, energy_new, is_good_new, jb_new, maxstep,
+                               last_hessian_new, partials)
+    if done == 0:
+        R = params.R
+        t = params.t
+        H = vec36d()  # the upper triangle (every point's J J^T is symmetric to the bit: written to both halves)
+        g = vec8d()
+        Hs = vec64d()  # all 64 (its lower half rounds on its own, as wp.outer)
+        gs = vec8d()
+        e_sum = wp.float64(0.0)
+        n_good = int(0)
+        for i in range(start, end):
+            c = uv[i]
+            idn = idepth[i]
+            good = is_good[i]
+            # Branch-free per pixel (see track.py): invalid pixels are zeroed, as the NumPy twin masks them.
+            # this point's J J^T as 8 rows and J r, float32 over its 8 pixels (float64 from the point sums on):
+            # vec8 rows compile to a few vector instructions, an 8x8 float64 matrix value does not (3x slower)
+            h0 = vec8f()
+            h1 = vec8f()
+            h2 = vec8f()
+            h3 = vec8f()
+            h4 = vec8f()
+            h5 = vec8f()
+            h6 = vec8f()
+            h7 = vec8f()
+            gp = vec8f()
+            jbv = vec8f()
+            jr = float(0.0)
+            jd = float(0.0)
+            e_pt = float(0.0)
+            s_max = float(0.0)  # the largest squared pixel step a unit of inverse depth moves a valid pixel
+            all_ok = bool(True)
+            for k in range(8):
+                hx = (c[0] + PATTERN[k, 0] - params.cx) * params.ifx
+                hy = (c[1] + PATTERN[k, 1] - params.cy) * params.ify
+                p0 = R[0, 0] * hx + R[0, 1] * hy + R[0, 2] + t[0] * idn
+                p1 = R[1, 0] * hx + R[1, 1] * hy + R[1, 2] + t[1] * idn
+                p2 = R[2, 0] * hx + R[2, 1] * hy + R[2, 2] + t[2] * idn
+                iz = 1.0 / p2
+                uu = p0 * iz
+                vv = p1 * iz
+                nid = idn * iz
+                ku = params.fx * uu + params.cx
+                kv = params.fy * vv + params.cy
+                s = sample_dI(dI_t, ku, kv)  # clamped: memory-safe even when outside
+                rl = ref_color[i, k]
+                ok = in_margins(ku, kv, params.width, params.height, INIT_BORDER_LO, INIT_BORDER_HI) and nid > 0.0
+                ok = ok and finite(s[0]) and finite(rl)
+                all_ok = all_ok and ok
+                i0 = wp.where(ok, s[0], 0.0)
+                gx = wp.where(ok, s[1], 0.0)
+                gy = wp.where(ok, s[2], 0.0)
+                rl = wp.where(ok, rl, 0.0)
+                uu = wp.where(ok, uu, 0.0)
+                vv = wp.where(ok, vv, 0.0)
+                nid = wp.where(ok, nid, 0.0)
+                iz = wp.where(ok, iz, 0.0)
+                m = wp.where(ok, 1.0, 0.0)
+                res = i0 - params.a_exp * rl - params.b0
+                hw = huber_weight(res, params.huber_th)
+                e_pt += hw * res * res * (2.0 - hw)
+                dxdd = (t[0] - t[2] * uu) * iz
+                dydd = (t[1] - t[2] * vv) * iz
+                hws = wp.where(hw < 1.0, wp.sqrt(hw), hw)
+                dxi = hws * gx * params.fx * m
+                dyi = hws * gy * params.fy * m
+                J = vec8f(nid * dxi, nid * dyi, -nid * (uu * dxi + vv * dyi), -uu * vv * dxi - (1.0 + vv * vv) * dyi,
+                          (1.0 + uu * uu) * dxi + uu * vv * dyi, -vv * dxi + uu * dyi, -hws * params.a_exp * rl * m,
+                          -hws * m)
+                dd = (dxi * dxdd + dyi * dydd) * m
+                rr = hws * res * m
+                sx = dxdd * params.fx
+                sy = dydd * params.fy
+                s_max = wp.max(s_max, wp.where(ok, sx * sx + sy * sy, 0.0))
+                jbv += dd * J
+                jr += rr * dd
+                jd += dd * dd
+                h0 += J[0] * J
+                h1 += J[1] * J
+                h2 += J[2] * J
+                h3 += J[3] * J
+                h4 += J[4] * J
+                h5 += J[5] * J
+                h6 += J[6] * J
+                h7 += J[7] * J
+                gp += rr * J
+            # DSO's maxstep, min over the pixels of 1 / |step|, taken once at the largest step: a correctly rounded
+            # sqrt and reciprocal are monotonic, so this is the per-pixel minimum to the bit (one sqrt and one
+            # division a point instead of eight); no valid pixel (or no step) leaves 1e10
+            ms = wp.where(s_max > 0.0, wp.min(1.0 / wp.sqrt(s_max), 1.0e10), 1.0e10)
+            good_new = good and all_ok and e_pt <= params.max_energy and finite(e_pt)
+            # regularised inverse-depth terms (DSO: only for the points that stay good)
+            idd = wp.float64(idn)
+            jb8 = wp.float64(jr)
+            jb9 = wp.float64(jd)
+            jb8r = jb8 + params.alpha_opt * (idd - wp.float64(1.0)) + params.coupling * (idd - wp.float64(iR[i]))
+            jb9r = wp.float64(1.0) / (wp.float64(1.0) + jb9 + params.alpha_opt + params.coupling)
+            jbd = wp.where(good_new, vec8d(jbv), vec8d())
             for a in range(8):
-                wa = wsc * jbd[a]
-                for b in range(8):
-                    Hs[a * 8 + b] = Hs[a * 8 + b] + wa * jbd[b]
-            g += vec8d(gp)
-            gs += (wsc * jb8r) * jbd
-    write_symmetric8(partials, blk, SLOT_H, H)
-    for a in range(8):
-        for b in range(8):
-            partials[blk, SLOT_HSC + a * 8 + b] = Hs[a * 8 + b]
-        partials[blk, SLOT_B + a] = g[a]
-        partials[blk, SLOT_BSC + a] = gs[a]
-    partials[blk, SLOT_ENERGY] = e_sum
-    partials[blk, SLOT_NUM_GOOD] = wp.float64(n_good)
+                jb_new[i, a] = wp.where(good, wp.float64(jbv[a]), wp.float64(0.0))
+            jb_new[i, 8] = wp.where(good_new, jb8r, wp.where(good, jb8, wp.float64(0.0)))
+            jb_new[i, 9] = wp.where(good_new, jb9r, wp.where(good, jb9, wp.float64(0.0)))
+            e_old = energy[i, 0]
+            e_new = wp.where(good_new, e_pt, e_old)
+            energy_new[i, 0] = e_new
+            dr = idn - 1.0
+            energy_new[i, 1] = wp.where(good_new, dr * dr, energy[i, 1])
+            is_good_new[i] = good_new
+            maxstep[i] = wp.where(good, ms, 1.0e10)
+            if good_new:
+                last_hessian_new[i] = jd
+            e_sum += wp.float64(e_new)
+            n_good += wp.where(good_new, 1, 0)
+            wsc = wp.where(good_new, jb9r, wp.float64(0.0))
+            if good_new:  # element by element into the sums (static indices once unrolled): no 8x8 temporaries
+                H = add_upper(H, 0, h0)
+                H = add_upper(H, 1, h1)
+                H = add_upper(H, 2, h2)
+                H = add_upper(H, 3, h3)
+                H = add_upper(H, 4, h4)
+                H = add_upper(H, 5, h5)
+                H = add_upper(H, 6, h6)
+                H = add_upper(H, 7, h7)
+                for a in range(8):
+                    wa = wsc * jbd[a]
+                    for b in range(8):
+                        Hs[a * 8 + b] = Hs[a * 8 + b] + wa * jbd[b]
+                g += vec8d(gp)
+                gs += (wsc * jb8r) * jbd
+        write_symmetric8(partials, blk, SLOT_H, H)
+        for a in range(8):
+            for b in range(8):
+                partials[blk, SLOT_HSC + a * 8 + b] = Hs[a * 8 + b]
+            partials[blk, SLOT_B + a] = g[a]
+            partials[blk, SLOT_BSC + a] = gs[a]
+        partials[blk, SLOT_ENERGY] = e_sum
+        partials[blk, SLOT_NUM_GOOD] = wp.float64(n_good)
 
 
 NUM_NEIGHBOURS = 10  # DSO makeNN: neighbours per point
@@ -358,7 +370,7 @@ class InitSystem:
 def make_init_params(first_to_new: np.ndarray, affine, fx: float, fy: float, cx: float, cy: float, width: int,
                      height: int, *, huber_th: float = 9.0, max_energy: float = 8 * 144.0 * 20,
                      alpha_opt: float = 0.0, coupling_weight: float = 1.0,
-                     points_per_block: int = POINTS_PER_BLOCK) -> InitParams:
+                     points_per_block: int = POINTS_PER_BLOCK, simd: bool = True) -> InitParams:
     """``first_to_new`` (4, 4) pose, ``affine = (a, b)`` of the new frame, this level's intrinsics and size.
     ``coupling_weight`` applies only when ``alpha_opt == 0`` (DSO)."""
     T = np.asarray(first_to_new, dtype=np.float64)
@@ -378,6 +390,7 @@ def make_init_params(first_to_new: np.ndarray, affine, fx: float, fy: float, cx:
     p.alpha_opt = float(alpha_opt)
     p.coupling = float(coupling_weight) if alpha_opt == 0 else 0.0
     p.points_per_block = int(points_per_block)
+    p.simd = int(bool(simd))
     return p
 
 
@@ -392,8 +405,10 @@ class InitWorkspace:
     """
 
     def __init__(self, uv: np.ndarray, ref_color: np.ndarray, device: str | None = None,
-                 points_per_block: int = POINTS_PER_BLOCK, neighbours: np.ndarray | None = None):
+                 points_per_block: int = POINTS_PER_BLOCK, neighbours: np.ndarray | None = None,
+                 simd: bool = True):
         self.device = runtime.device_or_cpu(device)
+        self.simd = bool(simd)  # the CPU's 8-lane path (mgso_kernels.initializer_simd) where it applies
         uv = np.ascontiguousarray(uv, dtype=np.float32)
         col = np.ascontiguousarray(ref_color, dtype=np.float32)
         if uv.ndim != 2 or uv.shape[1] != 2:
@@ -460,7 +475,7 @@ class InitWorkspace:
         if p is None or key != self._params_key:
             p = make_init_params(first_to_new, affine, fx, fy, cx, cy, width, height, huber_th=huber_th,
                                  max_energy=max_energy, alpha_opt=alpha_opt, coupling_weight=coupling_weight,
-                                 points_per_block=self.points_per_block)
+                                 points_per_block=self.points_per_block, simd=self.simd)
             self._params, self._params_key = p, key
             return p
         T = np.asarray(first_to_new, dtype=np.float64)
