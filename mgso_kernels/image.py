@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
+from .image_simd import downsample_span, gradients_span
 
 __all__ = [
     "Pinhole", "PyramidGeometry", "pyramid_levels_for", "plan_pyramid", "level_intrinsics",
@@ -278,9 +279,10 @@ def downsample_image(offset: int,
                      src: wp.array2d(dtype=float),  # [2H, 2W] intensity of level l-1
                      dst: wp.array2d(dtype=float)):  # [H, W] intensity of level l
     y, x0, x1 = span_of(offset + wp.tid(), dst.shape[1])
-    for x in range(x0, x1):
-        dst[y, x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, 2 * x + 1] + src[2 * y + 1, 2 * x]
-                            + src[2 * y + 1, 2 * x + 1])
+    if downsample_span(src, dst, y, x0, x1) == 0:  # the CPU's pointer loop (mgso_kernels.image_simd), else 0
+        for x in range(x0, x1):
+            dst[y, x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, 2 * x + 1] + src[2 * y + 1, 2 * x]
+                                + src[2 * y + 1, 2 * x + 1])
 
 
 @wp.kernel
@@ -293,14 +295,15 @@ def compute_gradients(offset: int,
     y, x0, x1 = span_of(offset + wp.tid(), w)
     ym = wp.max(y - 1, 0)
     yp = wp.min(y + 1, h - 1)
-    for x in range(x0, x1):
-        dx = 0.5 * (img[y, wp.min(x + 1, w - 1)] - img[y, wp.max(x - 1, 0)])
-        dy = 0.5 * (img[yp, x] - img[ym, x])
-        # non-finite -> 0 (DSO); d - d == 0 is false exactly for NaN and inf, and cheaper than isfinite here
-        dx = wp.where(dx - dx == 0.0, dx, 0.0)
-        dy = wp.where(dy - dy == 0.0, dy, 0.0)
-        dI[y, x] = wp.vec3(img[y, x], dx, dy)
-        grad_sq[y, x] = dx * dx + dy * dy
+    if gradients_span(img, dI, grad_sq, y, x0, x1) == 0:  # the CPU's pointer loop (mgso_kernels.image_simd)
+        for x in range(x0, x1):
+            dx = 0.5 * (img[y, wp.min(x + 1, w - 1)] - img[y, wp.max(x - 1, 0)])
+            dy = 0.5 * (img[yp, x] - img[ym, x])
+            # non-finite -> 0 (DSO); d - d == 0 is false exactly for NaN and inf, and cheaper than isfinite here
+            dx = wp.where(dx - dx == 0.0, dx, 0.0)
+            dy = wp.where(dy - dy == 0.0, dy, 0.0)
+            dI[y, x] = wp.vec3(img[y, x], dx, dy)
+            grad_sq[y, x] = dx * dx + dy * dy
 
 
 def span_threads(height: int, width: int) -> int:

@@ -108,6 +108,51 @@ def test_pyramid_and_gradients_match_twin(wp_device):
     assert dI0[95, 7, 2] == pytest.approx(0.5 * (img[95, 7] - img[94, 7]), abs=1e-4)
 
 
+@pytest.mark.parametrize("w, h", [(2, 2), (3, 5), (33, 7), (65, 3), (640, 4)])
+def test_pyramid_rows_are_the_float32_arithmetic_bit_for_bit(wp_device, w, h):
+    """The gradients and the 2x2 mean against the same float32 operations in NumPy (central differences clamped at
+    the border, non-finite -> 0, ``dx*dx + dy*dy`` without FMA; ``0.25 * (((a + b) + c) + d)``): on the CPU the
+    native row loops (mgso_kernels.image_simd), and the Warp loops where a row is not contiguous (a strided view of a
+    wider image), give these bits; on a GPU (FMA contraction) to float32 rounding. Sizes cover a first and a last
+    column in one span, spans that start past the border, and images narrower than 3 pixels."""
+    rng = np.random.default_rng(w * 100 + h)
+    img = (rng.random((h, w)) * 255).astype(np.float32)
+    img[h // 2, w // 2] = np.nan
+    img[0, w - 1] = np.inf
+    xm = np.clip(np.arange(w) - 1, 0, w - 1)
+    xp = np.clip(np.arange(w) + 1, 0, w - 1)
+    ym = np.clip(np.arange(h) - 1, 0, h - 1)
+    yp = np.clip(np.arange(h) + 1, 0, h - 1)
+    with np.errstate(invalid="ignore"):
+        dx = np.float32(0.5) * (img[:, xp] - img[:, xm])
+        dy = np.float32(0.5) * (img[yp, :] - img[ym, :])
+        dx = np.where(dx - dx == 0, dx, np.float32(0)).astype(np.float32)
+        dy = np.where(dy - dy == 0, dy, np.float32(0)).astype(np.float32)
+    g2 = (dx * dx) + (dy * dy)
+    want_dI = np.stack([img, dx, dy], axis=-1)
+    big = np.zeros((2 * h, 2 * w), np.float32)
+    big[:, :] = (rng.random((2 * h, 2 * w)) * 255).astype(np.float32)
+    want_half = np.float32(0.25) * (((big[0::2, 0::2] + big[0::2, 1::2]) + big[1::2, 0::2]) + big[1::2, 1::2])
+    exact = wp.get_device(wp_device).is_cpu
+    wide = np.zeros((h, 2 * w), np.float32)
+    wide[:, ::2] = img  # its even columns: a view whose rows are not contiguous
+    for name, src in (("contiguous", wp.array(img, device=wp_device)),
+                      ("strided", wp.array(wide, device=wp_device)[:, ::2])):
+        assert (src.strides[1] == 4) == (name == "contiguous")
+        dI = wp.zeros((h, w), dtype=wp.vec3, device=wp_device)
+        gs = wp.zeros((h, w), dtype=wp.float32, device=wp_device)
+        kimg.gradients(src, dI, gs, split=False)
+        if exact:
+            np.testing.assert_array_equal(dI.numpy(), want_dI, err_msg=name)
+            np.testing.assert_array_equal(gs.numpy(), g2, err_msg=name)
+        else:
+            np.testing.assert_allclose(gs.numpy(), g2, rtol=1e-6, err_msg=name)
+    if w >= 2 and h >= 2:
+        dst = wp.zeros((h, w), dtype=wp.float32, device=wp_device)
+        kimg.downsample(wp.array(big, device=wp_device), dst, split=False)
+        np.testing.assert_array_equal(dst.numpy(), want_half)
+
+
 def test_split_launch_is_identical_and_uint8_input_works(wp_device):
     img = (texture(128, 160, seed=2)).astype(np.uint8)
     geom = kimg.plan_pyramid(160, 128, levels=3)

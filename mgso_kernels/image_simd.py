@@ -1,0 +1,86 @@
+"""The pyramid kernels' rows on the CPU as plain loops over pointers (native snippets in Warp's kernels).
+
+:func:`gradients_span` and :func:`downsample_span` do what one thread of
+:func:`mgso_kernels.image.compute_gradients` and :func:`mgso_kernels.image.downsample_image` does (a span of one
+row), with the same float32 operations in the same order, one per statement (so no contraction into FMAs): the
+same bits. Written as loops over row pointers, with the image borders peeled off the gradient's loop, clang
+vectorises them; Warp's generated code indexes every pixel through the array's strides and does not (a 640x480
+pyramid in 0.74-0.81 against 2.37 ms of one thread: docs/tracking_kernels.md, "The pyramid's rows as plain loops").
+
+Each returns 1, or 0 where it does not apply (on CUDA, the snippets' ``#else``; or for arrays whose rows are not
+contiguous), and the kernel then runs its Warp loop.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+_GRADIENTS = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+const int h = img.shape[0], w = img.shape[1];
+if (img.strides[1] != 4 || dI.strides[1] != 12 || grad_sq.strides[1] != 4) return 0;
+const char* base = (const char*)img.data;
+const float* __restrict__ row = (const float*)(base + (long)y * img.strides[0]);
+const float* __restrict__ rowm = (const float*)(base + (long)(y > 0 ? y - 1 : 0) * img.strides[0]);
+const float* __restrict__ rowp = (const float*)(base + (long)(y < h - 1 ? y + 1 : h - 1) * img.strides[0]);
+float* __restrict__ d = (float*)((char*)dI.data + (long)y * dI.strides[0]);
+float* __restrict__ g = (float*)((char*)grad_sq.data + (long)y * grad_sq.strides[0]);
+// one pixel, as the Warp loop: central differences (clamped at the border), non-finite -> 0
+auto one = [&](int x, int xm, int xp) {
+    const float ddx = row[xp] - row[xm];
+    const float ddy = rowp[x] - rowm[x];
+    float dx = 0.5f * ddx;
+    float dy = 0.5f * ddy;
+    dx = (dx - dx == 0.0f) ? dx : 0.0f;
+    dy = (dy - dy == 0.0f) ? dy : 0.0f;
+    d[3 * x] = row[x];
+    d[3 * x + 1] = dx;
+    d[3 * x + 2] = dy;
+    const float a = dx * dx;
+    const float b = dy * dy;
+    g[x] = a + b;
+};
+// the first and last column apart: the loop between them has no clamp and vectorises
+const int lo = x0 > 1 ? x0 : 1, hi = x1 < w - 1 ? x1 : w - 1;
+for (int x = x0; x < x1 && x < lo; ++x) one(x, x > 0 ? x - 1 : 0, x < w - 1 ? x + 1 : w - 1);
+for (int x = lo; x < hi; ++x) one(x, x - 1, x + 1);
+for (int x = hi > lo ? hi : lo; x < x1; ++x) one(x, x > 0 ? x - 1 : 0, x < w - 1 ? x + 1 : w - 1);
+return 1;
+#else
+return 0;
+#endif
+"""
+
+_DOWNSAMPLE = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+if (src.strides[1] != 4 || dst.strides[1] != 4) return 0;
+const char* base = (const char*)src.data;
+const float* __restrict__ r0 = (const float*)(base + (long)(2 * y) * src.strides[0]);
+const float* __restrict__ r1 = (const float*)(base + (long)(2 * y + 1) * src.strides[0]);
+float* __restrict__ o = (float*)((char*)dst.data + (long)y * dst.strides[0]);
+for (int x = x0; x < x1; ++x) {
+    const float a = r0[2 * x] + r0[2 * x + 1];
+    const float b = a + r1[2 * x];
+    const float c = b + r1[2 * x + 1];
+    o[x] = 0.25f * c;
+}
+return 1;
+#else
+return 0;
+#endif
+"""
+
+
+@wp.func_native(_GRADIENTS)
+def gradients_span(img: wp.array2d(dtype=float), dI: wp.array2d(dtype=wp.vec3), grad_sq: wp.array2d(dtype=float),
+                   y: int, x0: int, x1: int) -> int:
+    """Pixels ``[x0, x1)`` of row ``y`` of :func:`mgso_kernels.image.compute_gradients`; 1, or 0 (nothing written)."""
+    ...
+
+
+@wp.func_native(_DOWNSAMPLE)
+def downsample_span(src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float), y: int, x0: int, x1: int) -> int:
+    """Pixels ``[x0, x1)`` of row ``y`` of :func:`mgso_kernels.image.downsample_image`; 1, or 0 (nothing written)."""
+    ...
