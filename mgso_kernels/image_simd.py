@@ -17,6 +17,29 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+# C++ shared by the 8-lane snippets (mgso_kernels.track_simd, mgso_kernels.initializer_simd): the bilinear
+# (I, dx, dy) at the 8 lanes' pixels ``ku, kv`` (v8f) into ``s0, s1, s2`` (v8f, declared here), read lane by lane
+# (DSO getInterpolatedElement33). Needs in scope: the typedef v8f, ``dIp`` (the level's bytes), ``sdy, sdx`` (its
+# strides) and ``w2, h2`` (its width and height minus 2, as float).
+SAMPLE8_CPP = r"""
+    v8f s0, s1, s2;
+    for (int l = 0; l < 8; ++l) {
+        const float x = ku[l], y = kv[l];
+        // the cell clamped in float first: (int) of NaN or of a huge value is undefined
+        const int ix = (int)__builtin_fminf(__builtin_fmaxf(x, 0.0f), w2);
+        const int iy = (int)__builtin_fminf(__builtin_fmaxf(y, 0.0f), h2);
+        const float ax = x - (float)ix, ay = y - (float)iy, axy = ax * ay;
+        const float c11 = axy, c10 = ay - axy, c01 = ax - axy, c00 = 1.0f - ax - ay + axy;
+        const float* d00 = (const float*)(dIp + (long)iy * sdy + (long)ix * sdx);
+        const float* d01 = (const float*)(dIp + (long)iy * sdy + (long)(ix + 1) * sdx);
+        const float* d10 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)ix * sdx);
+        const float* d11 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)(ix + 1) * sdx);
+        s0[l] = c11 * d11[0] + c10 * d10[0] + c01 * d01[0] + c00 * d00[0];
+        s1[l] = c11 * d11[1] + c10 * d10[1] + c01 * d01[1] + c00 * d00[1];
+        s2[l] = c11 * d11[2] + c10 * d10[2] + c01 * d01[2] + c00 * d00[2];
+    }
+"""
+
 _GRADIENTS = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 const int h = img.shape[0], w = img.shape[1];

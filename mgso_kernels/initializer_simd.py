@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .image_simd import SAMPLE8_CPP
 from .photometric import PATTERN_NP
 
 wp.set_module_options({"enable_backward": False})
@@ -72,23 +73,8 @@ for (int i = start; i < end; ++i) {
     const v8f uu0 = p0 * iz0, vv0 = p1 * iz0;
     const v8f nid0 = idn * iz0;
     const v8f ku = fx * uu0 + cx, kv = fy * vv0 + cy;
-    v8f s0, s1, s2, rl0;
-    for (int l = 0; l < 8; ++l) {
-        const float x = ku[l], y = kv[l];
-        // the cell clamped in float first: (int) of NaN or of a huge value is undefined
-        const int ix = (int)__builtin_fminf(__builtin_fmaxf(x, 0.0f), w2);
-        const int iy = (int)__builtin_fminf(__builtin_fmaxf(y, 0.0f), h2);
-        const float ax = x - (float)ix, ay = y - (float)iy, axy = ax * ay;
-        const float c11 = axy, c10 = ay - axy, c01 = ax - axy, c00 = 1.0f - ax - ay + axy;
-        const float* d00 = (const float*)(dIp + (long)iy * sdy + (long)ix * sdx);
-        const float* d01 = (const float*)(dIp + (long)iy * sdy + (long)(ix + 1) * sdx);
-        const float* d10 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)ix * sdx);
-        const float* d11 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)(ix + 1) * sdx);
-        s0[l] = c11 * d11[0] + c10 * d10[0] + c01 * d01[0] + c00 * d00[0];
-        s1[l] = c11 * d11[1] + c10 * d10[1] + c01 * d01[1] + c00 * d00[1];
-        s2[l] = c11 * d11[2] + c10 * d10[2] + c01 * d01[2] + c00 * d00[2];
-        rl0[l] = wp::index(ref_color, i, l);
-    }
+%SAMPLE8%    v8f rl0;
+    for (int l = 0; l < 8; ++l) rl0[l] = wp::index(ref_color, i, l);
     // masks are -1/0 lanes; a pixel that is not ok has every input zeroed, as the scalar loop
     const v8i ok = (ku > 1.0f) & (kv > 1.0f) & (ku < xhi) & (kv < yhi) & (nid0 > 0.0f) & ((s0 - s0) == 0.0f)
                    & ((rl0 - rl0) == 0.0f);
@@ -185,7 +171,7 @@ return 1;
 #else
 return 0;
 #endif
-""".replace("%PU%", _PU).replace("%PV%", _PV)
+""".replace("%PU%", _PU).replace("%PV%", _PV).replace("%SAMPLE8%", SAMPLE8_CPP)
 
 
 @wp.func_native(_SNIPPET)

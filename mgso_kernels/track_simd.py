@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .image_simd import SAMPLE8_CPP
 from .photometric import FramePair, Intrinsics, PhotometricParams
 
 wp.set_module_options({"enable_backward": False})
@@ -81,24 +82,8 @@ for (int i0 = start; i0 < end; i0 += 8) {
     const v8f dr = 1.0f / p2;
     const v8f un = p0 * dr, vn = p1 * dr;
     const v8f ku = fx * un + cx, kv = fy * vn + cy;
-    // bilinear (I, dx, dy), point by point (DSO getInterpolatedElement33)
-    v8f s0, s1, s2;
-    for (int l = 0; l < 8; ++l) {
-        const float x = ku[l], y = kv[l];
-        // the cell clamped in float first: (int) of NaN or of a huge value is undefined
-        const int ix = (int)__builtin_fminf(__builtin_fmaxf(x, 0.0f), w2);
-        const int iy = (int)__builtin_fminf(__builtin_fmaxf(y, 0.0f), h2);
-        const float ax = x - (float)ix, ay = y - (float)iy, axy = ax * ay;
-        const float c11 = axy, c10 = ay - axy, c01 = ax - axy, c00 = 1.0f - ax - ay + axy;
-        const float* d00 = (const float*)(dIp + (long)iy * sdy + (long)ix * sdx);
-        const float* d01 = (const float*)(dIp + (long)iy * sdy + (long)(ix + 1) * sdx);
-        const float* d10 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)ix * sdx);
-        const float* d11 = (const float*)(dIp + (long)(iy + 1) * sdy + (long)(ix + 1) * sdx);
-        s0[l] = c11 * d11[0] + c10 * d10[0] + c01 * d01[0] + c00 * d00[0];
-        s1[l] = c11 * d11[1] + c10 * d10[1] + c01 * d01[1] + c00 * d00[1];
-        s2[l] = c11 * d11[2] + c10 * d10[2] + c01 * d01[2] + c00 * d00[2];
-    }
-    // masks are -1/0 lanes; a select is (x & mask) | (y & ~mask) on the bits
+    // bilinear (I, dx, dy), point by point
+%SAMPLE8%    // masks are -1/0 lanes; a select is (x & mask) | (y & ~mask) on the bits
     const v8i lane = (v8i){0, 1, 2, 3, 4, 5, 6, 7} < m;
     const v8i front = dr > 0.0f;
     const v8i inside = (ku > lo) & (kv > lo) & (ku < xhi) & (kv < yhi) & (ku >= 0.0f) & (kv >= 0.0f) & (ku <= wm1)
@@ -211,7 +196,7 @@ return 1;
 #else
 return 0;
 #endif
-"""
+""".replace("%SAMPLE8%", SAMPLE8_CPP)
 
 
 @wp.func_native(_SNIPPET)
