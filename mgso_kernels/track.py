@@ -65,8 +65,8 @@ SLOT_FLOW_T = 76
 SLOT_FLOW_RT = 77
 SLOT_FLOW_COUNT = 78
 NUM_SLOTS = 79
-# mgso_kernels.track_simd.coarse_block_simd writes this layout
-assert (SLOT_H, SLOT_B, SLOT_ENERGY, SLOT_FLOW_COUNT, NUM_SLOTS) == (0, 64, 72, 78, 79)
+# mgso_kernels.track_simd.coarse_block_simd writes this layout up to the counts (the kernel adds the flow)
+assert (SLOT_H, SLOT_B, SLOT_ENERGY, SLOT_NUM_SATURATED) == (0, 64, 72, 75)
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
@@ -254,6 +254,14 @@ def _make_reduce_kernel(with_system: bool, store_jacobians: bool):
             write_system(partials, blk, H, g)
             for q in range(7):
                 partials[blk, SLOT_ENERGY + q] = sums[q]
+        else:  # the snippet wrote the system and the counts; the flow indicators are the scalar loop's
+            flow = vec8d()
+            i = next_flow
+            while i >= 0 and i < end:  # next_flow is -1 without flow indicators
+                flow = flow + flow_counts(host_uv[i], idepth[i], Ki, RKi, pair.t, cam)
+                i += params.flow_stride
+            for q in range(SLOT_FLOW_T, NUM_SLOTS):
+                partials[blk, q] = flow[q - SLOT_ENERGY]
 
     return reduce_tracking_system
 

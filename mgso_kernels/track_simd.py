@@ -11,7 +11,8 @@ NEON registers on arm64) the way DSO's ``calcGSSSE`` uses SSE:
   float64 lanes over the block's points, then over the lanes into the block's partial row, which the launcher sums
   in float64 as before (float32 lanes, as DSO's ``Accumulator11``, were 15 % faster and tried first:
   docs/tracking_kernels.md, "Eight points at a time on the CPU");
-- the counts and the flow indicators are the scalar kernel's, summed per block in float64.
+- the counts are summed in float lanes (exact) and then in float64; the flow indicators (a point in 32) are left
+  to the kernel, which adds them with the scalar loop's ``flow_counts``.
 
 Why native code: Warp's CPU code generator writes every value-typed vector as loads and stores of the whole value,
 so the same vector arithmetic written in Warp's language ran slower than scalar code (docs/tracking_kernels.md). On
@@ -133,26 +134,20 @@ for (int i0 = start; i0 < end; i0 += 8) {
         }
     }
 }
-// the lanes summed in float64 into the partial row (mgso_kernels.track's layout: H 0-63, b 64-71, counts 72-78)
-double hs[44];
-for (int q = 0; q < 36; ++q) {
+// the lanes summed in float64 into the partial row (mgso_kernels.track's layout: H 0-63, b 64-71, counts 72-75)
+auto lanes = [](v8d x) -> double {
     double s = 0.0;
-    for (int l = 0; l < 8; ++l) s += acc[q][l];
-    hs[q] = s;
-}
-for (int a = 0; a < 8; ++a) {
-    double s = 0.0;
-    for (int l = 0; l < 8; ++l) s += accb[a][l];
-    hs[36 + a] = s;
-}
+    for (int l = 0; l < 8; ++l) s += x[l];
+    return s;
+};
 int q = 0;
 for (int a = 0; a < 8; ++a) {
     for (int b = a; b < 8; ++b) {
-        wp::index(partials, blk, a * 8 + b) = hs[q];
-        wp::index(partials, blk, b * 8 + a) = hs[q];
-        ++q;
+        const double h = lanes(acc[q++]);
+        wp::index(partials, blk, a * 8 + b) = h;
+        wp::index(partials, blk, b * 8 + a) = h;
     }
-    wp::index(partials, blk, 64 + a) = hs[36 + a];
+    wp::index(partials, blk, 64 + a) = lanes(accb[a]);
 }
 double cnt[4] = {0.0, 0.0, 0.0, 0.0};
 for (int l = 0; l < 8; ++l) {
@@ -161,37 +156,10 @@ for (int l = 0; l < 8; ++l) {
     cnt[2] += (double)sinl[l];
     cnt[3] += (double)ssat[l];
 }
-// the flow indicators of every flow_stride-th point (the scalar kernel's flow_counts)
-double fl[3] = {0.0, 0.0, 0.0};
-if (flow_stride > 0) {
-    for (int i = next_flow; i < end; i += flow_stride) {
-        const float* pu = (const float*)(uvp + (long)i * suv);
-        const float c0 = pu[0], c1 = pu[1];
-        const float id1 = *(const float*)(idp + (long)i * sid);
-        const float tt0 = t0 * id1, tt1 = t1 * id1, tt2 = t2 * id1;
-        const float h0 = Ki.data[0][0] * c0 + Ki.data[0][1] * c1 + Ki.data[0][2];
-        const float h1 = Ki.data[1][0] * c0 + Ki.data[1][1] * c1 + Ki.data[1][2];
-        const float hh2 = Ki.data[2][0] * c0 + Ki.data[2][1] * c1 + Ki.data[2][2];
-        const float r0 = m00 * c0 + m01 * c1 + m02, r1 = m10 * c0 + m11 * c1 + m12, r2 = m20 * c0 + m21 * c1 + m22;
-        const float P[4][3] = {{h0 + tt0, h1 + tt1, hh2 + tt2}, {h0 - tt0, h1 - tt1, hh2 - tt2},
-                               {r0 + tt0, r1 + tt1, r2 + tt2}, {r0 - tt0, r1 - tt1, r2 - tt2}};
-        float dd[4];
-        for (int k = 0; k < 4; ++k) {
-            const float ex = fx * P[k][0] / P[k][2] + cx - c0, ey = fy * P[k][1] / P[k][2] + cy - c1;
-            dd[k] = ex * ex + ey * ey;
-        }
-        fl[0] += (double)(dd[0] + dd[1]);
-        fl[1] += (double)(dd[2] + dd[3]);
-        fl[2] += 2.0;
-    }
-}
 wp::index(partials, blk, 72) = cnt[0];
 wp::index(partials, blk, 73) = cnt[1];
 wp::index(partials, blk, 74) = cnt[2];
 wp::index(partials, blk, 75) = cnt[3];
-wp::index(partials, blk, 76) = fl[0];
-wp::index(partials, blk, 77) = fl[1];
-wp::index(partials, blk, 78) = fl[2];
 return 1;
 #else
 return 0;
@@ -208,6 +176,6 @@ def coarse_block_simd(blk: int, start: int, end: int, next_flow: int, max_energy
                       state: wp.array2d(dtype=wp.int32), partials: wp.array2d(dtype=wp.float64),
                       with_system: int) -> int:
     """Points ``[start, end)`` of block ``blk`` (see the module docstring): residuals, weights and states written,
-    the block's partial row filled (``H`` and ``b`` zero unless ``with_system``). Returns 1, or 0 (nothing written)
-    where the snippet does not apply."""
+    the block's partial row filled up to its counts (``H`` and ``b`` zero unless ``with_system``; the flow slots are
+    the caller's). Returns 1, or 0 (nothing written) where the snippet does not apply."""
     ...
