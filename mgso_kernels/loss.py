@@ -16,8 +16,8 @@ Conventions (the 3DGS training convention, graphdeco ``utils/loss_utils.py``):
   masked: a valid pixel next to an invalid border still sees its neighbours (what masked 3DGS trainers do). A mask of
   all zeros gives loss 0 and a zero gradient (``LossResult.weight_sum == 0`` says so).
 
-Algorithm for the standard window (11 taps, sigma 1.5; every caller): **chunk kernels** (:mod:`mgso_kernels.loss_chunks`,
-their own Warp module for their compiler options). A row of the image is
+Algorithm for the standard window (11 taps, sigma 1.5; every caller): **chunk kernels**
+(:mod:`mgso_kernels.loss_chunks`, their own Warp module for their compiler options). A row of the image is
 3W interleaved floats (r, g, b per pixel); it is cut into *chunks* of 16 consecutive floats, and every operation is
 lane-wise on chunks, so the compiler turns it into vector instructions (AVX-512 here). Filtering is channel-agnostic:
 a horizontal tap of dx pixels is a shift of 3 dx floats, i.e. a constant lane permutation of a chunk and its two
@@ -42,6 +42,13 @@ as per-lane weights. On CUDA a thread handles one row of a chunk column (the rin
 output row, which a GPU affords). Measured (one call, forward + backward, one thread, thread CPU time, min of 9):
 320x240 45 -> 17 ms, 640x480 187 -> 60 ms, 80x60 3.6 -> 1.6 ms against the per-pixel kernels below.
 
+**On the CPU** the same work runs as plain row loops (:mod:`mgso_kernels.loss_simd`: a thread does a block of 4
+neighbouring chunks of a band, every horizontal tap a load at an offset from a contiguous row): the same operations
+in the same order, so the same bits as the chunk kernels (tested), at whatever vector width the CPU has. The chunk
+kernels' cross-chunk lane permutations are single instructions with AVX-512 only; on a 2-core AMD EPYC (Zen 3, AVX2)
+forward + backward at 640x480 took 160 ms of one thread as chunk kernels and 23 ms as row loops
+(docs/mapping.md, "The loss as row loops"). ``L1SSIMLoss(simd=False)`` runs the chunk kernels on the CPU too.
+
 Other window sizes / sigmas use the first implementation, five per-pixel passes: ``filter_moments_rows``
 (horizontal window over the five maps), ``ssim_forward_cols`` (vertical window, SSIM, L1 and the partials),
 ``sum_blocks`` + ``sum_partials``, ``filter_adjoint_rows`` + ``ssim_backward_cols`` (the adjoint filter and the
@@ -62,6 +69,7 @@ from . import runtime
 from .loss_chunks import (BAND_CPU, BAND_GPU, CHUNK, AdjointChunks, ChunkImages, ssim_backward_chunks,
                           ssim_forward_chunks, stage_chunks, vec16)
 from .loss_chunks import WINDOW as CHUNK_WINDOW
+from .loss_simd import num_blocks, ssim_backward_blocks, ssim_forward_blocks
 
 wp.set_module_options({"enable_backward": False})
 
@@ -401,7 +409,7 @@ class L1SSIMLoss:
 
     def __init__(self, height: int, width: int, device: str | None = None, *,
                  lambda_dssim: float = LAMBDA_DSSIM, window_size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA,
-                 c1: float = SSIM_C1, c2: float = SSIM_C2):
+                 c1: float = SSIM_C1, c2: float = SSIM_C2, simd: bool = True):
         if height < 1 or width < 1:
             raise ValueError(f"image size must be positive, got {width}x{height}")
         if not 0.0 <= lambda_dssim <= 1.0:
@@ -410,6 +418,9 @@ class L1SSIMLoss:
         self.height, self.width = int(height), int(width)
         self.lambda_dssim = float(lambda_dssim)
         self.c1, self.c2 = float(c1), float(c2)
+        # the CPU runs the chunk kernels' work as row loops (mgso_kernels.loss_simd, the same bits); False: the chunk
+        # kernels themselves (tests compare the two)
+        self.simd = bool(simd) and wp.get_device(self.device).is_cpu
         d = self.device
         shape = (self.height, self.width)
         window = gaussian_window(window_size, sigma)
@@ -454,6 +465,8 @@ class L1SSIMLoss:
         self._nblocks = -(-self._nthreads // REDUCE_BLOCK)
         self._partials = wp.zeros(self._nblocks, dtype=wp.vec3d, device=d)
         self._dummy_chunks = wp.zeros((1, 1), dtype=vec16, device=d)
+        self._nblk = num_blocks(self._nch)
+        self._status = wp.zeros(-(-H // self._band) * self._nblk, dtype=wp.int32, device=d)
         self._v_chunks = self._chunk_view(self.v_rendered) if self._in_place else self._dummy_chunks
         self._v_flat = wp.array(ptr=self.v_rendered.ptr, dtype=wp.float32, shape=(H, 3 * W), device=d)
 
@@ -542,16 +555,30 @@ class L1SSIMLoss:
                                  [img.rendered, img.target, img.weight, img.use_weight, img.gain, img.bias,
                                   self._nch, int(not in_place), ci.x, ci.y, ci.weight], d, min_chunk=1024)
         sums = self._sums.reshape((self._nthreads, 1))
-        runtime.launch_split(ssim_forward_chunks, self._nthreads,
-                             [ci, self._band, self.c1, self.c2, self._adj, sums], d, min_chunk=8)
+        simd = self.simd
+        if simd:
+            runtime.launch_split(ssim_forward_blocks, self._status.shape[0],
+                                 [ci, self._band, self._nblk, self.c1, self.c2, self._adj, sums, self._status], d,
+                                 min_chunk=2)
+            simd = bool(self._status.numpy().all())   # a snippet that declined: the chunk kernels (never seen)
+        if not simd:
+            runtime.launch_split(ssim_forward_chunks, self._nthreads,
+                                 [ci, self._band, self.c1, self.c2, self._adj, sums], d, min_chunk=8)
         self._reduce(0)
         if compute_grad:
             v_in_place = in_place and self.v_rendered.is_contiguous
-            runtime.launch_split(ssim_backward_chunks, self._nthreads,
-                                 [ci, self._band, self._adj, self._totals.reshape((2, 1)), self.lambda_dssim,
-                                  img.gain, img.bias,
-                                  self._v_chunks if v_in_place else self._dummy_chunks, self._v_flat,
-                                  int(v_in_place), sums], d, min_chunk=8)
+            v_chunks = self._v_chunks if v_in_place else self._dummy_chunks
+            if simd:
+                runtime.launch_split(ssim_backward_blocks, self._status.shape[0],
+                                     [ci, self._band, self._nblk, self._adj, self._totals.reshape((2, 1)),
+                                      self.lambda_dssim, img.gain, img.bias, v_chunks, self._v_flat,
+                                      int(v_in_place), sums, self._status], d, min_chunk=2)
+                simd = bool(self._status.numpy().all())
+            if not simd:
+                runtime.launch_split(ssim_backward_chunks, self._nthreads,
+                                     [ci, self._band, self._adj, self._totals.reshape((2, 1)), self.lambda_dssim,
+                                      img.gain, img.bias, v_chunks, self._v_flat, int(v_in_place), sums], d,
+                                     min_chunk=8)
             self._reduce(1)
 
 

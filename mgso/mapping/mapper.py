@@ -263,10 +263,10 @@ class Mapper:
     def load_kernels(self) -> None:
         """Compile or load every kernel module the mapper launches, now (real time: before the camera plays; a
         compile at the first keyframe would take the cores from the odometry's first frames)."""
-        from mgso_kernels import adam, loss, loss_chunks, runtime
+        from mgso_kernels import adam, loss, loss_chunks, loss_simd, runtime
         from mgso_kernels.splat import bin as sbin, project, raster, raster_bwd, raster_tile, sh
 
-        runtime.load_modules((project, sbin, raster, raster_tile, raster_bwd, sh, loss, loss_chunks, adam),
+        runtime.load_modules((project, sbin, raster, raster_tile, raster_bwd, sh, loss, loss_chunks, loss_simd, adam),
                              self.device)
 
     # ------------------------------------------------------------------------------------------ queue

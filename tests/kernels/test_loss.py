@@ -173,3 +173,34 @@ def test_gradient_float_view(wp_device, rng):
     res = wl.L1SSIMLoss(12, 16, wp_device)(rendered, target)
     assert res.v_rendered_hw3.shape == (12, 16, 3)
     assert np.array_equal(res.v_rendered_hw3.numpy(), res.v_rendered.numpy())
+
+
+@pytest.mark.parametrize("use_mask,exposure", [(False, None), (True, (0.3, -0.05))])
+@pytest.mark.parametrize("h,w", [(70, 131), (80, 96), (9, 5)])
+def test_cpu_row_loops_equal_the_chunk_kernels_bit_for_bit(wp_device, rng, use_mask, exposure, h, w):
+    """mgso_kernels.loss_simd (the CPU's path) writes what the chunk kernels write: loss, sums, dL/dI and the
+    exposure gradient the same bits, for rows that are whole chunks (96: read in place) and not (131, 5: staged),
+    blocks of chunks ending part-way (131 x 3 = 393 floats: 25 chunks, 7 blocks) and images smaller than the
+    window (9 x 5); and the row loops did run (the status of every block is 1)."""
+    import warp as wp
+
+    if not wp.get_device(wp_device).is_cpu:
+        pytest.skip("the row loops are the CPU's path")
+    rendered, target = _pair(rng, h, w)
+    rendered[3, 2] = 0.0                        # a few exact zeros and ties: the L1 sign's three cases
+    target[3, 2] = 0.0
+    mask = None
+    if use_mask:
+        mask = (rng.random((h, w)) > 0.2).astype(np.float32) * rng.uniform(0.5, 1.5, (h, w)).astype(np.float32)
+    out = {}
+    for simd in (False, True):
+        fn = wl.L1SSIMLoss(h, w, wp_device, simd=simd)
+        r = fn(rendered, target, mask=mask, exposure=exposure)
+        out[simd] = (r.loss, r.l1, r.ssim, r.weight_sum, r.v_exposure, r.v_rendered.numpy().copy())
+        if simd:
+            assert fn._status.numpy().all(), "a block fell back to the chunk kernels"
+        else:
+            assert not fn.simd
+    a, b = out[False], out[True]
+    assert a[:5] == b[:5]
+    assert np.array_equal(a[5].view(np.uint32), b[5].view(np.uint32))
