@@ -15,7 +15,10 @@ accumulated as while refining, but no refine pass so that N stays fixed): the me
 ``adam`` (fused Adam over all Gaussians), ``strategy`` (the densification hook on a non-refine step), their sum
 ``step_ms`` and ``it_per_s = 1000 / step_ms``; ``refine_ms``: one refine pass (clone / split / prune through the map's
 operations) at this N, which 3DGS runs every 100 steps; ``visible``: median Gaussians in view; ``cpu_ms``: median
-process CPU time of a step summed over threads (the compute cost, steadier than wall time on a shared machine).
+process CPU time of a step summed over threads (the compute cost, steadier than wall time on a shared machine);
+``pairs``: median (tile, Gaussian) pairs a render blends, and ``pairs_per_px`` the same a pixel (pairs x 256 / pixels:
+the list entries a pixel could visit), what bounds the rasteriser's cost (docs/rasteriser.md, "The arithmetic
+against the time").
 """
 
 from __future__ import annotations
@@ -93,7 +96,7 @@ def main() -> None:
             for k in range(2):                                    # warm-up (compiles / loads kernels once)
                 tr.step(ids[k % len(ids)])
             per = {s: [] for s in STAGES}
-            totals, cpu, visible = [], [], []
+            totals, cpu, visible, pairs = [], [], [], []
             for k in range(args.steps):
                 c0 = time.process_time()
                 r = tr.step(ids[k % len(ids)])
@@ -102,6 +105,7 @@ def main() -> None:
                     per[s].append(r.times[s] * 1e3)
                 totals.append(sum(r.times.values()) * 1e3)
                 visible.append(r.num_visible)
+                pairs.append(r.num_pairs)
             strategy = DefaultStrategy(load_config(None, ["mapping.densify.refine_start_step=0",
                                                           "mapping.densify.refine_every=1"]).mapping.densify)
             t0 = time.perf_counter()
@@ -111,7 +115,9 @@ def main() -> None:
             res = {f"{s}_ms": round(statistics.median(per[s]), 2) for s in STAGES}
             res.update(step_ms=round(step_ms, 2), it_per_s=round(1e3 / step_ms, 3),
                        cpu_ms=round(statistics.median(cpu), 1), visible=int(statistics.median(visible)),
-                       refine_ms=round(refine_ms, 1), refine_grew=refine.cloned + refine.split)
+                       refine_ms=round(refine_ms, 1), refine_grew=refine.cloned + refine.split,
+                       pairs=int(statistics.median(pairs)),
+                       pairs_per_px=round(statistics.median(pairs) * 256 / (w * h), 1))
             out["results"][f"{w}x{h}/{n}"] = res
     print(json.dumps(out))
 

@@ -71,6 +71,7 @@ class StepResult:
     num_visible: int                # Gaussians with a screen radius > 0 in this view
     refine: RefineResult            # what the strategy did
     times: dict[str, float] = field(default_factory=dict)   # seconds per stage (STAGES)
+    num_pairs: int = 0              # (tile, Gaussian) pairs the render blended (what bounds its cost)
 
 
 @dataclass(frozen=True)
@@ -215,7 +216,7 @@ class TrainStep:
         return StepResult(step=int(step), view_id=view.view_id, level=int(level), width=W, height=H, loss=res.loss,
                           l1=res.l1, ssim=res.ssim, psnr=psnr,
                           exposure=(float(view.exposure[0]), float(view.exposure[1])), num_gaussians=gmap.n,
-                          num_visible=num_visible, refine=refine, times=times)
+                          num_visible=num_visible, refine=refine, times=times, num_pairs=int(out.n_pairs))
 
     @staticmethod
     def _depth_term(out, view: TrainView, level: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
