@@ -52,7 +52,8 @@ from .io.trajectory import Trajectory, write_tum
 
 __all__ = [
     "SYNTHETIC_VERSION", "SyntheticCamera", "Surface", "Box", "Scene", "SequenceSpec", "SyntheticFrame",
-    "SyntheticSequence", "make_scene", "render", "camera_path", "vignette_factor", "exposure_schedule",
+    "SyntheticSequence", "make_scene", "render", "camera_path", "rotation_path", "CAMERA_PATHS", "vignette_factor",
+    "exposure_schedule",
     "apply_photometric", "iter_frames", "make_sequence", "write_tum_rgbd", "cached_sequence_folder",
     "default_cache_dir", "TUM_DEPTH_FACTOR", "depth_to_points",
 ]
@@ -723,6 +724,33 @@ def camera_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0
     return Trajectory(start_time + np.arange(num_frames) / fps, poses)
 
 
+def rotation_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0, start_time: float = 0.0,
+                  phase: float = 0.0) -> Trajectory:
+    """A handheld camera that stays nearly in place and rolls, pitches and yaws (TUM RGB-D ``freiburg1_rpy``'s
+    motion): yaw within +-25 degrees, pitch +-12, roll +-20, each a sine of its own frequency, and the centre within
+    3 cm of (0, 0, -1) m. Frame i is at ``s = phase + motion_scale * 0.02 * i``; at ``motion_scale`` 1 the camera
+    turns about 0.3-1.3 degrees a frame (3 gives freiburg1_rpy's 1-4 degrees) and moves about 1 mm. Little
+    parallax: the depths a monocular odometry estimates from it are poor, and it keeps coming back to the same
+    views."""
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if not (fps > 0 and np.isfinite(motion_scale) and motion_scale >= 0):
+        raise ValueError(f"need fps > 0 and motion_scale >= 0, got fps={fps}, motion_scale={motion_scale}")
+    s = phase + motion_scale * BASE_STEP * np.arange(num_frames)
+    poses = np.empty((num_frames, 4, 4))
+    for i, si in enumerate(s):
+        yaw, pitch, roll = (np.radians(25.0) * np.sin(si), np.radians(12.0) * np.sin(1.7 * si + 0.5),
+                            np.radians(20.0) * np.sin(2.3 * si + 1.0))
+        R = so3_exp(np.array([0.0, yaw, 0.0])) @ so3_exp(np.array([pitch, 0.0, 0.0])) @ so3_exp(
+            np.array([0.0, 0.0, roll]))
+        pos = np.array([0.03 * np.sin(si), 0.02 * np.sin(1.3 * si), -1.0 + 0.02 * np.sin(0.7 * si)])
+        poses[i] = make_pose(R, pos)
+    return Trajectory(start_time + np.arange(num_frames) / fps, poses)
+
+
+CAMERA_PATHS = {"figure_eight": camera_path, "rotation": rotation_path}
+
+
 # ----------------------------------------------------------------------------------------------- photometry
 def vignette_factor(width: int, height: int, strength: float, cx: float | None = None,
                     cy: float | None = None) -> np.ndarray:
@@ -777,6 +805,7 @@ class SequenceSpec:
     start_time: float = 0.0
     motion_scale: float = 1.0
     phase: float = 0.0
+    path: str = "figure_eight"      # CAMERA_PATHS: "figure_eight" (camera_path) or "rotation" (rotation_path)
     supersample: int = 2
     exposure_variation: float = 0.0
     exposure_period_frames: float = 40.0
@@ -798,7 +827,8 @@ class SequenceSpec:
                   (self.exposure_period_frames > 0 and self.base_exposure_ms > 0,
                    "exposure_period_frames and base_exposure_ms must be > 0"),
                   (self.motion_scale >= 0 and self.fps > 0, "motion_scale must be >= 0 and fps > 0"),
-                  (self.supersample >= 1, "supersample must be >= 1")]
+                  (self.supersample >= 1, "supersample must be >= 1"),
+                  (self.path in CAMERA_PATHS, f"path must be one of {sorted(CAMERA_PATHS)}")]
         for ok, msg in checks:
             if not ok:
                 raise ValueError(f"synthetic sequence: {msg} ({self})")
@@ -812,7 +842,10 @@ class SequenceSpec:
         return cls(**params)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if d["path"] == "figure_eight":   # the default: keys (and cached folders) of the sequences made before it
+            del d["path"]
+        return d
 
     def key(self) -> str:
         """A short hash of the parameters and :data:`SYNTHETIC_VERSION` (the cache folder name)."""
@@ -828,8 +861,8 @@ class SequenceSpec:
                           photo=self.photo)
 
     def trajectory(self) -> Trajectory:
-        return camera_path(self.num_frames, motion_scale=self.motion_scale, fps=self.fps,
-                           start_time=self.start_time, phase=self.phase)
+        return CAMERA_PATHS[self.path](self.num_frames, motion_scale=self.motion_scale, fps=self.fps,
+                                       start_time=self.start_time, phase=self.phase)
 
     def exposures_ms(self) -> np.ndarray:
         return exposure_schedule(self.num_frames, variation=self.exposure_variation,
