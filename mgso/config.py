@@ -615,11 +615,15 @@ class TrainConfig:
                                "(Photo-SLAM's per-keyframe times of use)")
     sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
                                         "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
-    depth_weight: float = opt(0.2, "weight of the sparse depth term: mean relative error between the render's "
+    depth_weight: float = opt(0.0, "weight of the sparse depth term: mean relative error between the render's "
                                    "expected depth and the view's depth points (MGSO: DSO's points of the keyframe; "
-                                   "`mgso fit`'s views have none); 0 = off")
-    refine_poses: bool = opt(False, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
-                                    "(left perturbation); off: poses are trusted (ground truth, DSO's window)")
+                                   "`mgso fit`'s views have none); 0 = off (0.2 until issue 41: DSO's depths of a "
+                                   "rotating handheld camera are poor and pulled the map to them; docs/mapping.md, "
+                                   "\"Handheld camera\")")
+    refine_poses: bool | None = opt(None, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
+                                          "(left perturbation; the first keyframe holds the gauge); null = on in "
+                                          "MGSO's mapper (the odometry's poses; off until issue 41) and off in `mgso "
+                                          "fit` (given poses, trusted)")
     lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
                                             "cam_trans_delta)")
     lr_pose_rotation: float = opt(0.003, "Adam rate of the pose rotation delta, radians (MonoGS cam_rot_delta)")
@@ -636,6 +640,11 @@ class TrainConfig:
     init_knn: int = opt(3, "initial scale = mean distance to this many nearest neighbours (3DGS, MGSO)")
     holdout_every: int = opt(5, "`mgso fit` holds out every n-th frame for evaluation (never trained on); 0 = none")
     max_train_views: int = opt(0, "`mgso fit` trains on at most this many views, evenly spread; 0 = all")
+
+    def with_pose_refinement(self, default: bool) -> "TrainConfig":
+        """This section with ``refine_poses`` decided: ``default`` where it is null (the mapper passes True for
+        the odometry's poses, `mgso fit` False for given ones), else as set."""
+        return dataclasses.replace(self, refine_poses=default if self.refine_poses is None else self.refine_poses)
 
     def __post_init__(self):
         c = _Checks("mapping.train", self)
@@ -681,8 +690,15 @@ class SeedingConfig:
                                            "mostly empty; SplaTAM's silhouette threshold 0.5)")
     depth_tolerance: float = opt(0.1, "also keep a candidate the map covers when the map's expected depth there is "
                                       "off the point's by more than this fraction (the map has no surface where "
-                                      "the odometry measured one; SplaTAM's depth-error rule; docs/seeding.md); 0 = "
+                                      "the odometry measured one: SplaTAM's depth-error rule; docs/seeding.md); 0 = "
                                       "alpha only")
+    depth_rule_max_median: float = opt(0.25, "skip the depth rule for a keyframe whose covered candidates' median "
+                                             "relative depth error (the odometry's depth against the map's) is above "
+                                             "this: when most of them disagree, the disagreement is the odometry's "
+                                             "noise, not surfaces the map lacks (a handheld camera's: medians 0.46-3.8 "
+                                             "on TUM freiburg1_rpy, where every keyframe seeded its points again and "
+                                             "the map grew with the run into transparent fog; the synthetic demo's "
+                                             "0.03-0.10; docs/mapping.md, \"Handheld camera\"); 0 = never skip")
     alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
                                   "at 2)")
     coverage_stop: float = opt(0.01, "the coverage render stops a pixel once its transmittance is below this: the "
@@ -699,7 +715,8 @@ class SeedingConfig:
 
     def __post_init__(self):
         c = _Checks("mapping.seeding", self)
-        c.ge(0, "min_point_weight", "fill_min_triangle_area_px", "depth_tolerance", "min_new_gaussians")
+        c.ge(0, "min_point_weight", "fill_min_triangle_area_px", "depth_tolerance", "min_new_gaussians",
+             "depth_rule_max_median")
         c.gt(0, "fill_area_per_point_px")  # k = ceil(sqrt(area / this))
         c.one_of(("mean", "barycentric"), "fill_depth")
         c.ge(1, "fill_max_depth_ratio", "fill_max_subdivisions", "alpha_downscale", "knn")

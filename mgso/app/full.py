@@ -41,8 +41,36 @@ METRICS_KEYS = (
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
-    "protocols", "loop", "ate_odometry_all_frames_m", "live", "segments", "tracking_losses",
+    "protocols", "loop", "ate_odometry_all_frames_m", "live", "segments", "tracking_losses", "map_health",
 )
+
+#: A map whose median Gaussian is more transparent than this is fog: the fogged maps measured 0.10 (TUM
+#: freiburg1_rpy with the defaults before issue 41, where every keyframe seeded its points again), the maps of the
+#: defaults since 0.29-0.75 (TUM, 7-Scenes, KITTI, the demo; docs/mapping.md, "Handheld camera").
+FOG_MEDIAN_OPACITY = 0.15
+#: A map that renders its own training views below this PSNR (mean over Mapper.HEALTH_VIEWS of them) does not fit
+#: them: 11.9-15.1 dB measured on the fogged TUM maps, 19.4-22.5 dB on TUM, 7-Scenes and KITTI with the defaults
+#: since issue 41, 29 dB on the demo (docs/mapping.md, "Handheld camera").
+POOR_FIT_PSNR_DB = 18.0
+
+
+def map_warnings(health: dict) -> list[str]:
+    """One line per sign of a foggy map in ``health`` (:meth:`mgso.mapping.mapper.Mapper.health`): mostly
+    transparent Gaussians, or training views the map renders badly."""
+    out = []
+    med = health.get("median_opacity")
+    if med is not None and med < FOG_MEDIAN_OPACITY:
+        out.append(f"the map is mostly transparent (median opacity {med:.2f}, "
+                   f"{100 * health['transparent_fraction']:.0f} % of its Gaussians below "
+                   f"{Mapper.TRANSPARENT_OPACITY}): fog, many faint Gaussians where the views and the odometry's "
+                   "depths disagree (docs/mapping.md, \"Handheld camera\")")
+    fit = health.get("training_view_psnr_db")
+    if fit is not None and fit < POOR_FIT_PSNR_DB:
+        out.append(f"the map renders its own training views at {fit:.1f} dB (the lowest of "
+                   f"{health['training_views_rendered']} at {health['training_view_psnr_min_db']:.1f} dB, below "
+                   f"{POOR_FIT_PSNR_DB:g} dB): it does not fit the keyframes it was trained on; views that disagree "
+                   "(poses, motion blur, exposure) were averaged (docs/mapping.md, \"Handheld camera\")")
+    return out
 
 
 def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, *,
@@ -86,6 +114,8 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
             except EvaluationError as exc:
                 log.warning("no ATE on %s: %s", label, exc)
         figures = _figures(result, mapper, seq, cfg, ate, [], map_mb, odometry_name, error, frames_unreadable)
+        for line in (figures["map_health"] or {}).get("warnings", []):
+            log.warning("%s", line)
         figures["evaluation"] = "pending"
         figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
         writer.write_metrics(ate=list(ate.values()), extra=figures)
@@ -206,6 +236,12 @@ def _headline(f: dict) -> list[str]:
     lines.append("PSNR: " + ("; ".join(psnr) if psnr else "not evaluated"))
     lines.append(f"map: {f['num_gaussians']:,} Gaussians, {f['map_size_mb']:.2f} MB; peak memory "
                  f"{num(f['peak_memory_mb'], '.0f')} MB")
+    h = f.get("map_health") or {}
+    if h.get("median_opacity") is not None or h.get("training_view_psnr_db") is not None:
+        lines.append(f"map health: median opacity {num(h.get('median_opacity'), '.2f')}, its training views "
+                     f"{num(h.get('training_view_psnr_db'), '.1f')} dB"
+                     + ("; WARNING: " + "; ".join(w.split(":")[0] for w in h["warnings"]) if h.get("warnings")
+                        else ""))
     lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s, end to end {f['end_to_end_fps']:.2f} frames/s, "
                  f"mapping {f['mapping_iterations_per_s']:.1f} steps/s")
     lines.append(f"interrupted: {'yes' if f['interrupted'] else 'no'}; evaluation: {f['evaluation']}"
@@ -342,6 +378,7 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
                                     else None),
             "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None},
         "loop": None if result.loop is None else result.loop.as_dict(),
+        "map_health": None if not st.health else {**st.health, "warnings": map_warnings(st.health)},
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
         # a live source: frames captured, replaced at the source, the timestamps' clock, why the input ended

@@ -19,6 +19,8 @@ e.g. one estimated by ``mgso run``). Frames without a pose are left out (logged)
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import time
 from dataclasses import dataclass, field
@@ -175,7 +177,9 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
     t_start = time.perf_counter()
     out = Path(writer.out)
     progress = progress or no_progress
-    mc, tc = cfg.mapping, cfg.mapping.train
+    # given poses are trusted unless mapping.train.refine_poses is set
+    mc = dataclasses.replace(cfg.mapping, train=cfg.mapping.train.with_pose_refinement(False))
+    tc = mc.train
     dev = runtime.init(device or cfg.runtime.device, threads=cfg.runtime.threads,
                        blas_threads=cfg.runtime.blas_threads)
     where = f"{seq.path}"

@@ -135,6 +135,9 @@ class MapperStats:
     # final refinement (frame index -1, timestamp nan): the map's growth over time (report.png); not in as_dict
     history: list = field(default_factory=list)
     stopped_by: str = ""                    # "stop" (end of stream) or "interrupt"
+    # the final map's health (Mapper.health, after the final refinement; {} when none ran): its median opacity, the
+    # share of nearly transparent Gaussians, and its PSNR on a sample of its own training views
+    health: dict = field(default_factory=dict)
 
     @property
     def iterations_per_s(self) -> float:
@@ -142,11 +145,12 @@ class MapperStats:
 
     def as_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-             if f.name not in ("seed_results", "history")}
+             if f.name not in ("seed_results", "history", "health")}   # health: metrics.json's map_health
         d["iterations_per_s"] = self.iterations_per_s
         d["seeding"] = [{"keyframe_id": r.keyframe_id, "status": r.status.value, "candidates": r.num_candidates,
                          "fill": r.num_fill, "rejected_visibility": r.num_rejected_visibility,
-                         "added": r.num_added} for r in self.seed_results]
+                         "added": r.num_added, "depth_error_median": r.depth_error_median,
+                         "depth_tolerance": r.depth_tolerance_used} for r in self.seed_results]
         return d
 
 
@@ -199,7 +203,8 @@ class Mapper:
 
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None):
         self.config = config
-        mc = config.mapping
+        # the map refines the odometry's keyframe poses unless mapping.train.refine_poses says otherwise
+        mc = dataclasses.replace(config.mapping, train=config.mapping.train.with_pose_refinement(True))
         self.mc = mc
         self.cfg = mc.mapper
         seed = int(config.runtime.seed)
@@ -472,6 +477,8 @@ class Mapper:
             self.refine(self.cfg.final_iterations)
             # an interrupt during the refinement ends it early (train() checks it between steps)
             self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
+            if not self._interrupt.is_set():
+                self.stats.health = self.health()
         else:
             self.stats.stopped_by = "interrupt"
         self.stats.history.append((-1, float("nan"), self.stats.steps, int(self.gmap.n)))
@@ -772,6 +779,44 @@ class Mapper:
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done
+
+    # ------------------------------------------------------------------------------------------ health
+    HEALTH_VIEWS = 8            # training views rendered by health(), evenly spread over the keyframes
+    TRANSPARENT_OPACITY = 0.1   # a Gaussian below this opacity counts as nearly transparent
+
+    def health(self, max_views: int | None = None) -> dict:
+        """How the map fits what it was trained on (values, not warnings; the application decides what to say):
+        ``median_opacity`` and ``transparent_fraction`` (opacity below :attr:`TRANSPARENT_OPACITY`) of the
+        Gaussians, and ``training_view_psnr_db``, the mean PSNR of the map on up to ``max_views`` (default
+        :attr:`HEALTH_VIEWS`) of its training views, evenly spread, at their map poses and exposures, full
+        resolution, over their valid pixels (``training_view_psnr_min_db`` the lowest). A map that cannot render its
+        own training views, or is mostly nearly transparent, is fog: the views disagree (poses, blur, exposure) or
+        training had too few steps. Rendering costs a fraction of a second a view."""
+        out: dict = {"num_gaussians": int(self.gmap.n)}
+        if self.gmap.n:
+            op = self.gmap.activated().opacities.astype(np.float64)
+            out["median_opacity"] = round(float(np.median(op)), 4)
+            out["transparent_fraction"] = round(float(np.mean(op < self.TRANSPARENT_OPACITY)), 4)
+        ids = [k for k in self.views.ids() if self.views[k].image is not None]
+        k = self.HEALTH_VIEWS if max_views is None else int(max_views)
+        if ids and k > 0:
+            pick = [ids[int(i)] for i in np.unique(np.linspace(0, len(ids) - 1, min(k, len(ids))).round())]
+            vals = []
+            for vid in pick:
+                v = self.views[vid]
+                exp = (float(v.exposure[0]), float(v.exposure[1]))
+                r = np.clip(self.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0).astype(np.float64)
+                d = (r - v.image) ** 2
+                if v.mask is not None:
+                    w = v.mask.astype(np.float64)[..., None]
+                    mse = float((d * w).sum() / max(3.0 * w.sum(), 1e-30))
+                else:
+                    mse = float(d.mean())
+                vals.append(10.0 * math.log10(1.0 / mse) if mse > 0 else 99.0)
+            out["training_views_rendered"] = len(vals)
+            out["training_view_psnr_db"] = round(float(np.mean(vals)), 2)
+            out["training_view_psnr_min_db"] = round(float(np.min(vals)), 2)
+        return out
 
     # ------------------------------------------------------------------------------------------ watchers
     def safe_point(self) -> None:

@@ -494,6 +494,10 @@ class SeedResult:
     num_dropped_capacity: int = 0
     seconds: float = 0.0
     coverage_rendered: bool = True      # False: fewer candidates than min_new_gaussians or a full map (no render)
+    # the depth rule (depth_tolerance > 0): the median relative depth error of the covered candidates
+    # (depth_rule_max_median > 0) and the tolerance applied (inf: skipped, the median above that); None: no rule
+    depth_error_median: float | None = None
+    depth_tolerance_used: float | None = None
 
     @property
     def skipped_too_few(self) -> bool:
@@ -544,17 +548,29 @@ def plan_seeds(msg: KeyframeSeedInput, cfg: SeedingConfig, alpha: np.ndarray | N
     else:
         a = sample_alpha(alpha, cand.uv, cam.width, cam.height)
     keep = a < cfg.visibility_threshold
+    depth_median = tolerance = None
     if depth is not None and alpha is not None and cfg.depth_tolerance > 0 and cand.n:
         d_sum = sample_alpha(depth, cand.uv, cam.width, cam.height)
         expected = d_sum / np.maximum(a, 1e-6)
-        keep |= np.abs(expected - cand.depth) > cfg.depth_tolerance * cand.depth
+        rel = np.abs(expected - cand.depth) / cand.depth
+        tolerance = cfg.depth_tolerance
+        covered = ~keep
+        if cfg.depth_rule_max_median > 0 and covered.sum() >= max(cfg.min_new_gaussians, 1):
+            # the odometry's depths against the map's where the map covers them: when most of them disagree (a
+            # handheld camera's poor depths), the disagreement is the odometry's noise, not surfaces the map lacks,
+            # and the rule would seed everywhere again; the alpha rule alone then
+            depth_median = float(np.median(rel[covered]))
+            if depth_median > cfg.depth_rule_max_median:
+                tolerance = math.inf
+        keep |= rel > tolerance
     survivors = int(keep.sum())
     counts = dict(num_points_in=cand.num_points_in, num_invalid=cand.num_invalid, num_too_far=cand.num_too_far,
                   num_candidates=cand.n,
                   num_fill=cand.fill.n, num_triangles=cand.fill.num_triangles,
                   num_large_triangles=cand.fill.num_large,
                   num_rejected_discontinuity=cand.fill.num_rejected_discontinuity,
-                  num_rejected_visibility=cand.n - survivors, num_survivors=survivors)
+                  num_rejected_visibility=cand.n - survivors, num_survivors=survivors,
+                  depth_error_median=depth_median, depth_tolerance_used=tolerance)
     if cand.n == 0:
         status = SeedStatus.NO_POINTS
     elif survivors < max(cfg.min_new_gaussians, 1):

@@ -43,11 +43,11 @@ def _kf(seq, cam, i, kid=None, pose=None, **kw):
 
 
 def _cfg(*over):
-    # DSO's affine as the views' exposure and the alpha rule alone: what these tests check (the defaults' other
-    # modes have their own tests)
+    # DSO's affine as the views' exposure, the alpha rule alone and the odometry's poses as they are: what these
+    # tests check (the defaults' other modes, pose refinement among them, have their own tests)
     return load_config(None, ["mapping.mapper.iterations_per_keyframe=3", "mapping.mapper.final_iterations=4",
                               "mapping.capacity=20000", "mapping.mapper.exposure=odometry",
-                              "mapping.seeding.depth_tolerance=0", *over])
+                              "mapping.seeding.depth_tolerance=0", "mapping.train.refine_poses=false", *over])
 
 
 # ------------------------------------------------------------------------------------------------ messages

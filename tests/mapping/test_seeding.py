@@ -490,7 +490,8 @@ def test_depth_tolerance_seeds_where_the_covering_map_has_the_wrong_depth(seq, c
         m = gm.means.numpy().astype(np.float64)
         gm.means.assign((c + push * (m - c)).astype(np.float32))
         n0 = gm.n
-        r = sd.seed_keyframe(gm, rast, msg, SeedingConfig(depth_tolerance=tol), step=3)
+        # the rule itself, even where every point disagrees (depth_rule_max_median: the next test)
+        r = sd.seed_keyframe(gm, rast, msg, SeedingConfig(depth_tolerance=tol, depth_rule_max_median=0), step=3)
         if expect_added:
             assert r.status is sd.SeedStatus.ADDED and r.num_added > 0.8 * r.num_candidates, (push, tol, r)
             z_new = _depth_of(gm.means.numpy()[n0:].astype(np.float64), seq.cam_to_world[0])
@@ -503,3 +504,34 @@ def test_depth_tolerance_seeds_where_the_covering_map_has_the_wrong_depth(seq, c
             assert r.num_added == 0 and r.num_rejected_visibility >= r.num_candidates - 30, (push, tol, r)
     with pytest.raises(ConfigError, match="depth_tolerance"):
         SeedingConfig(depth_tolerance=-0.1)
+
+
+def test_the_depth_rule_stands_down_where_most_depths_disagree(seq, cam, rast, wp_device):
+    """``depth_rule_max_median``: the covering map of the test above with the surface 30 % behind the true one over
+    the whole view (every point disagrees: the odometry's depths against a map they do not fit, a handheld camera's
+    case) or over its left quarter only (a surface the map lacks there). With the whole view off, the median error
+    of the covered candidates is above 0.25, the depth rule stands down and the alpha rule alone adds nothing; the
+    control, the rule always on (0), seeds nearly every candidate again. With a quarter off the median is small, the
+    rule runs and seeds where the map misses: on the left."""
+    uv = _grid_points(cam, step=4)
+    msg = _message(seq, cam, uv, frame=0)
+    c = seq.cam_to_world[0][:3, 3]
+    res = {}
+    for part, max_median in ((1.0, 0.25), (1.0, 0.0), (0.25, 0.25)):
+        gm = _covering_map(seq, cam, wp_device)
+        m = gm.means.numpy().astype(np.float64)
+        left = _project(m, cam, seq.cam_to_world[0])[0][:, 0] < part * cam.width
+        m[left] = c + 1.3 * (m[left] - c)
+        gm.means.assign(m.astype(np.float32))
+        n0 = gm.n
+        cfg = SeedingConfig(depth_tolerance=0.1, depth_rule_max_median=max_median)
+        r = sd.seed_keyframe(gm, rast, msg, cfg, step=3)
+        res[part, max_median] = (r, _project(gm.means.numpy()[n0:].astype(np.float64), cam, seq.cam_to_world[0])[0])
+    r, _ = res[1.0, 0.25]
+    assert r.depth_error_median > 0.25 and r.depth_tolerance_used == math.inf and r.num_added == 0, r
+    r, _ = res[1.0, 0.0]
+    assert r.depth_error_median is None and r.num_added > 0.8 * r.num_candidates, r
+    r, uv_new = res[0.25, 0.25]
+    assert r.depth_error_median < 0.1 and r.depth_tolerance_used == 0.1, r
+    assert 0.1 * r.num_candidates < r.num_added < 0.5 * r.num_candidates, r
+    assert np.mean(uv_new[:, 0] < 0.3 * cam.width) > 0.55, r     # 0.69 measured; the rest on depth edges
