@@ -699,6 +699,15 @@ def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarra
     return R @ so3_exp(np.array([0.0, 0.0, roll]))
 
 
+def _path_parameters(num_frames: int, motion_scale: float, fps: float, phase: float) -> np.ndarray:
+    """The camera paths' parameter of each frame, ``phase + motion_scale * BASE_STEP * i``, after the checks."""
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if not (fps > 0 and np.isfinite(motion_scale) and motion_scale >= 0):
+        raise ValueError(f"need fps > 0 and motion_scale >= 0, got fps={fps}, motion_scale={motion_scale}")
+    return phase + motion_scale * BASE_STEP * np.arange(num_frames)
+
+
 def camera_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0, start_time: float = 0.0,
                 phase: float = 0.0) -> Trajectory:
     """A smooth figure-eight in front of the boxes, looking into the room (+z), with varying yaw, pitch and roll.
@@ -710,11 +719,7 @@ def camera_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30.0
     (the same curve, traversed faster). Camera centres stay within x in [-0.8, 0.8], y in [-0.27, 0.17],
     z in [-1.35, -0.65] m; depths seen are about 1.4-6 m.
     """
-    if num_frames < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    if not (fps > 0 and np.isfinite(motion_scale) and motion_scale >= 0):
-        raise ValueError(f"need fps > 0 and motion_scale >= 0, got fps={fps}, motion_scale={motion_scale}")
-    s = phase + motion_scale * BASE_STEP * np.arange(num_frames)
+    s = _path_parameters(num_frames, motion_scale, fps, phase)
     poses = np.empty((num_frames, 4, 4))
     for i, si in enumerate(s):
         pos = np.array([0.8 * np.sin(si), -0.05 + 0.22 * np.sin(2 * si), -1.0 + 0.35 * np.sin(si + 0.7)])
@@ -732,11 +737,7 @@ def rotation_path(num_frames: int, *, motion_scale: float = 1.0, fps: float = 30
     turns about 0.3-1.3 degrees a frame (3 gives freiburg1_rpy's 1-4 degrees) and moves about 1 mm. Little
     parallax: the depths a monocular odometry estimates from it are poor, and it keeps coming back to the same
     views."""
-    if num_frames < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    if not (fps > 0 and np.isfinite(motion_scale) and motion_scale >= 0):
-        raise ValueError(f"need fps > 0 and motion_scale >= 0, got fps={fps}, motion_scale={motion_scale}")
-    s = phase + motion_scale * BASE_STEP * np.arange(num_frames)
+    s = _path_parameters(num_frames, motion_scale, fps, phase)
     poses = np.empty((num_frames, 4, 4))
     for i, si in enumerate(s):
         yaw, pitch, roll = (np.radians(25.0) * np.sin(si), np.radians(12.0) * np.sin(1.7 * si + 0.5),
