@@ -25,7 +25,8 @@ from mgso.app.full import write_outputs
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=100", "output.plot=false",
         "system.eval_photo_slam=false", "output.save_renders=false"]
 ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.5, drift=(0.006, 0.0, 0.0))
-BEFORE = ["mapping.train.depth_weight=0.2", "mapping.train.refine_poses=false"]   # the defaults before issue 41
+BEFORE = ["mapping.train.depth_weight=0.2", "mapping.train.refine_poses=false",      # the defaults before issue 41
+          "mapping.seeding.depth_rule_max_median=0"]
 
 
 def _run(folder, out, *over):
@@ -55,19 +56,24 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     """The camera turns in place for 40 frames; every frame's world drifts by 0.34 degrees a frame (14 degrees
     over the run: revisited places disagree, as DSO's segments did on freiburg1_rpy) and the keyframes' inverse
     depths are 50 % off. The defaults of before (a sparse depth term pulling the map to those depths, the
-    odometry's poses taken as they are) fit the map's own training views worse and render the evaluated frames
-    worse than the defaults since issue 41 (no depth term; the map refines its keyframes' poses, and the
-    evaluation renders from the poses it refined).
+    odometry's poses taken as they are, and the seeding's depth rule seeding every point whose depth the map
+    misses by 10 %) make fog: 4,220 Gaussians of median opacity 0.046, which the summary flags. The defaults since
+    issue 41 keep the 248 seeds of the first keyframes (the depth rule stands down: the median depth error is far
+    above 0.25) at median opacity 0.19, no warning.
 
-    Measured (the map's PSNR, MonoGS protocol): 26.76 dB before, 27.39 dB without the depth term alone, 29.08 dB
-    with the defaults; the training views 26.59 / 27.22 / 28.37 dB (drift 0.003 and noise 0.3 on 48 frames:
-    28.07 / 28.87 / 30.92 dB)."""
+    Measured (MonoGS protocol): 26.76 dB before, 25.59 dB now. At this test's budget (15 steps a keyframe + 100
+    final) the compact map is 1.2 dB worse on this scene, the cost of growing by densification alone; on TUM
+    freiburg1_rpy (3,660 steps) the same change is worth 6 dB (docs/mapping.md, "Handheld camera")."""
+    from mgso.app.full import FOG_MEDIAN_OPACITY, map_warnings
     folder = synthetic.cached_sequence_folder(num_frames=40, width=96, height=72, seed=0, path="rotation",
                                               motion_scale=2.0)
     before = _run(folder, tmp_path / "before", *BEFORE)
     now = _run(folder, tmp_path / "now")
-    assert now["psnr_monogs_db"] > before["psnr_monogs_db"] + 1.2
-    assert now["map_health"]["training_view_psnr_db"] > before["map_health"]["training_view_psnr_db"] + 0.8
+    hb, hn = before["map_health"], now["map_health"]
+    assert hb["median_opacity"] < FOG_MEDIAN_OPACITY < hn["median_opacity"]
+    assert any("mostly transparent" in w for w in map_warnings(hb)) and map_warnings(hn) == []
+    assert now["num_gaussians"] < before["num_gaussians"] / 5
+    assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 2.5
     assert now["ate_refined_all_frames_m"] is not None        # the evaluation's poses: the map's refinement
 
 
