@@ -615,15 +615,16 @@ class TrainConfig:
                                "(Photo-SLAM's per-keyframe times of use)")
     sh_degree_interval: int = opt(1000, "raise the SH degree in use by one every this many steps up to "
                                         "mapping.sh_degree (3DGS oneupSHdegree); 0 = full degree from the start")
-    depth_weight: float = opt(0.0, "weight of the sparse depth term: mean relative error between the render's "
-                                   "expected depth and the view's depth points (MGSO: DSO's points of the keyframe; "
-                                   "`mgso fit`'s views have none); 0 = off (0.2 until issue 41: DSO's depths of a "
-                                   "rotating handheld camera are poor and pulled the map to them; docs/mapping.md, "
-                                   "\"Handheld camera\")")
-    refine_poses: bool | None = opt(None, "also optimise each view's world_to_cam with the rasteriser's pose gradient "
-                                          "(left perturbation; the first keyframe holds the gauge); null = on in "
-                                          "MGSO's mapper (the odometry's poses; off until issue 41) and off in `mgso "
-                                          "fit` (given poses, trusted)")
+    depth_weight: float = opt(0.2, "weight of the sparse depth term: mean relative error between the render's "
+                                   "expected depth and the view's depth points (MGSO: DSO's points of the keyframe, "
+                                   "only where they agree with the map (mapping.seeding.depth_rule_max_median): "
+                                   "a handheld camera's poor depths pulled the map to them; `mgso fit`'s views have "
+                                   "none); 0 = off")
+    refine_poses: bool | None = opt(None, "also optimise views' world_to_cam with the rasteriser's pose gradient "
+                                          "(left perturbation; the first keyframe holds the gauge); null = in MGSO's "
+                                          "mapper the keyframes whose depths disagree with the map (the seeding's "
+                                          "depth rule stood down: a handheld camera's segments disagree by degrees), "
+                                          "in `mgso fit` none (given poses, trusted); true = every view; false = none")
     lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
                                             "cam_trans_delta)")
     lr_pose_rotation: float = opt(0.003, "Adam rate of the pose rotation delta, radians (MonoGS cam_rot_delta)")

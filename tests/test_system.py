@@ -105,15 +105,14 @@ def test_deterministic_run_tracks_all_frames_and_maps_every_keyframe(det_run):
     st = result.mapper
     assert st.steps == 6 * 15 + 60 and st.final_steps == 60 and st.stopped_by == "stop"
     # every pose update reached the map: its record of the odometry's poses is the oracle's final (exact) keyframe
-    # poses, and the views sit there moved by the map's own refinement (the first holds the gauge): measured 1.25
-    # degrees and 2.5 cm on keyframe 1 of this 96x72 room, where 150 steps leave the map coarse
+    # poses, and the views sit there: the map refines only the poses of keyframes whose depths disagree with it
+    # (mapping.train.refine_poses null), and here every keyframe agrees (none untrusted, no correction)
     kf = odo.keyframe_trajectory()
+    assert st.keyframes_untrusted == 0
     for kid, T in enumerate(kf.cam_to_world):
         W = system.mapper.correction(kid)
         np.testing.assert_allclose(se3_inverse(W) @ system.mapper.views[kid].cam_to_world, T, atol=1e-9)
-        angle = np.degrees(np.arccos(np.clip((np.trace(W[:3, :3]) - 1) / 2, -1, 1)))
-        bound = (1e-6, 1e-9) if kid == 0 else (3.0, 0.06)       # degrees, world units
-        assert angle < bound[0] and np.linalg.norm(W[:3, 3]) < bound[1]
+        np.testing.assert_allclose(system.mapper.views[kid].cam_to_world, T, atol=1e-9)
     assert st.pose_updates == result.pose_updates == 6 and st.poses_unknown == 0
 
 
@@ -269,11 +268,11 @@ def test_seeding_from_dso_points_beats_random_initialisation(tmp_path):
     Gaussians against 26.02 dB with 6,918 random ones (random depths miss the map's surfaces, so the same coverage
     test seeds more of them); seeds 1 and 2: +0.54 dB (3,178 vs 7,558) and +0.16 dB (3,144 vs 8,468).
 
-    Since issue 41 (no depth term, refined poses, and the depth rule standing down where most of a keyframe's
-    depths disagree with the map, mapping.seeding.depth_rule_max_median): random depths disagree with the map
-    everywhere, so the random baseline gets the alpha rule alone: seed 0 26.99 dB with 3,637 Gaussians against
-    25.03 dB with 617 random ones, seeds 1 and 2 +1.77 and +1.40 dB. With the depth rule always on for both
-    (depth_rule_max_median 0), the comparison of before: 26.99 dB with 3,637 against 26.49 dB with 7,840 random
+    Since issue 41 (the depth rule standing down where most of a keyframe's depths disagree with the map,
+    mapping.seeding.depth_rule_max_median, and such keyframes untrusted: no depth term, poses refined): random
+    depths disagree with the map everywhere, so the random baseline gets the alpha rule alone: seed 0 27.33 dB with
+    2,783 Gaussians against 24.97 dB with 2,262 random ones. With the depth rule always on for both
+    (depth_rule_max_median 0), the comparison of before: 27.33 dB with 2,783 against 26.06 dB with 7,073 random
     ones."""
     room = synthetic.cached_sequence_folder(num_frames=32, width=128, height=96, seed=0)
     over = ["mapping.mapper.iterations_per_keyframe=10", "mapping.mapper.final_iterations=40",
@@ -286,7 +285,7 @@ def test_seeding_from_dso_points_beats_random_initialisation(tmp_path):
     always = "mapping.seeding.depth_rule_max_median=0"
     _, dso2, *_ = _run(room, tmp_path / "dso2", *over, always, oracle=oracle)
     _, rnd2, *_ = _run(room, tmp_path / "random2", *over, always, "mapping.mapper.init=random", oracle=oracle)
-    assert dso2["psnr_monogs_db"] > rnd2["psnr_monogs_db"] + 0.25
+    assert dso2["psnr_monogs_db"] > rnd2["psnr_monogs_db"] + 0.5
     assert dso2["num_gaussians"] < 0.7 * rnd2["num_gaussians"]
 
 

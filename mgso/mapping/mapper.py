@@ -88,6 +88,7 @@ class MapperStats:
     """Counts and times of a mapper's work (values, read after :meth:`Mapper.stop`)."""
 
     keyframes: int = 0                      # keyframe messages applied (= training views)
+    keyframes_untrusted: int = 0            # of them, depths mostly missing the map: no depth term, pose refined
     pose_updates: int = 0                   # PoseUpdate messages applied
     poses_applied: int = 0                  # keyframe poses moved by them
     poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
@@ -203,7 +204,9 @@ class Mapper:
 
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None):
         self.config = config
-        # the map refines the odometry's keyframe poses unless mapping.train.refine_poses says otherwise
+        # mapping.train.refine_poses null: the map refines the poses of the keyframes whose depths disagree with it
+        # (the seeding's depth rule stood down), true: of every keyframe but the first, false: of none
+        self._refine_untrusted_only = config.mapping.train.refine_poses is None
         mc = dataclasses.replace(config.mapping, train=config.mapping.train.with_pose_refinement(True))
         self.mc = mc
         self.cfg = mc.mapper
@@ -526,9 +529,14 @@ class Mapper:
             self.stats.seedings_deferred += 1
         else:
             res = self._seed(seed_in, self.mc.seeding)
-        if self.mc.train.depth_weight > 0 and msg.num_points:
+        # a keyframe whose depths mostly miss the map's (the seeding's depth rule stood down: a handheld camera's
+        # poor depths, or a pose the map disagrees with) is not trusted: no depth term, and its pose is refined
+        untrusted = res is not None and res.depth_tolerance_used == math.inf
+        self.stats.keyframes_untrusted += int(untrusted)
+        if self.mc.train.depth_weight > 0 and msg.num_points and not untrusted:
             view.set_depth_points(msg.points_uv, 1.0 / np.asarray(msg.idepths, np.float64))
-        view.fixed_pose = len(self.views) == 0          # the first keyframe holds the map's gauge
+        # the first keyframe holds the map's gauge
+        view.fixed_pose = len(self.views) == 0 or (self._refine_untrusted_only and not untrusted)
         self.views.add(view)
         self._odo_c2w[kid] = np.array(msg.cam_to_world, dtype=np.float64)
         self._latest_kid = kid
