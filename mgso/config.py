@@ -699,7 +699,9 @@ class SeedingConfig:
                                              "noise, not surfaces the map lacks (a handheld camera's: medians 0.46-3.8 "
                                              "on TUM freiburg1_rpy, where every keyframe seeded its points again and "
                                              "the map grew with the run into transparent fog; the synthetic demo's "
-                                             "0.03-0.10; docs/mapping.md, \"Handheld camera\"); 0 = never skip")
+                                             "0.03-0.10; docs/mapping.md, \"Handheld camera\"); such a keyframe "
+                                             "is not trusted: no depth term, its pose refined "
+                                             "(mapping.train.refine_poses null); 0 = never skip")
     alpha_downscale: int = opt(2, "render the coverage alpha at 1/this resolution (a quarter of the blending work "
                                   "at 2)")
     coverage_stop: float = opt(0.01, "the coverage render stops a pixel once its transmittance is below this: the "

@@ -20,7 +20,6 @@ e.g. one estimated by ``mgso run``). Frames without a pose are left out (logged)
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import time
 from dataclasses import dataclass, field
