@@ -346,12 +346,8 @@ def _one(args) -> dict:
 
 
 def _view_psnr(mapper, v) -> float:
-    """The map's PSNR on training view ``v`` at its map pose, full resolution, with the view's exposure."""
-    from mgso.eval.render_metrics import psnr
-
-    exp = (float(v.exposure[0]), float(v.exposure[1])) if np.any(v.exposure != 0.0) else None
-    r = np.clip(mapper.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0)
-    return round(psnr(r, v.image), 2)
+    """The map's PSNR on training view ``v`` (Mapper.view_psnr: its map pose, exposure and valid pixels)."""
+    return round(mapper.view_psnr(v.view_id), 2)
 
 
 class ViewWatcher(Observer):

@@ -68,7 +68,7 @@ from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gau
                                   plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
-from mgso.mapping.trainer import StepResult, Trainer, TrainStep, usable_level
+from mgso.mapping.trainer import StepResult, Trainer, TrainStep, masked_psnr, usable_level
 from mgso.mapping.views import LeastUsedSampler, NewestOrRandomSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
@@ -809,18 +809,7 @@ class Mapper:
         k = self.HEALTH_VIEWS if max_views is None else int(max_views)
         if ids and k > 0:
             pick = [ids[int(i)] for i in np.unique(np.linspace(0, len(ids) - 1, min(k, len(ids))).round())]
-            vals = []
-            for vid in pick:
-                v = self.views[vid]
-                exp = (float(v.exposure[0]), float(v.exposure[1]))
-                r = np.clip(self.render(v.camera, v.world_to_cam, exposure=exp), 0.0, 1.0).astype(np.float64)
-                d = (r - v.image) ** 2
-                if v.mask is not None:
-                    w = v.mask.astype(np.float64)[..., None]
-                    mse = float((d * w).sum() / max(3.0 * w.sum(), 1e-30))
-                else:
-                    mse = float(d.mean())
-                vals.append(10.0 * math.log10(1.0 / mse) if mse > 0 else 99.0)
+            vals = [min(self.view_psnr(vid), 99.0) for vid in pick]
             out["training_views_rendered"] = len(vals)
             out["training_view_psnr_db"] = round(float(np.mean(vals)), 2)
             out["training_view_psnr_min_db"] = round(float(np.min(vals)), 2)
@@ -911,6 +900,12 @@ class Mapper:
         """(H, W, 3) float32 render of the map from ``world_to_cam`` with ``camera`` (a pinhole camera);
         ``exposure`` (a', b') gives ``exp(a') render + b'``. Call after :meth:`stop` in real-time mode."""
         return self.trainer.render(camera, world_to_cam, exposure=exposure)
+
+    def view_psnr(self, keyframe_id: int) -> float:
+        """The map's PSNR (dB) on a training view: rendered at its map pose with its exposure, full resolution,
+        over its valid pixels (``inf`` when equal). Call after :meth:`stop` in real-time mode."""
+        v = self.views[keyframe_id]
+        return masked_psnr(self.render(v.camera, v.world_to_cam), v.image, self.view_exposure(keyframe_id), v.mask)
 
     def view_exposure(self, keyframe_id: int) -> tuple[float, float]:
         v = self.views[keyframe_id]

@@ -89,8 +89,10 @@ class TrainSummary:
         return self.steps / self.seconds if self.seconds > 0 else float("inf")
 
 
-def _psnr(rendered: np.ndarray, target: np.ndarray, exposure: tuple[float, float] | None,
-          mask: np.ndarray | None) -> float:
+def masked_psnr(rendered: np.ndarray, target: np.ndarray, exposure: tuple[float, float] | None,
+                mask: np.ndarray | None) -> float:
+    """PSNR (dB) of ``exp(a) rendered + b`` (``exposure`` (a, b); None: as it is), clipped to [0, 1], against
+    ``target`` (H, W, 3), over the pixels weighted by ``mask`` (H, W) (None: all); ``inf`` when equal."""
     r = rendered.astype(np.float64)
     if exposure is not None:
         r = math.exp(exposure[0]) * r + exposure[1]
@@ -182,7 +184,7 @@ class TrainStep:
         use_exposure = tc.learn_exposure or bool(np.any(view.exposure != 0.0))
         exposure = (float(view.exposure[0]), float(view.exposure[1])) if use_exposure else None
         res = self.loss_fn(H, W)(out.rgb, image_wp, mask=mask_wp, exposure=exposure)
-        psnr = _psnr(out.rgb.numpy(), image_np, exposure, mask_np) if with_psnr else None
+        psnr = masked_psnr(out.rgb.numpy(), image_np, exposure, mask_np) if with_psnr else None
         t = self._clock(t, times, "loss")
 
         v_depth = v_alpha = None
