@@ -1169,15 +1169,20 @@ def _load_yaml_chain(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if path in seen:
         raise ConfigError(f"{path}: inherit_from makes a cycle: {' -> '.join(str(s) for s in seen + (path,))}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
     data = dict(data)
     parent = data.pop("inherit_from", None)
     if parent is None:
         return data
+    if not isinstance(parent, str) or not parent.strip():
+        raise ConfigError(f"{path}: inherit_from must be a profile name or a .yaml path, "
+                          f"got {type(parent).__name__} {parent!r}")
     parent_path = _resolve_profile(parent, path.parent)
     return _deep_merge(_load_yaml_chain(parent_path, seen + (path,)), data)
 

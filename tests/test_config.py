@@ -78,6 +78,28 @@ def test_bad_profiles_name_the_file(tmp_path):
         load_config("no_such_profile")
 
 
+@pytest.mark.parametrize("parent", ["3", "[default]", "{a: 1}", "''"])
+def test_an_inherit_from_that_is_not_a_name_is_a_one_line_error(tmp_path, parent):
+    """Issue 44: a number, list or map here was a TypeError traceback."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"inherit_from: {parent}\n")
+    with pytest.raises(ConfigError, match="bad.yaml: inherit_from must be a profile name") as err:
+        load_config(bad)
+    assert "\n" not in str(err.value)
+    good = tmp_path / "good.yaml"                   # the control: a name is followed
+    good.write_text("inherit_from: fast\n")
+    assert load_config(good) == load_config("fast")
+
+
+def test_a_profile_that_is_not_utf8_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "latin1.yaml"
+    bad.write_bytes("mapping:  # caf\u00e9\n  train:\n    depth_weight: 0.1\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match="latin1.yaml: not UTF-8"):
+        load_config(bad)
+    bad.write_bytes("mapping:  # caf\u00e9\n  train:\n    depth_weight: 0.1\n".encode("utf-8"))
+    assert load_config(bad).mapping.train.depth_weight == 0.1
+
+
 # ------------------------------------------------------------------------------------------ ranges (issue 14)
 def _key_pattern(key: str) -> str:
     """The key as a message names it: ``tracking.huber_th`` (range checks) or ``tracking: huber_th`` (the loader's

@@ -280,6 +280,23 @@ def test_output_folder_problems_are_one_line_errors(room, tmp_path, capsys):
     assert (good / "metrics.json").is_file()
 
 
+@pytest.mark.skipif(os.name != "posix", reason="file modes are POSIX")
+def test_outputs_get_the_users_umask_not_0600(room, tmp_path, monkeypatch):
+    """Issue 44: the atomic writer's temporary file kept mkstemp's 0600, so nobody else on a shared disk could read
+    a run."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    gt = room / "groundtruth.txt"
+    out = tmp_path / "eval"
+    assert main(["eval", str(gt), "--gt", str(gt), "--out", str(out)]) == 0
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert files and {p.stat().st_mode & 0o777 for p in files} == {0o666 & ~mask}
+    monkeypatch.setattr(os, "fchmod", lambda fd, mode: None)       # control: mkstemp's mode left as it is
+    out2 = tmp_path / "eval2"
+    assert main(["eval", str(gt), "--gt", str(gt), "--out", str(out2)]) == 0
+    assert (out2 / "metrics.json").stat().st_mode & 0o777 == 0o600
+
+
 @pytest.mark.skipif(os.name != "posix" or shutil.which("setpriv") is None and os.geteuid() == 0,
                     reason="as root the test needs setpriv to drop the capability that bypasses permissions")
 def test_a_read_only_output_folder_is_a_one_line_error(room, tmp_path):

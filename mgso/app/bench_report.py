@@ -13,7 +13,6 @@ import io
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Iterable
 
@@ -232,15 +231,11 @@ def write_plots(rows: list[dict], out_dir: Path) -> list[Path]:
         fig.suptitle(f"{FIGURES[col][0]}: median (bar) and each run (dots)")
         fig.tight_layout()
         path = out_dir / fname
-        fd, tmp = tempfile.mkstemp(prefix=f".{fname}.", suffix=".png", dir=out_dir)
-        os.close(fd)
         try:
-            fig.savefig(tmp, dpi=100)
-            os.replace(tmp, path)
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, dpi=100)
         finally:
             plt.close(fig)
-            if os.path.exists(tmp):
-                os.unlink(tmp)
         written.append(path)
     return written
 

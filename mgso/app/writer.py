@@ -36,6 +36,16 @@ class OutputError(Exception):
     """The output folder cannot be used; the message names the path and the problem (one line)."""
 
 
+def _read_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+# read once, before any thread starts: os.umask can only be read by setting it
+_UMASK = _read_umask()
+
+
 @contextmanager
 def atomic_path(dest: Path) -> Iterator[Path]:
     """Yields a temporary path beside ``dest`` (same suffix); when the block ends without an error it replaces
@@ -43,7 +53,11 @@ def atomic_path(dest: Path) -> Iterator[Path]:
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{dest.stem}-", suffix=dest.suffix, dir=dest.parent)
-    os.close(fd)
+    try:
+        # mkstemp makes the file 0600; the output gets the user's umask like any other file they write
+        os.fchmod(fd, 0o666 & ~_UMASK)
+    finally:
+        os.close(fd)
     try:
         yield Path(tmp)
         os.replace(tmp, dest)
