@@ -333,7 +333,11 @@ def _one(args) -> dict:
     fig["seeding"] = {"seedings": len(sr), "candidates": int(sum(r.num_candidates for r in sr)),
                       "rejected_visibility": int(sum(r.num_rejected_visibility for r in sr)),
                       "added": int(sum(r.num_added for r in sr)),
-                      "added_first_keyframe": int(sr[0].num_added) if sr else 0}
+                      "added_first_keyframe": int(sr[0].num_added) if sr else 0,
+                      "untrusted": int(system.mapper.stats.keyframes_untrusted),
+                      # each keyframe's median relative depth error against the map (the trust test's figure)
+                      "depth_error_medians": [None if r.depth_error_median is None else round(r.depth_error_median, 3)
+                                              for r in sr]}
     fig["keyframe_psnr"] = _training_view_psnr(system.mapper)
     if watcher is not None:
         fig["watched_views"] = watcher.history

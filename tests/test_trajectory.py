@@ -32,7 +32,8 @@ def test_kitti_roundtrip(tmp_path, rng):
 
 @pytest.mark.parametrize("text, msg", [
     ("1 2 3\n", "expected 8 numbers"),
-    ("1 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n", "out of order"),
+    ("1 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n", r":2: timestamp out of order \(0\.5 after 1\.0 on line 1\)"),
+    ("1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":2: timestamp repeated \(1\.0 after 1\.0 on line 1\)"),
     ("1 0 0 0 0 0 0 x\n", "not a number"),
     ("1 0 0 0 0 0 0 0\n", "zero length"),
     ("# only a comment\n", "no poses"),

@@ -89,7 +89,9 @@ def _check_increasing(path: Path, ts: np.ndarray, lines: list[int]) -> None:
     bad = np.nonzero(np.diff(ts) <= 0)[0]
     if len(bad):
         i = int(bad[0])
-        raise TrajectoryError(f"{path}:{lines[i + 1]}: timestamps out of order ({ts[i + 1]!r} after {ts[i]!r})")
+        what = "repeated" if ts[i + 1] == ts[i] else "out of order"
+        raise TrajectoryError(f"{path}:{lines[i + 1]}: timestamp {what} ({float(ts[i + 1])!r} after "
+                              f"{float(ts[i])!r} on line {lines[i]})")
 
 
 def read_tum(path: str | Path) -> Trajectory:
