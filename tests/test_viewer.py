@@ -248,6 +248,102 @@ def test_viewer_errors_are_one_line(room, plain_run, tmp_path, capsys, monkeypat
     assert 'pip install "mgso[viewer]"' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, msg", [
+    (["--port", "70000"], "viewer port 70000 is not a port number"),
+    (["--port", "-5"], "viewer port -5 is not a port number"),
+    (["--host", "999.1.1.1"], "viewer host '999.1.1.1' is not an address this machine knows"),
+    (["--host", "no-such-host.invalid"], "is not an address this machine knows"),
+    (["--device", "tpu"], "runtime.device must be cpu, cuda"),
+])
+def test_an_address_or_device_the_viewer_cannot_use_is_refused_before_any_work(room, plain_run, tmp_path, capsys,
+                                                                              args, msg):
+    """Issue 44: viser's thread printed an OverflowError traceback and ``mgso view`` waited forever; a host that is
+    not this machine's served nothing and said nothing; ``--device tpu`` failed only at the first render."""
+    assert main(["view", str(plain_run), *args]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and msg in err[0] and "Traceback" not in err[0]
+    if "--device" in args:
+        return
+    out = tmp_path / "run"
+    assert main(["run", str(room), "--viewer", "--out", str(out), "-q", *args]) == 1
+    assert msg in capsys.readouterr().err and not out.exists()
+
+
+def test_the_first_view_shows_the_scene(plain_run):
+    """Issue 44: ``mgso view`` opened on viser's default camera, a small blob half hidden behind the panel. Now the
+    browser's first camera stands behind the first keyframe and looks where it looked, at the map."""
+    from mgso.io.ply import read_gaussians_ply
+
+    means = read_gaussians_ply(plain_run / "map.ply").means.astype(np.float64)
+
+    centre = np.median(means, axis=0)
+    radius = np.percentile(np.linalg.norm(means - centre, axis=1), 80)
+
+    def angle_to_map(ic) -> float:
+        view = np.asarray(ic.look_at, float) - np.asarray(ic.position, float)
+        to_map = centre - np.asarray(ic.position, float)
+        return float(np.degrees(np.arccos(view @ to_map / np.linalg.norm(view) / np.linalg.norm(to_map))))
+
+    def map_size_deg(ic) -> float:           # the angular radius of most of the map from the camera
+        return float(np.degrees(np.arctan(radius / np.linalg.norm(centre - np.asarray(ic.position, float)))))
+
+    scene = V.open_run(plain_run, port=0)
+    try:
+        ic = scene.server.initial_camera
+        # measured: 6.2 deg off the centre, 16.7 deg angular radius (viser's default camera: 7.4 deg, the control)
+        assert angle_to_map(ic) < 20.0 and map_size_deg(ic) > 12.0
+        # the first keyframe's frustum lies in front of the camera too
+        from mgso.io.trajectory import read_tum
+
+        kf0 = read_tum(plain_run / "keyframes.txt").cam_to_world[0][:3, 3]
+        view = np.asarray(ic.look_at, float) - np.asarray(ic.position, float)
+        assert (kf0 - np.asarray(ic.position, float)) @ view > 0
+    finally:
+        scene.close()
+    control = V.ViewerScene(port=0, live=False)           # the control: viser's own first camera
+    try:
+        assert map_size_deg(control.server.initial_camera) < 12.0
+    finally:
+        control.close()
+
+
+def test_a_map_with_nan_or_no_gaussians_and_far_points_are_served_with_a_word(plain_run, tmp_path, caplog):
+    """Issue 44: NaN Gaussians and an empty map were served without a word; points at 2.6e7 m overflowed viser's
+    float16 (a RuntimeWarning)."""
+    import warnings
+
+    from mgso.io.ply import read_gaussians_ply, read_point_cloud_ply, write_gaussians_ply, write_point_cloud_ply
+
+    run = tmp_path / "run"
+    shutil.copytree(plain_run, run)
+    g = read_gaussians_ply(run / "map.ply")
+    g.means[:3] = np.nan
+    g.log_scales[3] = np.inf
+    write_gaussians_ply(run / "map.ply", g)
+    pts, cols, _ = read_point_cloud_ply(run / "points.ply")
+    pts[0] = 2.6e7
+    write_point_cloud_ply(run / "points.ply", pts, cols)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        scene = V.open_run(run, port=0)
+    try:
+        splats = scene.server.scene._handle_from_node_name["/gaussians/map"]
+        assert splats._impl.props.buffer.shape == (g.n - 4, 8)
+        cloud = scene.server.scene._handle_from_node_name["/points/dso"]
+        assert np.isfinite(np.asarray(cloud.points, np.float64)).all()
+    finally:
+        scene.close()
+    assert "4 of %d Gaussians hold NaN or infinite values" % g.n in caplog.text
+    write_gaussians_ply(run / "map.ply", type(g)(g.means[:0], g.log_scales[:0], g.quats[:0], g.opacity_logits[:0],
+                                                  g.sh[:0]))
+    scene = V.open_run(run, port=0)
+    try:
+        assert not scene.has_node("/gaussians/map") and scene.has_node("/trajectory/path")
+    finally:
+        scene.close()
+    assert "has no Gaussians" in caplog.text
+
+
 def test_callbacks_keep_references_not_copies():
     """The observer's side costs O(1): the newest values are the messages' own arrays (no copies, no pushes)."""
     from mgso.mapping.messages import PointsMessage, PoseUpdate

@@ -24,7 +24,7 @@ from mgso.config import Config, ConfigError, check_runtime, describe_config, loa
 
 from .signals import StopState, exit_code_for
 from .stages import EXIT_FAILED, EXIT_OK, EXIT_USAGE
-from .writer import OutputError, RunWriter
+from .writer import OutputError, RunWriter, prepare_out_dir
 
 log = logging.getLogger("mgso")
 
@@ -155,6 +155,8 @@ def cmd_run(args) -> int:
 
     cfg = _live_and_limits(args, _load_cfg(args))
     _check_viewer(args)                 # viser missing: one line before any work
+    if args.out:                        # so is an output folder that cannot be used
+        prepare_out_dir(args.out)
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
     writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
@@ -237,11 +239,12 @@ def cmd_demo(args) -> int:
     args.set = list(DEMO_OVERRIDES) + list(args.set or [])
     _load_cfg(args)                     # a bad --set fails before the scene is made
     _check_viewer(args)
+    if args.out is None:
+        args.out = str(Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    prepare_out_dir(args.out)           # before the scene is made
     _print(args, "making the built-in synthetic scene (cached after the first run) ...")
     folder = cached_sequence_folder(**_demo_scene_params(args))
     args.path, args.calib, args.groundtruth = str(folder), None, None
-    if args.out is None:
-        args.out = str(Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
     return cmd_run(args)
 
 
@@ -257,6 +260,8 @@ def cmd_fit(args) -> int:
         overrides.append(f"input.stride={args.stride}")
     args.set = list(args.set or []) + overrides
     cfg = _load_cfg(args)
+    if args.out:
+        prepare_out_dir(args.out)
     if args.downscale is not None:
         if args.downscale < 1:
             raise CliError(f"fit: --downscale must be >= 1, got {args.downscale}")
@@ -305,10 +310,11 @@ def _check_viewer(args) -> None:
     """``--viewer``: viser installed and the full stage, else one line before any work."""
     if not getattr(args, "viewer", False):
         return
-    from .viewer import ViewerError, require_viser
+    from .viewer import ViewerError, check_address, require_viser
 
     try:
         require_viser()
+        check_address(args.host, args.port)
     except ViewerError as exc:
         raise CliError(str(exc)) from None
     if (args.stage or "full") != "full":
@@ -331,12 +337,17 @@ def _start_viewer(args, seq):
 
 
 def cmd_view(args) -> int:
-    from .viewer import ViewerError, open_run
+    from mgso.config import ConfigError, check_runtime, load_config
 
-    try:
-        scene = open_run(args.run_dir, args.host, args.port, device=args.device or "cpu")
-    except ViewerError as exc:
-        raise CliError(str(exc)) from None
+    from .viewer import ViewerError, check_address, open_run
+
+    device = args.device or "cpu"
+    try:        # the device refused as run refuses it, before the map is read and served
+        check_runtime(load_config(None, [f"runtime.device={device}"]))
+        check_address(args.host, args.port)
+        scene = open_run(args.run_dir, args.host, args.port, device=device)
+    except (ViewerError, ConfigError) as exc:
+        raise CliError(f"--device: {exc}" if isinstance(exc, ConfigError) else str(exc)) from None
     print(f"mgso viewer: {scene.url} (open it in a browser; Ctrl-C to stop)", file=sys.stderr, flush=True)
     try:
         while True:

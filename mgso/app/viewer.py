@@ -35,7 +35,7 @@ from mgso.mapping.messages import sim3_apply_to_pose
 from mgso.observers import Observer
 
 __all__ = ["ViewerError", "ViewerScene", "LiveViewer", "open_run", "require_viser", "INSTALL_HINT", "FRAME_HZ",
-           "MAP_HZ", "MAX_SPLATS", "RENDER_WIDTH", "DEFAULT_PORT", "DEFAULT_HOST"]
+           "MAP_HZ", "MAX_SPLATS", "RENDER_WIDTH", "DEFAULT_PORT", "DEFAULT_HOST", "check_address"]
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +165,31 @@ def _align_groundtruth(est_t, est_p, gt_t, gt_p) -> np.ndarray | None:
     return a.apply_points(gt_p)
 
 
+def check_address(host: str, port: int) -> None:
+    """Refuse, in one line, an address the viewer could never serve on (viser's own thread would print a traceback
+    for a port out of range and wait forever, and say nothing for a host that is not this machine's): the port in
+    0-65535, the host a name or address this machine can listen on."""
+    import socket
+
+    if not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ViewerError(f"viewer port {port!r} is not a port number (1-65535, or 0: any free port)")
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ViewerError(f"viewer host {host!r} is not an address this machine knows: "
+                          f"{getattr(exc, 'strerror', None) or exc}") from None
+    errors = []
+    for family, kind, proto, _name, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as s:
+                s.bind((addr[0], 0, *addr[2:]))      # any free port: only the host is tested here
+            return
+        except OSError as exc:
+            errors.append(exc.strerror or str(exc))
+    raise ViewerError(f"the viewer cannot listen on {host!r}: {errors[0] if errors else 'no address'} "
+                      "(use 127.0.0.1, or 0.0.0.0 for every interface of this machine)")
+
+
 # ------------------------------------------------------------------------------------------------ the scene
 class ViewerScene:
     """A viser server with mgso's layers and panel; what both the live viewer and ``mgso view`` draw on.
@@ -174,6 +199,7 @@ class ViewerScene:
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *, title: str = "mgso",
                  live: bool = True, renderer: Callable | None = None):
+        check_address(host, port)
         viser = require_viser()
         # a browser tab that closes mid-handshake is logged by websockets with a traceback: not the user's problem
         logging.getLogger("websockets").setLevel(logging.CRITICAL)
@@ -247,8 +273,11 @@ class ViewerScene:
     def set_points(self, points, colors) -> None:
         if len(points) == 0:
             return
+        points = np.asarray(points, np.float32)
         h = self.server.scene.add_point_cloud(
-            "/points/dso", points=np.asarray(points, np.float32),
+            "/points/dso", points=points,
+            # viser sends float16 by default: points beyond 65504 (a far point of a long run) would overflow to inf
+            precision="float32" if np.abs(points).max(initial=0.0) > 6.0e4 else "float16",
             colors=(np.clip(np.asarray(colors, np.float32), 0, 1) * 255).astype(np.uint8),
             point_size=0.01 * self.scale, point_shape="circle", point_shading="flat",
             visible=self._visible("/points"))
@@ -299,6 +328,24 @@ class ViewerScene:
             with client.atomic():
                 client.camera.position = c - d * R[:, 2] - 0.5 * d * R[:, 1]
                 client.camera.look_at = c + d * R[:, 2]
+
+    def frame_view(self, cam_to_world: np.ndarray, points: np.ndarray | None = None) -> None:
+        """Open a browser's first view behind the camera ``cam_to_world`` (the first keyframe), looking where it
+        looked, at the median depth of ``points`` in front of it: the first picture shows the scene and its first
+        camera, not the origin of a world whose units are the odometry's."""
+        T = np.asarray(cam_to_world, np.float64)
+        centre, forward, up = T[:3, 3], T[:3, 2], -T[:3, 1]       # mgso's cameras look along +z with y down
+        depth = 0.0
+        if points is not None and len(points):
+            d = (np.asarray(points, np.float64) - centre) @ forward
+            d = d[np.isfinite(d) & (d > 0)]
+            depth = float(np.median(d)) if len(d) else 0.0
+        if not depth > 0:
+            depth = 50.0 * self.scale                             # no points: a few frustum sizes ahead
+        ic = self.server.initial_camera
+        ic.position = tuple(centre - 0.5 * depth * forward)
+        ic.look_at = tuple(centre + depth * forward)
+        ic.up = tuple(up)
 
     def update_scale(self, positions: np.ndarray) -> None:
         if len(positions) >= 2:
@@ -743,6 +790,7 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
             arrays = read_gaussians_ply(map_path)
         except PlyError as exc:
             raise ViewerError(str(exc)) from None
+        arrays = _finite_gaussians(arrays, map_path)
     renderer = _MapRenderer(arrays, device) if arrays is not None and arrays.n > 0 else None
     sc = ViewerScene(host, port, title=f"mgso view: {run.name}", live=False, renderer=renderer)
     try:
@@ -772,6 +820,7 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
             for i, T in enumerate(kfs.cam_to_world):
                 sc.set_frustum(f"/keyframes/kf{i}", T, fov, aspect, _COLORS["keyframe"])
             lines.append(f"keyframes **{len(kfs)}**")
+        pts = None
         if (run / "points.ply").is_file() and p.is_dir():
             try:
                 pts, cols, _ = read_point_cloud_ply(run / "points.ply")
@@ -779,6 +828,16 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
                 lines.append(f"DSO points {len(pts)}")
             except PlyError as exc:
                 log.warning("viewer: %s", exc)
+        scene_points = arrays.means if arrays is not None and arrays.n > 0 else pts
+        first = kfs if kfs is not None else traj
+        if first is not None and len(first):
+            sc.frame_view(first.cam_to_world[0], scene_points)
+        elif scene_points is not None and len(scene_points):      # a map.ply alone: look at it from outside
+            c = np.median(scene_points, axis=0)
+            r = float(np.percentile(np.linalg.norm(scene_points - c, axis=1), 90)) or 1.0
+            T = np.eye(4)
+            T[:3, 3] = c - np.array([0.0, 0.0, 2.5 * r])
+            sc.frame_view(T, scene_points)
         if arrays is not None and arrays.n > 0:
             act = arrays.activated()
             from mgso.mapping.snapshot import MapSnapshot
@@ -795,6 +854,25 @@ def open_run(path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_POR
         sc.close()
         raise
     return sc
+
+
+def _finite_gaussians(arrays, path: Path):
+    """The map without Gaussians that hold a NaN or an infinity (which the renderer and the browser cannot draw),
+    each case said in one warning line, as is a map with no Gaussians at all."""
+    if arrays.n == 0:
+        log.warning("viewer: %s has no Gaussians: only the trajectory and points are shown", path)
+        return arrays
+    ok = np.ones(arrays.n, bool)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        a = getattr(arrays, name, None)
+        if a is not None:
+            ok &= np.isfinite(np.asarray(a, np.float64).reshape(arrays.n, -1)).all(axis=1)
+    if ok.all():
+        return arrays
+    log.warning("viewer: %s: %d of %d Gaussians hold NaN or infinite values and are not shown", path,
+                int((~ok).sum()), arrays.n)
+    return type(arrays)(arrays.means[ok], arrays.log_scales[ok], arrays.quats[ok], arrays.opacity_logits[ok],
+                        arrays.sh[ok])
 
 
 def _poll_renders(sc: ViewerScene, renderer: _MapRenderer) -> None:
