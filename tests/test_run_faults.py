@@ -271,6 +271,14 @@ def test_output_folder_problems_are_one_line_errors(room, tmp_path, capsys):
         assert main(["run", str(room), "--out", str(out), "--stage", "check", "-q"]) == 1
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and what in err and str(out) in err
+    # the folder is checked before any work: before the sequence is opened (issue 44), for run, demo and fit
+    missing = tmp_path / "no-such-sequence"
+    for cmd in (["run", str(missing)], ["fit", str(missing)], ["demo"]):
+        assert main([*cmd, "--out", str(a_file / "sub"), "-q"]) == 1
+        err = capsys.readouterr().err
+        assert "is a file" in err and "no-such-sequence" not in err.replace(str(a_file), "")
+    assert main(["run", str(missing), "--out", str(tmp_path / "ok"), "-q"]) == 1     # control: then the sequence
+    assert "no-such-sequence" in capsys.readouterr().err
     gt = room / "groundtruth.txt"
     assert main(["eval", str(gt), "--gt", str(gt), "--out", str(a_file)]) == 1
     cap = capsys.readouterr()
