@@ -288,6 +288,31 @@ def test_output_folder_problems_are_one_line_errors(room, tmp_path, capsys):
     assert (good / "metrics.json").is_file()
 
 
+@pytest.mark.parametrize("size, calib, msg", [
+    (1, "500 500 320 240", "the principal point (320, 240) lies outside the 1x1 images"),
+    (1, "500 500 0.5 0.5", "1x1 images cannot be tracked"),
+    (48, "40 40 24 24", None),                                       # the control: small, but trackable
+])
+def test_images_that_cannot_be_tracked_are_refused_when_opened(tmp_path, capsys, size, calib, msg):
+    """Issue 44: 1x1 frames passed ``info`` and ``--stage check``; tracking then died in a kernel with "too small
+    for 1 pyramid levels"."""
+    import cv2
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(images / f"{i:04d}.png"), np.full((size, size), 100 + 20 * i, np.uint8))
+    (tmp_path / "calib.txt").write_text(calib + "\n")
+    args = [str(images), "--calib", str(tmp_path / "calib.txt")]
+    for cmd in (["info", *args], ["run", *args, "--stage", "check", "--out", str(tmp_path / "run"), "-q"]):
+        code = main(cmd)
+        err = capsys.readouterr().err
+        if msg is None:
+            assert code == 0, err
+        else:
+            assert code == 1 and msg in err and err.count("\n") == 1
+
+
 @pytest.mark.skipif(os.name != "posix", reason="file modes are POSIX")
 def test_outputs_get_the_users_umask_not_0600(room, tmp_path, monkeypatch):
     """Issue 44: the atomic writer's temporary file kept mkstemp's 0600, so nobody else on a shared disk could read

@@ -65,10 +65,36 @@ def _progress(args, total: int, desc: str):
                 file=sys.stderr)
 
 
-def _open(path: str, calib: str | None, cfg: Config, groundtruth: str | None = None):
+def _open(path: str, calib: str | None, cfg: Config, groundtruth: str | None = None, *, to_track: bool = True):
+    """The sequence at ``path``; ``to_track``: its images checked against the calibration and the tracker's
+    pyramid here, in one line, rather than by a kernel's error once tracking starts (issue 44)."""
     from mgso.io import open_sequence
 
-    return open_sequence(path, calib=calib, config=cfg.input, groundtruth=groundtruth)
+    seq = open_sequence(path, calib=calib, config=cfg.input, groundtruth=groundtruth)
+    if to_track:
+        _check_images_can_be_tracked(path, seq, cfg)
+    return seq
+
+
+def _check_images_can_be_tracked(path: str, seq, cfg: Config) -> None:
+    from mgso.camera import CalibrationError
+    from mgso.io import DatasetError
+
+    cam = seq.calibration.output
+    w, h = int(cam.width), int(cam.height)
+    if not (0.0 <= cam.cx <= w and 0.0 <= cam.cy <= h):
+        raise CalibrationError(f"{path}: the principal point ({cam.cx:g}, {cam.cy:g}) lies outside the {w}x{h} "
+                               "images: the calibration is for another image size")
+    from mgso_kernels.image import plan_pyramid
+
+    t = cfg.tracking
+    try:
+        plan_pyramid(w, h, levels=t.pyramid_levels, max_levels=t.pyramid_max_levels, min_area=t.pyramid_min_area,
+                     mode=t.pyramid_size_mode)
+    except ValueError as exc:
+        how = "automatic" if t.pyramid_levels == 0 else str(t.pyramid_levels)
+        raise DatasetError(f"{path}: {w}x{h} images cannot be tracked: {exc} (tracking.pyramid_levels: {how})") \
+            from None
 
 
 def _format_info(info: dict) -> list[str]:
@@ -127,7 +153,7 @@ def cmd_eval(args) -> int:
     gt_path = Path(args.gt)
     if gt_path.is_dir():
         cfg = _load_cfg(args)
-        seq = _open(str(gt_path), args.calib, cfg)
+        seq = _open(str(gt_path), args.calib, cfg, to_track=False)
         if seq.groundtruth is None:
             raise CliError(f"{gt_path}: this dataset has no ground truth to evaluate against")
         ref = seq.groundtruth
