@@ -345,3 +345,52 @@ def test_one_bench_at_a_time_in_a_folder(tmp_path):
                 pass
     with _bench_lock(tmp_path):
         pass
+
+
+@pytest.mark.parametrize("args, code, msg", [
+    ([], 2, "give a SPEC"),
+    (["system", "--compare", "a.csv", "b.csv"], 2, "not both"),
+    (["system", "--num-cpus", "0"], 2, "--num-cpus must be >= 1, got 0"),
+    (["system", "--num-cpus", "-3"], 2, "--num-cpus must be >= 1, got -3"),
+    (["{tmp}"], 1, "is a folder, not a spec file"),
+    (["system", "--address", "127.0.0.1:{closed}"], 1, "no Ray cluster answers there"),
+    (["system", "--address", "http://127.0.0.1:1"], 1, "expected auto, HOST:PORT or ray://HOST:PORT"),
+])
+def test_bench_argument_mistakes_are_refused_before_any_work(tmp_path, capsys, args, code, msg):
+    """Issue 44: argument mistakes exited 1 instead of the usage code 2; --num-cpus 0 meant all; a folder was "no
+    such spec file"; an address with nothing listening waited forever while Ray retried. Nothing is made."""
+    import socket
+
+    with socket.socket() as s:          # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        closed = s.getsockname()[1]
+    out = tmp_path / "out"
+    args = [a.format(tmp=tmp_path, closed=closed) for a in args]
+    assert main(["bench", *args, "--out", str(out), "-q"]) == code
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err and not out.exists()
+
+
+def test_ray_client_address_without_the_client_is_one_line(tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "grpc" else real(name, *a))
+    out = tmp_path / "out"
+    assert main(["bench", "system", "--address", "ray://127.0.0.1:10001", "--out", str(out), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert 'pip install "ray[client]' in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_compare_refuses_an_empty_or_header_only_table(tmp_path, capsys):
+    header = tmp_path / "header.csv"
+    header.write_text("sequence,variant,status\n")
+    empty = tmp_path / "empty.csv"
+    empty.write_text("")
+    good = tmp_path / "good.csv"
+    good.write_text("sequence,variant,status,seed,ate_m\ns,v,ok,0,0.1\n")
+    for bad in (header, empty):
+        assert main(["bench", "--compare", str(good), str(bad)]) == 1
+        err = capsys.readouterr().err
+        assert f"{bad}: no rows" in err and len(err.strip().splitlines()) == 1
+    assert main(["bench", "--compare", str(good), str(good)]) == 0           # the control

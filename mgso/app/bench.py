@@ -262,6 +262,35 @@ def _init_ray(address: str | None, num_cpus: int | None):
     return ray, True
 
 
+def check_address(address: str | None, timeout_s: float = 5.0) -> None:
+    """Refuse, in one line and before any work, a Ray address that cannot be joined: ``ray://`` without Ray's
+    client (``ray[client]``), or a ``HOST:PORT`` where nothing listens (Ray itself retries for minutes)."""
+    import importlib.util
+
+    from .bench_spec import SpecError
+
+    if not address or address in ("auto", "local"):
+        return
+    hostport = address
+    if address.startswith("ray://"):
+        if importlib.util.find_spec("grpc") is None:
+            raise SpecError(f"--address {address}: joining a cluster through ray:// needs Ray's client: "
+                            'pip install "ray[client]>=2.9,<3" (or run mgso bench on the head node with '
+                            "--address auto)")
+        hostport = address[len("ray://"):].split("/", 1)[0]
+    elif "://" in address:
+        raise SpecError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        raise SpecError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise SpecError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc}); start one "
+                        "with `ray start --head` or give its address") from None
+
+
 def run_bench(spec: BenchSpec, out_dir: str | os.PathLike, *, address: str | None = None,
               num_cpus: int | None = None, progress: bool = True) -> BenchResult:
     """Run every task of ``spec`` not finished before into ``out_dir`` (see the module doc)."""
@@ -428,12 +457,20 @@ def cmd_bench(args) -> int:
     """``mgso bench SPEC [--out DIR] [--address auto|ray://...] [--num-cpus N]`` and ``mgso bench --compare A B``."""
     from .bench_report import compare_tables, read_results_csv
     from .bench_spec import SpecError, load_spec
+    from .stages import EXIT_USAGE
 
     CliError = SpecError    # one line on stderr, exit 1 (a ConfigError: caught by the CLI however it was started)
 
+    def usage(msg: str) -> int:     # a mistake in the arguments: argparse's form and exit code (2)
+        print(f"usage: mgso bench [SPEC] [--out DIR] [--address ADDR] [--num-cpus N] [--compare A.csv B.csv]\n"
+              f"mgso bench: error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+
+    if args.num_cpus is not None and args.num_cpus < 1:
+        return usage(f"--num-cpus must be >= 1, got {args.num_cpus} (leave it out for all of this machine's)")
     if args.compare:
         if args.spec:
-            raise CliError("give a SPEC or --compare A.csv B.csv, not both")
+            return usage("give a SPEC or --compare A.csv B.csv, not both")
         a, b = args.compare
         try:
             lines, _ = compare_tables(read_results_csv(a), read_results_csv(b), a, b)
@@ -442,12 +479,13 @@ def cmd_bench(args) -> int:
         print("\n".join(lines))
         return 0
     if not args.spec:
-        raise CliError("give a SPEC (a YAML file or a built-in name) or --compare A.csv B.csv")
+        return usage("give a SPEC (a YAML file or a built-in name) or --compare A.csv B.csv")
     spec = load_spec(args.spec)
     import importlib.util
 
     if importlib.util.find_spec("ray") is None:
         raise CliError('mgso bench needs Ray: pip install "mgso[bench]" (or pip install "ray>=2.9,<3")')
+    check_address(args.address)         # before the output folder is made
     out = Path(args.out or Path("bench") / spec.name)
     if not args.quiet:
         print(f"mgso bench {spec.name}: {len(spec.sequences)} sequences x {len(spec.variants)} variants x "

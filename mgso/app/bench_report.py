@@ -101,6 +101,8 @@ def read_results_csv(path: str | os.PathLike) -> list[dict]:
         raise ValueError(f"{p}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
     if rows and not {"sequence", "variant", "status"} <= set(rows[0]):
         raise ValueError(f"{p}: not a results.csv of mgso bench (no sequence/variant/status columns)")
+    if not rows:
+        raise ValueError(f"{p}: no rows (an empty file or only a header): nothing to compare")
     return rows
 
 

@@ -131,6 +131,9 @@ def resolve_spec_path(name_or_path: str | os.PathLike) -> Path:
     p = Path(name_or_path).expanduser()
     if p.is_file():
         return p
+    if p.is_dir():
+        raise SpecError(f"{name_or_path}: is a folder, not a spec file (give a YAML file or a built-in name: "
+                        f"{', '.join(builtin_specs()) or 'none'})")
     if p.suffix not in (".yaml", ".yml") and (BUILTIN_DIR / f"{p}.yaml").is_file():
         return BUILTIN_DIR / f"{p}.yaml"
     raise SpecError(f"{name_or_path}: no such spec file (built-in specs: {', '.join(builtin_specs()) or 'none'})")
