@@ -21,7 +21,7 @@ from ..config import InputConfig
 from ..geometry import make_pose, quat_wxyz_to_matrix
 from .common import CalibArg, find_photometric, load_groundtruth, make_calibration, resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
-from .images import check_increasing, read_image, read_table
+from .images import check_increasing, read_first_image, read_table
 from .sequence import Sequence, poses_at_times
 from .trajectory import Trajectory
 
@@ -185,7 +185,7 @@ class EurocSequence(Sequence):
         for (n, _), f in zip(rows, self._files):
             if not f.is_file():
                 raise DatasetError(f"{csv}:{n}: listed image {f} does not exist")
-        first = read_image(self._files[0])
+        first, first_path = read_first_image(self._files)
         size = (first.shape[1], first.shape[0])
 
         yaml_path = cam_dir / "sensor.yaml"
@@ -197,7 +197,7 @@ class EurocSequence(Sequence):
             raise DatasetError(f"{yaml_path}: not found; a EuRoC camera needs its sensor.yaml (or calib=PATH)")
         spec = resolve_camera_spec(calib, size) if calib is not None else yaml_spec
         calibration = make_calibration(spec, config, find_photometric(root, size), image_size=size,
-                                       images=str(self._files[0]))
+                                       images=str(first_path))
 
         gt, gt_src = None, ""
         gt_csv = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"

@@ -24,7 +24,7 @@ from ..config import InputConfig
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError
-from .images import check_increasing, list_images, parse_float, read_image, read_table
+from .images import check_increasing, list_images, parse_float, read_first_image, read_table
 from .sequence import Sequence
 
 __all__ = ["ImageFolderSequence", "VideoSequence", "CALIBRATION_NAMES"]
@@ -83,11 +83,11 @@ class ImageFolderSequence(Sequence):
             if not config.fps > 0:
                 raise DatasetError(f"input.fps must be positive, got {config.fps}")
             ts = np.arange(n, dtype=np.float64) / config.fps
-        first = read_image(self._files[0])
+        first, first_path = read_first_image(self._files)
         size = (first.shape[1], first.shape[0])
         spec = _calibration_spec(calib, folder, size, str(folder))
         calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
-                                       images=str(self._files[0]))
+                                       images=str(first_path))
         gt, gt_src = _groundtruth(groundtruth, folder, ts, config.gt_max_dt)
         super().__init__(folder, calibration=calibration, timestamps=ts, config=config, exposures_ms=exposures,
                          groundtruth=gt, groundtruth_source=gt_src, color=first.ndim == 3,

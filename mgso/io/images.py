@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -9,6 +10,8 @@ import cv2
 import numpy as np
 
 from .errors import DatasetError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "read_image", "read_bytes", "is_jpeg",
            "list_images", "natural_key", "read_table", "parse_float", "check_increasing"]
@@ -72,6 +75,27 @@ def read_bytes(path: str | Path) -> np.ndarray:
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file (see :func:`decode_image`); a missing or corrupt file is a :class:`DatasetError`."""
     return decode_image(read_bytes(path), str(path))
+
+
+def read_first_image(files: list[Path], limit: int = 10) -> tuple[np.ndarray, Path]:
+    """The first of ``files`` that can be read (what a sequence takes its image size and colour from) and its path.
+    An unreadable first frame is skipped as the same fault later in the sequence is (its row in frames.csv says so
+    when the run reaches it), with a warning; only when none of the first ``limit`` can be read is the sequence
+    refused, naming the first's problem."""
+    errors = []
+    for path in files[:limit]:
+        try:
+            img = read_image(path)
+        except DatasetError as exc:
+            errors.append(str(exc))
+            continue
+        if errors:
+            log.warning("%s; the image size is taken from %s", "; ".join(errors), Path(path).name)
+        return img, Path(path)
+    if not files:
+        raise DatasetError("no images")
+    n = min(len(files), limit)
+    raise DatasetError(f"{errors[0]} (and none of the first {n} images can be read)" if n > 1 else errors[0])
 
 
 def natural_key(name: str):

@@ -20,7 +20,7 @@ from .calibration import numbers
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
-from .images import check_increasing, list_images, parse_float, read_image, read_table
+from .images import check_increasing, list_images, parse_float, read_first_image, read_table
 from .sequence import Sequence
 from .trajectory import read_kitti
 
@@ -102,7 +102,7 @@ class KittiSequence(Sequence):
             ts = self._frame_ids(None) / KITTI_FPS
         check_increasing(ts, str(img_dir))
 
-        first = read_image(self._files[0])
+        first, first_path = read_first_image(self._files)
         size = (first.shape[1], first.shape[0])
         P = None
         if calib is not None:
@@ -113,7 +113,7 @@ class KittiSequence(Sequence):
         else:
             raise DatasetError(f"{folder}: no calib.txt for this KITTI sequence; {HOW_TO_CALIBRATE}")
         calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
-                                       images=str(self._files[0]))
+                                       images=str(first_path))
 
         # Ground truth is of camera 0; camera N sits at -P_N[:, 3] / fx along x in the rectified frame.
         cam0_from_camN = np.eye(4)

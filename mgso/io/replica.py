@@ -19,7 +19,7 @@ from ..config import InputConfig
 from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
                      resolve_camera_spec)
 from .errors import DatasetError, as_dataset_errors
-from .images import list_images, read_image
+from .images import list_images, read_first_image, read_image
 from .sequence import Sequence
 
 __all__ = ["ReplicaSequence", "read_replica_traj", "read_replica_cam_params", "REPLICA_NICE_SLAM"]
@@ -98,7 +98,7 @@ class ReplicaSequence(Sequence):
         self._depth_files = list_images(results, r"depth.*\.png")
         if self._depth_files and len(self._depth_files) != n:
             raise DatasetError(f"{results}: {len(self._depth_files)} depth images for {n} colour images")
-        first = read_image(self._files[0])
+        first, first_path = read_first_image(self._files)
         size = (first.shape[1], first.shape[0])
         self.depth_scale = REPLICA_NICE_SLAM["scale"]
         params = next((p for p in (folder / "cam_params.json", folder.resolve().parent / "cam_params.json")
@@ -116,7 +116,7 @@ class ReplicaSequence(Sequence):
             spec = CameraSpec(PinholeCamera(d["fx"], d["fy"], d["cx"], d["cy"], d["w"], d["h"]),
                               OutputSpec(mode="none"), "NICE-SLAM Replica default intrinsics")
         calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
-                                       images=str(self._files[0]))
+                                       images=str(first_path))
 
         ts = np.arange(n, dtype=np.float64) / config.fps
         gt, gt_src = None, ""

@@ -22,7 +22,7 @@ from ..geometry import orthonormalize
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError
-from .images import list_images, read_image
+from .images import list_images, read_first_image, read_image
 from .sequence import Sequence
 
 __all__ = ["SevenScenesSequence", "read_7scenes_pose", "SEVEN_SCENES_FPS", "SEVEN_SCENES_COLOR"]
@@ -83,7 +83,7 @@ class SevenScenesSequence(Sequence):
             raise DatasetError(f"{dup}: two colour images with the same frame number")
         stems = [folder / p.name[: p.name.lower().index(".color.")] for p in self._files]
         ts = numbers.astype(np.float64) / SEVEN_SCENES_FPS
-        first = read_image(self._files[0])
+        first, first_path = read_first_image(self._files)
         size = (first.shape[1], first.shape[0])
         if calib is not None:
             spec = resolve_camera_spec(calib, size)
@@ -94,7 +94,7 @@ class SevenScenesSequence(Sequence):
             spec = CameraSpec(PinholeCamera(*SEVEN_SCENES_COLOR, 640, 480), OutputSpec(mode="none"),
                               "7-Scenes customary colour intrinsics (525, 525, 320, 240)")
         calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
-                                       images=str(self._files[0]))
+                                       images=str(first_path))
 
         gt, gt_src = None, ""
         if groundtruth is not None:

@@ -27,7 +27,8 @@ from ..config import InputConfig
 from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
                      resolve_camera_spec)
 from .errors import DatasetError, as_dataset_errors
-from .images import IMAGE_EXTENSIONS, check_increasing, decode_image, natural_key, parse_float, read_image, read_table
+from .images import (IMAGE_EXTENSIONS, check_increasing, decode_image, natural_key, parse_float, read_first_image,
+                     read_image, read_table)
 from .sequence import Sequence, poses_at_times
 from .trajectory import Trajectory, matching_time_indices
 
@@ -95,7 +96,7 @@ class TumRgbdSequence(Sequence):
             if not f.is_file():
                 raise DatasetError(f"{listing}:{n}: listed image {f} does not exist")
         self._files = files
-        first = read_image(files[0])
+        first, first_path = read_first_image(files)
         size = (first.shape[1], first.shape[0])
         if calib is not None:
             spec = resolve_camera_spec(calib, size)
@@ -109,7 +110,7 @@ class TumRgbdSequence(Sequence):
             with as_dataset_errors():
                 spec = tum_rgbd_default(name, *size)
         calibration = make_calibration(spec, config, find_photometric(folder, size), image_size=size,
-                                       images=str(files[0]))
+                                       images=str(first_path))
 
         gt, gt_src = None, ""
         gt_path = Path(groundtruth) if groundtruth is not None else folder / "groundtruth.txt"

@@ -56,8 +56,13 @@ CASES = {
                                r"rgb\.txt:4: timestamp is not a number", "open"),
     "tum_rgbd/empty listing": ("tum_rgbd", lambda d: (d / "rgb.txt").write_text("# nothing\n"),
                                r"rgb\.txt: image list .* has no entries", "open"),
+    # issue 44: an unreadable first frame is skipped as a later one is (the size comes from the next readable one);
+    # the sequence is refused only when none of its first images can be read
     "tum_rgbd/corrupt first image": ("tum_rgbd", lambda d: corrupt(sorted((d / "rgb").iterdir())[0]),
-                                     r"\.png: not a readable image", "open"),
+                                     r"\.png: not a readable image", "load0"),
+    "tum_rgbd/every image corrupt": ("tum_rgbd", lambda d: [corrupt(p) for p in (d / "rgb").iterdir()],
+                                     r"\.png: not a readable image .*and none of the first \d+ images can be read",
+                                     "open"),
     "tum_rgbd/corrupt later image": ("tum_rgbd", lambda d: corrupt(sorted((d / "rgb").iterdir())[2]),
                                      r"\.png: not a readable image", "load2"),
     "tum_rgbd/size mismatch": ("tum_rgbd", lambda d: resize_image(sorted((d / "rgb").iterdir())[2]),
