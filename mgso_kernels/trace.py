@@ -90,7 +90,9 @@ def hash_unit(a: int, b: int, c: int) -> float:
     x = x ^ (x >> wp.uint32(16))
     x = x * wp.uint32(0x7FEB352D)
     x = x ^ (x >> wp.uint32(15))
-    x = x * wp.uint32(0x846CA68B)
+    # 0x846CA68B from two halves: Warp would type the literal int32, which it overflows (clang warned at every
+    # compile; the wrapped value was the same)
+    x = x * ((wp.uint32(0x846C) << wp.uint32(16)) | wp.uint32(0xA68B))
     x = x ^ (x >> wp.uint32(16))
     return float(x >> wp.uint32(8)) * (1.0 / 16777216.0)
 
