@@ -99,6 +99,34 @@ def test_contracts_are_declared():
     assert not missing, f"contracts without an id (lint-imports --contract needs one): {missing}"
 
 
+def kernel_modules_left_out(package: Path, contracts: list[dict]) -> dict[str, list[str]]:
+    """The modules and subpackages of ``mgso_kernels`` (at ``package``) that a per-module contract does not name:
+    the layers of ``kernels-layers`` and the kernels that ``twins-apart`` keeps from the twins. Those contracts list
+    the modules by hand, so a new one left off would go unchecked."""
+    names = sorted({p.stem for p in package.glob("*.py") if p.stem != "__init__"}
+                   | {p.name for p in package.iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
+                   - {"reference"})
+    by_id = {c.get("id"): c for c in contracts}
+    layered = {m.strip() for layer in by_id.get("kernels-layers", {}).get("layers", []) for m in layer.split("|")}
+    kept_apart = {m.rsplit(".", 1)[-1] for m in by_id.get("twins-apart", {}).get("forbidden_modules", [])}
+    left = {"kernels-layers": [n for n in names if n not in layered],
+            "twins-apart": [n for n in names if n not in kept_apart]}
+    return {k: v for k, v in left.items() if v}
+
+
+def test_every_kernel_module_is_in_the_contracts_that_list_them(tmp_path):
+    """Issue 44: a module of mgso_kernels left off the hand-written lists would be silently unchecked."""
+    contracts = _contract_options(ROOT / "pyproject.toml")
+    left = kernel_modules_left_out(ROOT / "mgso_kernels", contracts)
+    assert not left, f"modules of mgso_kernels that pyproject.toml's contracts do not name: {left}"
+    # the control: a copy of the package with one more module is caught by both lists
+    copy = tmp_path / "mgso_kernels"
+    shutil.copytree(ROOT / "mgso_kernels", copy, ignore=shutil.ignore_patterns("__pycache__"))
+    (copy / "new_kernel.py").write_text("")
+    assert kernel_modules_left_out(copy, contracts) == {"kernels-layers": ["new_kernel"],
+                                                        "twins-apart": ["new_kernel"]}
+
+
 @pytest.mark.parametrize("contract", [cid for cid, _ in CONTRACTS])
 def test_contract_kept(contract):
     _require_import_linter()
