@@ -83,6 +83,7 @@ class OracleOdometry:
         if keyframe_every < 1 or window < 1 or points < 1:
             raise ValueError("OracleOdometry: keyframe_every, window and points must be >= 1")
         self.camera = camera
+        self.device: str | None = None       # no kernels of its own (the system's loop closer uses its device)
         self._poses = poses
         self._depth = depth
         self.keyframe_every = int(keyframe_every)

@@ -123,6 +123,10 @@ class OdometrySource(Protocol):
     def keyframe_trajectory(self) -> Trajectory:
         """Every keyframe, final poses."""
 
+    #: the Warp device the odometry runs on (the loop closer's photometric check runs there too); ``None``: an
+    #: odometry without kernels (the oracle), whose closer then runs on the system's device
+    device: str | None
+
 
 # -------------------------------------------------------------------------------------------- results
 @dataclass
@@ -374,7 +378,7 @@ class System:
             self.mapper = Mapper(config, device=device, observer=self.observer)
         self.loop: LoopCloser | None = None
         if config.loop.enabled:
-            self.loop = LoopCloser(config, device=getattr(odometry, "device", None), background=self.realtime,
+            self.loop = LoopCloser(config, device=odometry.device or device, background=self.realtime,
                                    nice=config.system.mapper_nice)
         self.cloud = MarginalizedCloud()
         self.frame_log = FrameLog()

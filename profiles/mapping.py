@@ -70,6 +70,7 @@ class ReplayOdometry:
     def __init__(self, rec: Recording):
         self.rec = rec
         self.name = rec.name + " (replayed)"
+        self.device = None          # no kernels of its own: the loop closer runs on the system's device
         self._k = 0
 
     def process(self, frame):

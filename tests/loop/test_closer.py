@@ -243,3 +243,22 @@ def test_the_window_is_what_the_last_window_update_named_not_the_final_one(loop_
     assert closer.window_keyframes == kids[-4:]
     closer.observe(everything)                     # the negative control: taken as a window update
     assert closer.window_keyframes == kids
+
+
+def test_the_closer_runs_on_the_odometrys_device_or_else_the_systems(loop_folder):
+    """Issue 44: the closer took ``getattr(odometry, "device", None)``: with the oracle (no kernels, no device) it
+    ran on the CPU whatever device the run was given. Now an odometry says its device; the oracle's None means the
+    system's."""
+    cfg = load_config(None, BASE)
+    seq = open_sequence(str(loop_folder), config=cfg.input)
+    oracle = OracleOdometry.from_sequence(seq, **ORACLE)
+    assert oracle.device is None
+    assert System(oracle, cfg, device="cpu").loop.device == "cpu"
+
+    class OnDevice:                  # an odometry on a device of its own: the closer follows it
+        device = "cpu:odometry"
+
+        def __getattr__(self, name):
+            return getattr(oracle, name)
+
+    assert System(OnDevice(), cfg, device="cpu").loop.device == "cpu:odometry"
