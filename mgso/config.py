@@ -757,6 +757,9 @@ class MapperConfig:
                                            "trains on a small CPU: seeding the keyframes fills what the odometry "
                                            "leaves; docs/mgso.md), unless half the queue is full; 0 = train only "
                                            "when the queue is empty")
+    running_training: bool = opt(True, "real time: train while the stream runs (MGSO's decoupled mapper); false: "
+                                       "only apply the messages until the stream ends, and make the map in the "
+                                       "final refinement")
     defer_seeding_above: int = opt(128, "real time: with at least this many messages queued, a keyframe's seeding "
                                         "waits like the marginalised points (seeded with its host's points once "
                                         "the queue is empty, a second at a time), so that a mapper behind the "

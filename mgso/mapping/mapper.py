@@ -118,6 +118,8 @@ class MapperStats:
     # steps taken while messages waited (mapping.mapper.running_train_share)
     running_level: int = 0
     steps_while_behind: int = 0
+    # steps taken before the stream ended (real time: while the camera ran; the rest are catch-up and final steps)
+    steps_while_streaming: int = 0
     # real time: keyframe seedings deferred while the queue was deep (mapping.mapper.defer_seeding_above)
     seedings_deferred: int = 0
     # real time: messages still queued when the stream ended (-1: not seen), and the seconds from then until the
@@ -368,7 +370,8 @@ class Mapper:
         ``running_train_share`` of the time (with ``busy``, the seconds handling messages), with the queue at most
         half full (beyond that the odometry's waits come closer: the messages go first)."""
         share = self.cfg.running_train_share
-        return (share > 0 and trained < share / (1.0 - share) * busy and self.can_train()
+        return (share > 0 and self.cfg.running_training and trained < share / (1.0 - share) * busy
+                and self.can_train()
                 and not self._interrupt.is_set() and not self.stream_ended.is_set()
                 and self.queue.qsize() < self.cfg.queue_size // 2)
 
@@ -397,7 +400,8 @@ class Mapper:
                     if self._interrupt.is_set() and not self.drain_until_stop:
                         self.stats.stopped_by = "interrupt"
                         return
-                    if self.can_train() and not self._interrupt.is_set():
+                    if (self.can_train() and not self._interrupt.is_set()
+                            and (self.cfg.running_training or self.stream_ended.is_set())):
                         self._step(self.running_level())
                         continue
                     try:
@@ -753,6 +757,7 @@ class Mapper:
             self.stats.running_level = level
         self.stats.train_seconds += time.perf_counter() - t0
         self.stats.steps += 1
+        self.stats.steps_while_streaming += int(not self.stream_ended.is_set())
         self._last_step = r
         f = r.refine
         if f.refined or f.opacity_reset:
