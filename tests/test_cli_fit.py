@@ -53,6 +53,7 @@ def _metrics(out) -> dict:
 
 
 def test_fit_reaches_the_pinned_psnr_on_held_out_frames(fitted):
+    assert _metrics(fitted)["interrupted"] is False and _metrics(fitted)["evaluation"] == "done"   # the control
     m = _metrics(fitted)
     render = m["render"][0]
     assert render["protocol"] == "held-out every 5th frame"
@@ -144,3 +145,39 @@ def test_fit_errors_are_one_line(scene_dir, tmp_path, capsys, wp_device):
     assert main(["fit", str(folder), "--out", str(tmp_path / "o"), "-q"]) == 1
     assert "no poses" in capsys.readouterr().err
     assert main(["fit", str(scene_dir), "--out", str(tmp_path), "--downscale", "0", "-q"]) == 1
+
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_during_fit_writes_the_map_trained_so_far(scene_dir, tmp_path, sig, code):
+    """Issue 44: Ctrl-C during ``mgso fit`` wrote no map.ply. Now the step under way finishes, map.ply and
+    metrics.json ("interrupted") are written and the exit code names the signal; the held-out evaluation is left
+    out."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "fit"
+    cli = "import sys; from mgso.app.cli import main; sys.exit(main(sys.argv[1:]))"
+    args = [a if a != str(ITERATIONS) else "100000" for a in FIT_ARGS if a != "-q"]
+    p = subprocess.Popen([sys.executable, "-c", cli, "fit", str(scene_dir), "--out", str(out), "-v", *args],
+                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        line = ""
+        while "training views" not in line:            # the log line before training starts
+            line = p.stderr.readline()
+            assert line or p.poll() is None, "mgso fit ended before training"
+            assert time.monotonic() - t0 < 300
+        time.sleep(1.0)                                # a few steps
+        p.send_signal(getattr(signal, sig))
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == code, err[-2000:]
+    assert "Traceback" not in err and f"{sig}: stopped after" in err
+    m = _metrics(out)
+    assert m["interrupted"] is True and 0 < m["iterations"] < 100000 and m["evaluation"] == "skipped: interrupted"
+    assert read_gaussians_ply(out / "map.ply").n == m["num_gaussians"] > 0
+    assert not list(out.glob(".*-*"))                   # no temporary file left

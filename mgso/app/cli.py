@@ -315,8 +315,19 @@ def cmd_fit(args) -> int:
         return tqdm(total=total, desc=desc, unit="frame" if desc == "load" else "it",
                     disable=getattr(args, "quiet", False), dynamic_ncols=True, file=sys.stderr)
 
-    result = fit_sequence(seq, cfg, writer, init=init, progress=progress)
+    from .signals import deferred_signals
+
+    # Ctrl-C, SIGTERM, SIGHUP while training: recorded, the step under way finishes, and the map trained so far is
+    # written (map.ply, metrics.json "interrupted"), as a run writes what was done; the exit code names the signal
+    state = StopState()
+    result = fit_sequence(seq, cfg, writer, init=init, progress=progress,
+                          should_stop=lambda: state.signum is not None,
+                          guard=lambda: deferred_signals(state, "training (the map trained so far is written)"))
     _print(args, *result.lines())
+    if state.signum is not None:
+        print(f"mgso fit: {state.name}: stopped after {result.iterations} of {cfg.mapping.train.iterations} "
+              f"iterations; the map trained so far is in {writer.out}", file=sys.stderr)
+        return exit_code_for(state.signum)
     return EXIT_OK
 
 

@@ -22,9 +22,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ContextManager
 
 import numpy as np
 
@@ -163,7 +164,9 @@ class FitResult:
 
 def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str | None = None,
                  progress: Callable[[int, str], object] | None = None,
-                 on_step: Callable[[StepResult], object] | None = None) -> FitResult:
+                 on_step: Callable[[StepResult], object] | None = None,
+                 should_stop: Callable[[], bool] | None = None,
+                 guard: Callable[[], ContextManager] = nullcontext) -> FitResult:
     """Fit a map to ``seq`` (a :class:`mgso.io.Sequence` with poses) and write the outputs through ``writer`` (a
     :class:`mgso.app.writer.RunWriter`, whose folder ``FitResult.out_dir`` is).
 
@@ -171,7 +174,10 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
     ``init``: ``"random"`` or a PLY path (see :func:`load_initial_gaussians`); ``device``: overrides
     ``runtime.device``; ``progress(total, desc)``: returns a progress bar (``update(n)``, optionally
     ``set_postfix(**values)``) used while loading and training (the CLI's tqdm); ``on_step(result)``: called after
-    every training step.
+    every training step. ``should_stop()``: asked before each step; when it says so the training ends there, the map
+    trained so far is written with ``metrics.json`` (``"interrupted": true``) and the held-out evaluation is left
+    out. ``guard()``: a context the training and the writing run in (the CLI's: signals recorded, not raised, so
+    that a stop lands between two steps and the outputs are whole).
     """
     t_start = time.perf_counter()
     out = Path(writer.out)
@@ -237,13 +243,24 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
             if on_step is not None:
                 on_step(r)
 
-        summary = trainer.train(tc.iterations, callback)
+        with guard():
+            summary = trainer.train(tc.iterations, callback, should_stop=should_stop)
     train_seconds = summary.seconds
+    interrupted = summary.steps < tc.iterations
 
+    with guard():
+        return _write_fit(writer, seq, cam, poses, trainer, gmap, views, held_pos, train_pos, summary, tc, init_info,
+                          refine_totals, dev, t_start, interrupted)
+
+
+def _write_fit(writer, seq, cam, poses, trainer, gmap, views, held_pos, train_pos, summary, tc, init_info,
+               refine_totals, dev, t_start, interrupted: bool) -> FitResult:
+    out = Path(writer.out)
+    train_seconds = summary.seconds
     written: list[Path] = []
     written.append(writer.write_gaussians(gmap.to_numpy()))
     metrics = None
-    if held_pos:
+    if held_pos and not interrupted:
         protocol = heldout_protocol(tc.holdout_every)
 
         def pairs():
@@ -277,6 +294,8 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
         "loss_last": float(summary.losses[-n_loss:].mean()) if n_loss else None,
         "loss_window": n_loss,
         "sequence": {"path": str(seq.path), "layout": seq.layout, "frames": len(seq)},
+        "interrupted": interrupted,
+        "evaluation": "skipped: interrupted" if interrupted and held_pos else ("done" if held_pos else "none"),
     }
     written.append(writer.write_metrics(renders=metrics, extra=figures))
     return FitResult(out_dir=out, metrics=metrics, num_gaussians=int(gmap.n), iterations=int(summary.steps),

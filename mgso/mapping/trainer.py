@@ -325,13 +325,19 @@ class Trainer:
         self.step_count += 1
         return result
 
-    def train(self, iterations: int, callback: Callable[[StepResult], object] | None = None) -> TrainSummary:
-        """Run ``iterations`` steps; ``callback(result)`` after each (progress bars, observers)."""
+    def train(self, iterations: int, callback: Callable[[StepResult], object] | None = None,
+              should_stop: Callable[[], bool] | None = None) -> TrainSummary:
+        """Run ``iterations`` steps; ``callback(result)`` after each (progress bars, observers); ``should_stop()``,
+        asked before each step, ends the training early (a signal recorded by the caller): the summary then counts
+        the steps taken."""
         losses = np.zeros(int(iterations))
         totals = {k: 0.0 for k in STAGES}
         last = None
         t0 = time.perf_counter()
         for k in range(int(iterations)):
+            if should_stop is not None and should_stop():
+                return TrainSummary(steps=k, seconds=time.perf_counter() - t0, losses=losses[:k], last=last,
+                                    times=totals)
             last = self.step()
             losses[k] = last.loss
             for name, sec in last.times.items():
