@@ -102,6 +102,37 @@ def test_config_checks_mapper_and_system():
 
 
 # ------------------------------------------------------------------------------------------ deterministic
+def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam):
+    """Issue 44: the mapper's default schedule, which docs/mapping.md's 7-Scenes measurements chose (uniform
+    keyframe sampling, 20 steps a keyframe, 1,300 final steps: 22.26 dB, against 18.25 dB with least_used and
+    21.51 dB with a fifth of the steps on the newest keyframe), was pinned by no test. Run as the mapper runs it:
+    each keyframe trains 20 steps, the final refinement asks for 1,300, and the views are drawn uniformly."""
+    from mgso.config import Config
+    from mgso.mapping.views import NewestOrRandomSampler
+
+    mc = Config().mapping.mapper
+    assert (mc.sampler, mc.newest_probability, mc.iterations_per_keyframe, mc.final_iterations) == \
+        ("random", 0.0, 20, 1300)
+
+    def drawn(*over) -> np.ndarray:
+        mp = Mapper(load_config(None, ["mapping.capacity=20000", *over]), device=wp_device)
+        for i in (0, 4, 8):
+            mp.submit(_kf(seq, cam, i))
+        mp.process_pending()
+        ids = [mp.keyframe_ids.index(mp.sampler.next_view(mp.views)) for _ in range(3000)]
+        return mp, np.bincount(ids, minlength=3) / 3000
+
+    mp, share = drawn()
+    assert type(mp.sampler) is NewestOrRandomSampler and mp.stats.steps == 3 * 20
+    assert np.all(np.abs(share - 1 / 3) < 0.04), share           # uniform: the newest no more than the others
+    asked = []
+    mp.refine = lambda n: asked.append(n) or 0                     # what the final refinement is asked for
+    mp.stop()
+    assert asked == [1300]
+    _, share = drawn("mapping.mapper.newest_probability=0.2", "mapping.mapper.iterations_per_keyframe=0")
+    assert share[2] > 1 / 3 + 0.1                                  # the control: the newest favoured is seen
+
+
 def test_keyframes_seed_views_and_train(wp_device, seq, cam):
     mp = Mapper(_cfg(), device=wp_device)
     mp.submit(_kf(seq, cam, 0, exposure_ms=10.0))
@@ -391,15 +422,15 @@ def test_what_is_queued_when_the_stream_ends_is_applied_on_the_final_threads(wp_
         mp.handle = spy
         for m in _backlog(seq, cam):
             mp.submit(m)
+        # the stream has ended before the thread takes its first message (as stop() would say it), so what the
+        # thread does is decided, not raced against stop(): every message after the end (issue 44: a step taken
+        # before stop() set the event failed this test once on a busy machine)
+        mp.stream_ended.set()
         mp.start()
         st = mp.stop(timeout=60)
         assert st.keyframes == 2 and st.point_messages == 6 and st.steps_while_behind == 0
-        assert 0 < st.stream_ended_at_depth <= 8 and st.catch_up_seconds > 0
-        # the thread may take a message or two before stop() sets the event; the rest run on the final threads
-        if final_threads == 2:
-            assert seen[-1] == 2 and seen.count(2) >= len(seen) - 2
-        else:
-            assert set(seen) == {1}
+        assert st.stream_ended_at_depth in (8, 9) and st.catch_up_seconds > 0     # 9: stop()'s Stop came first
+        assert set(seen) == {final_threads or 1} and len(seen) == 8
     finally:
         runtime.set_cpu_threads(setting)
 
