@@ -80,7 +80,9 @@ def test_tile_kernels_agree_with_row_kernels(wp_device, size):
         # multiply-adds in another order); seen once at 3.9e-5 in alpha on an H100
         tol = 2e-5 if wp.get_device(wp_device).is_cpu else 1e-4
         np.testing.assert_allclose(b[key], a[key], atol=tol, rtol=0, err_msg=key)
-    np.testing.assert_allclose(b["depth"], a["depth"], atol=2e-5 * np.abs(a["depth"]).max(), rtol=0)
+    # depth likewise: on CUDA one pixel that stops at the 1e-4 transmittance in one variant was 1.5e-4 apart (H200)
+    dtol = 2e-5 if wp.get_device(wp_device).is_cpu else 2e-4
+    np.testing.assert_allclose(b["depth"], a["depth"], atol=dtol * np.abs(a["depth"]).max(), rtol=0)
     assert (b["n_contrib"] != a["n_contrib"]).mean() < 1e-3  # measured: none differ
     for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
                  "absgrad"):
