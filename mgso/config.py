@@ -752,6 +752,9 @@ class MapperConfig:
                                           "its pyramid with at most this many pixels (a 640x480 view at 320x240: a "
                                           "step 2.9x cheaper on the 2-core CPU, docs/mgso.md); the final "
                                           "refinement trains at full resolution; 0 = full resolution")
+    keyframe_steps_coarse: bool = opt(False, "deterministic mode: the steps after each keyframe train at the level "
+                                             "running_max_pixels gives, as the real-time mapper's steps while the "
+                                             "stream runs; the final refinement at full resolution")
     running_train_share: float = opt(0.25, "real time: the share of the mapper's busy time kept for training while "
                                            "messages wait (a mapper that trains only when its queue is empty never "
                                            "trains on a small CPU: seeding the keyframes fills what the odometry "

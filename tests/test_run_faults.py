@@ -202,6 +202,35 @@ def test_a_second_signal_during_evaluation_keeps_metrics_json(wp_device, room, t
             assert m["evaluation"] == "done" and m["psnr_monogs_db"] > 15 and state.signum is None
 
 
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+@pytest.mark.parametrize("sig", [None, signal.SIGTERM])
+def test_a_signal_while_the_outputs_are_written_leaves_every_file_whole(wp_device, room, tmp_path, monkeypatch, sig):
+    """Issue 44: a signal that arrives while the outputs are written (here: in the middle of map.ply) is recorded,
+    not raised: every file is complete, no temporary file is left, and the exit code names the signal (143). The
+    control (no signal) exits 0 with the same files."""
+    import mgso.io.ply as ply
+
+    real = ply.write_gaussians_ply
+
+    def interrupted_write(path, arrays):
+        with open(path, "wb") as fh:             # half a file on disk when the signal lands
+            fh.write(b"ply\n")
+        if sig is not None:
+            os.kill(os.getpid(), sig)
+            time.sleep(0.05)                      # the handler runs here
+        return real(path, arrays)
+
+    monkeypatch.setattr(ply, "write_gaussians_ply", interrupted_write)
+    out = tmp_path / "run"
+    code = main(["run", str(room), "--out", str(out), "-q", *SMALL_MAP])
+    assert code == (143 if sig else 0)
+    m = json.loads((out / "metrics.json").read_text())
+    assert ply.read_gaussians_ply(out / "map.ply").n == m["num_gaussians"] > 0
+    for f in ("trajectory.txt", "keyframes.txt", "points.ply", "frames.csv", "config.yaml"):
+        assert (out / f).stat().st_size > 0, f
+    assert not [p.name for p in out.rglob(".*")]            # no temporary file of the atomic writer left
+
+
 # ------------------------------------------------------------------------------------------- bad frames
 def _corrupt(folder: Path, tmp_path: Path, index: int) -> Path:
     dst = tmp_path / "corrupt"

@@ -343,7 +343,7 @@ class Mapper:
                 return done
             self.handle(msg)
             if isinstance(msg, KeyframeMessage) and not self._interrupt.is_set():
-                self.train(n_iter)
+                self.train(n_iter, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
 
     # ------------------------------------------------------------------------------------------ real time
     def start(self) -> None:
@@ -774,14 +774,15 @@ class Mapper:
             d["opacity_resets"] += int(f.opacity_reset)
         return r
 
-    def train(self, iterations: int) -> int:
-        """Run up to ``iterations`` training steps now (fewer when nothing can be trained yet). Returns the steps."""
+    def train(self, iterations: int, level: int = 0) -> int:
+        """Run up to ``iterations`` training steps now (fewer when nothing can be trained yet), at pyramid level
+        ``level`` or coarser. Returns the steps."""
         done = 0
         for _ in range(int(iterations)):
             self.safe_point()
             if not self.can_train() or self._interrupt.is_set():   # stop(refine=False) ends a refinement too
                 break
-            self._step()
+            self._step(level)
             done += 1
         return done
 
