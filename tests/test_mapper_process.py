@@ -521,3 +521,56 @@ def test_a_killed_run_leaves_no_mapper_process(room):
         if proc.poll() is None:
             proc.kill()
     assert _wait_gone([child], timeout=15.0) == []
+
+
+# ------------------------------------------------------------------------------------------ the image ring
+def test_the_image_ring_carries_images_bit_for_bit_and_reuses_a_slot_only_after_its_release():
+    """Issue 44: the shared-memory ring was never checked itself. On a mapper process not started (its queues
+    replaced by in-process ones): keyframe images and masks come out of the ring bit for bit; a slot is handed out
+    again only after the mapper released it (wrap-around); when every slot waits the ring grows by a block; an image
+    bigger than the ring's slots is sent pickled instead."""
+    import queue as q
+    from types import SimpleNamespace
+
+    from mgso.mapping.process import _WireKeyframe, _WireQueue
+
+    cfg = load_config(None, ["mapping.mapper.queue_size=64"])
+    mp_ = MapperProcess(cfg, image_slots=3)
+    mp_._released = q.Queue()
+    wire = _WireQueue(q.Queue(), mp_._released)
+    rng = np.random.default_rng(0)
+    cam = SimpleNamespace(fx=50.0, fy=50.0, cx=15.5, cy=11.5, width=32, height=24)
+
+    def kf(k, h=24, w=32, masked=False):
+        mask = (rng.random((h, w)) > 0.3).astype(np.float32) if masked else None
+        c = cam if (h, w) == (24, 32) else SimpleNamespace(fx=50.0, fy=50.0, cx=w / 2, cy=h / 2, width=w, height=h)
+        return KeyframeMessage(k, k, float(k), rng.random((h, w, 3)).astype(np.float32), c, np.eye(4),
+                               np.array([[3.0, 4.0]]), np.array([0.5]), mask=mask)
+
+    try:
+        sent, held = {}, set()
+        for k in range(3):                      # three slots of the first block, none released: all different
+            m = kf(k, masked=k == 1)
+            w, waited = mp_._to_wire(m)
+            assert isinstance(w, _WireKeyframe) and waited == 0.0 and (w.ring, w.slot) not in held
+            held.add((w.ring, w.slot))
+            sent[k] = (m, w)
+        w3, _ = mp_._to_wire(kf(3))             # every slot waits: a second block, not a reused slot
+        assert (w3.ring, w3.slot) not in held and len(mp_._blocks) == 2
+        for k in range(3):                      # the mapper takes them: bit for bit, each slot released
+            wire._q.put(sent[k][1])
+            got = wire.get_nowait()
+            m = sent[k][0]
+            assert np.array_equal(got.image, m.image) and got.image is not m.image
+            assert (got.mask is None) == (m.mask is None) and (m.mask is None or np.array_equal(got.mask, m.mask))
+            assert got.keyframe_id == k and np.array_equal(got.points_uv, m.points_uv)
+        # wrap-around: three more fill the second block's two free slots and one the mapper released; the slot
+        # the mapper still holds (keyframe 3's) is not among them, and the ring does not grow
+        reused = {(w.ring, w.slot) for w in (mp_._to_wire(kf(4 + j))[0] for j in range(3))}
+        assert len(reused) == 3 and (w3.ring, w3.slot) not in reused and reused & held and len(mp_._blocks) == 2
+        big = kf(9, h=48, w=64)                 # does not fit a slot: sent as it is (pickled by the queue)
+        assert mp_._to_wire(big)[0] is big
+    finally:
+        wire.close()
+        for b in mp_._blocks.values():
+            b.close()
