@@ -3,7 +3,8 @@
 On TUM RGB-D freiburg1_rpy (a handheld Kinect rolling, pitching and yawing over a desk) DSO's poses drift by 1-8
 degrees between views of the same place, its depths are poor (little parallax), and the map became fog. The
 synthetic reproduction: the package's room seen by a camera that rotates in place (``synthetic.rotation_path``),
-fed to the mapper by the oracle odometry with a drifting rotation and inverse depths 50 % off, as DSO's were.
+fed to the mapper by the oracle odometry with a drifting rotation and inverse depths 80 % off (their median relative
+depth error against the map 0.45-0.59, the low end of DSO's 0.46-3.8 on freiburg1_rpy).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from mgso.app.full import write_outputs
 # measured first (96x72, 40 frames, motion_scale 2, 15 steps a keyframe + 100 final): see the test's docstring
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=100", "output.plot=false",
         "system.eval_photo_slam=false", "output.save_renders=false"]
-ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.5, drift=(0.006, 0.0, 0.0))
+ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.8, drift=(0.006, 0.0, 0.0))
 BEFORE = ["mapping.train.depth_weight=0.2", "mapping.train.refine_poses=false",      # the defaults before issue 41
           "mapping.seeding.depth_rule_max_median=0"]
 
@@ -55,23 +56,27 @@ def test_rotation_path_turns_in_place():
 def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path):
     """The camera turns in place for 40 frames; every frame's world drifts by 0.34 degrees a frame (14 degrees
     over the run: revisited places disagree, as DSO's segments did on freiburg1_rpy) and the keyframes' inverse
-    depths are 50 % off. The defaults of before (a sparse depth term pulling the map to those depths, the
-    odometry's poses taken as they are, and the seeding's depth rule seeding every point whose depth the map
-    misses by 10 %) make fog: 4,220 Gaussians of median opacity 0.046, which the summary flags. With the defaults
-    since issue 41 the keyframes after the first are not trusted (their depths miss the map by far more than the
-    0.25 median of mapping.seeding.depth_rule_max_median): no re-seeding, no depth term, their poses refined; the
-    map keeps the first keyframes' 248 seeds, median opacity 0.155.
+    depths are 80 % off (N(0, 0.8) relative noise; the keyframes' median relative depth error against the map
+    0.45-0.59, as DSO's on freiburg1_rpy, 0.46-3.8). The defaults of before (a sparse depth term pulling the map to
+    those depths, the odometry's poses taken as they are, and the seeding's depth rule seeding every point whose
+    depth the map misses by 10 %) make fog: 4,030 Gaussians of median opacity 0.064, which the summary flags. With
+    the defaults since issue 41 the keyframes after the first are not trusted (their depths miss the map by more
+    than the 0.4 median of mapping.seeding.depth_rule_max_median): no re-seeding, no depth term, their poses
+    refined; the map keeps the first keyframes' 223 seeds, median opacity 0.158.
 
-    Measured (MonoGS protocol): 26.76 dB before, 25.73 dB now. At this test's budget (15 steps a keyframe + 100
-    final) the compact map is 1.0 dB worse on this scene, the cost of growing by densification alone; on TUM
-    freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera")."""
+    Measured (MonoGS protocol): 26.83 dB before, 25.08 dB now. At this test's budget (15 steps a keyframe + 100
+    final) the compact map is 1.8 dB worse on this scene, the cost of growing by densification alone; on TUM
+    freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera"). With 50 % noise
+    (medians 0.34-0.41) the keyframes stay trusted at 0.4 and both maps are fog (0.046 and 0.048): the threshold
+    separates a handheld camera's depths from a moving camera's (7-Scenes: 0.02-0.2, a stretch to 0.6), not every
+    noise level."""
     from mgso.app.full import FOG_MEDIAN_OPACITY, map_warnings
     folder = synthetic.cached_sequence_folder(num_frames=40, width=96, height=72, seed=0, path="rotation",
                                               motion_scale=2.0)
     before = _run(folder, tmp_path / "before", *BEFORE)
     now = _run(folder, tmp_path / "now")
     hb, hn = before["map_health"], now["map_health"]
-    assert hb["median_opacity"] < FOG_MEDIAN_OPACITY and hn["median_opacity"] > 2.5 * hb["median_opacity"]
+    assert hb["median_opacity"] < FOG_MEDIAN_OPACITY and hn["median_opacity"] > 2.0 * hb["median_opacity"]
     assert any("mostly transparent" in w for w in map_warnings(hb))
     assert now["num_gaussians"] < before["num_gaussians"] / 5
     assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 2.5
@@ -136,12 +141,13 @@ def _tum_run(folder, out, *over):
 def test_on_tum_freiburg1_rpy_the_depth_rule_stands_down_and_the_map_does_not_grow_with_the_run(data_dir, tmp_path):
     """The real handheld recording (TUM RGB-D freiburg1_rpy, its first 40 frames at 160x120, 5 steps a keyframe +
     50 final; skips without ../shared/data). DSO's depths of the rotating camera miss the map's, over a seeding's
-    covered candidates, by a median of 0.87 (measured), so the seeding's depth rule stands down on 53 of the 55
-    seedings after the first keyframe and the map grows from the first seeds: 1,705 Gaussians, against 26,608
-    with the rule always on (the control: the defaults of before issue 41 in this respect), which re-seeds nearly
-    every point of every keyframe. At this small budget the compact map renders a little worse (15.2 against
-    15.8 dB); over a whole run it pays (20.05 against 17.84 dB at 640x480, docs/mapping.md, "Handheld camera"), so
-    the floor here only catches a broken run."""
+    covered candidates, by a median of 0.81 (measured), so the seeding's depth rule stands down on 52 of the 55
+    seedings after the first keyframe (the threshold 0.4; 53 at 0.25) and the map grows from the first seeds: 1,831
+    Gaussians, against 26,608 with the rule always on (the control: the defaults of before issue 41 in this
+    respect), which re-seeds nearly every point of every keyframe. At this small budget the compact map renders a
+    little worse (15.2 against 15.8 dB); over a whole run it pays (at 640x480 the defaults give 20.18 dB; no depth
+    term and every pose refined with the rule always on, 17.84 dB: docs/mapping.md, "Handheld camera"), so the
+    floor here only catches a broken run."""
     folder = data_dir / "rgbd_dataset_freiburg1_rpy_0-359"
     if not folder.is_dir():
         pytest.skip(f"{folder} not found")
