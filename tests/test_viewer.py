@@ -1,7 +1,8 @@
 """The browser viewer (issue 15, docs/viewer.md): a live run watched by a real headless chromium, the same trajectory
 and map with and without it, ``mgso view`` of a finished run, and the one-line errors.
 
-The browser test needs Debian's ``chromium`` (``.ci/run`` installs it) and skips, saying so, when none is found.
+The browser test needs Debian's ``chromium`` (``.ci/run`` installs it) and skips, saying so, when none is found;
+with ``MGSO_REQUIRE_BROWSER`` set (as ``.ci/run`` sets it) a missing browser fails instead.
 """
 
 from __future__ import annotations
@@ -80,8 +81,11 @@ def test_live_viewer_in_chromium_shows_the_map_and_leaves_the_run_unchanged(room
                                                                                monkeypatch):
     exe = _chromium()
     if exe is None:
-        pytest.skip("no chromium found (apt-get install chromium, or MGSO_CHROMIUM=/path): the browser test of the "
-                    "viewer cannot run")
+        why = ("no chromium found (apt-get install chromium, or MGSO_CHROMIUM=/path): the browser test of the viewer "
+               "cannot run")
+        if os.environ.get("MGSO_REQUIRE_BROWSER"):      # CI (.ci/run) installs one: there a missing browser fails
+            pytest.fail(why + " (MGSO_REQUIRE_BROWSER is set)", pytrace=False)
+        pytest.skip(why)
     made: list[V.LiveViewer] = []
     start = V.LiveViewer.start
 
