@@ -2,7 +2,7 @@
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
 Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
-prepare_out_dir`), writes through one :class:`~mgso.app.writer.RunWriter` and writes the configuration it used there
+check_out_dir`, which makes nothing; :func:`~mgso.app.writer.prepare_out_dir` when the folder is made), writes through one :class:`~mgso.app.writer.RunWriter` and writes the configuration it used there
 (``config.yaml``). Exit codes, the same for every command and stage (README "Exit codes"): 0 done; 1 failed (an
 error, or no frame got a pose: the outputs of what was done are written); 2 usage; 128 + the signal's number when a
 signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP: the outputs of what was done are written).
@@ -24,7 +24,7 @@ from mgso.config import Config, ConfigError, check_runtime, describe_config, loa
 
 from .signals import StopState, exit_code_for
 from .stages import EXIT_FAILED, EXIT_OK, EXIT_USAGE
-from .writer import OutputError, RunWriter, prepare_out_dir
+from .writer import OutputError, RunWriter, check_out_dir
 
 log = logging.getLogger("mgso")
 
@@ -181,8 +181,8 @@ def cmd_run(args) -> int:
 
     cfg = _live_and_limits(args, _load_cfg(args))
     _check_viewer(args)                 # viser missing: one line before any work
-    if args.out:                        # so is an output folder that cannot be used
-        prepare_out_dir(args.out)
+    if args.out:                        # so is an output folder that cannot be used (nothing made yet)
+        check_out_dir(args.out)
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
     writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
@@ -267,7 +267,7 @@ def cmd_demo(args) -> int:
     _check_viewer(args)
     if args.out is None:
         args.out = str(Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
-    prepare_out_dir(args.out)           # before the scene is made
+    check_out_dir(args.out)             # before the scene is made (nothing made yet)
     _print(args, "making the built-in synthetic scene (cached after the first run) ...")
     folder = cached_sequence_folder(**_demo_scene_params(args))
     args.path, args.calib, args.groundtruth = str(folder), None, None
@@ -287,7 +287,7 @@ def cmd_fit(args) -> int:
     args.set = list(args.set or []) + overrides
     cfg = _load_cfg(args)
     if args.out:
-        prepare_out_dir(args.out)
+        check_out_dir(args.out)
     if args.downscale is not None:
         if args.downscale < 1:
             raise CliError(f"fit: --downscale must be >= 1, got {args.downscale}")

@@ -73,6 +73,24 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
 
 
+def check_out_dir(path: str | os.PathLike) -> Path:
+    """What :func:`prepare_out_dir` refuses, found without making anything: called before any work (a sequence that
+    then fails to open leaves no folder behind). Raises :class:`OutputError`; :func:`prepare_out_dir` still checks
+    by writing when the folder is made."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is a file, not a folder (give --out a folder)")
+    anc = out if out.exists() else out.parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise OutputError(f"{out}: cannot make the folder: {anc} is a file")
+    if anc.exists() and not os.access(anc, os.W_OK | os.X_OK):
+        what = "cannot write into the folder" if anc == out else "cannot make the folder"
+        raise OutputError(f"{out}: {what}: Permission denied")
+    return out
+
+
 def prepare_out_dir(path: str | os.PathLike) -> Path:
     """Make ``path`` a usable output folder (created with its parents) or raise :class:`OutputError`: it exists as a
     file, one of its parents is a file, it cannot be created, or nothing can be written into it."""
