@@ -675,21 +675,25 @@ class Odometry:
         """The window's marginalised points (each in its segment's frame; see :meth:`point_cloud_world`)."""
         return self.window.cloud
 
-    def point_cloud_world(self, include_active: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def point_cloud_world(self, include_active: bool = True, with_hosts: bool = False) -> tuple[np.ndarray, ...]:
         """``(positions [M, 3], colours [M, 3])`` of the marginalised points (and, by default, the active ones) in
-        the common world."""
+        the common world; ``with_hosts``: and ``host keyframe ids [M]`` (what points.ply's ``keyframe`` column
+        holds in every stage)."""
         cloud = self.window.cloud
         pos, col, seg = cloud.positions.astype(np.float64), cloud.colors, cloud.segments
-        if include_active and self.window.active.n:
+        hosts = cloud.host_keyframe_ids
+        a = self.window.active
+        if include_active and a.n:
             pos = np.concatenate([pos, self.window.points_world()])
-            col = np.concatenate([col, self.window.active.rgb])
-            seg = np.concatenate([seg, np.full(self.window.active.n, self.segment)])
+            col = np.concatenate([col, a.rgb])
+            seg = np.concatenate([seg, np.full(a.n, self.segment)])
+            hosts = np.concatenate([hosts, self.window.keyframe_id_[a.host[:a.n]].astype(np.int64)])
         out = pos.copy()
         for sg in np.unique(seg):
             S = self.segment_similarity(int(sg))
             m = seg == sg
             out[m] = pos[m] @ S[:3, :3].T + S[:3, 3]
-        return out.astype(np.float32), col
+        return (out.astype(np.float32), col, hosts) if with_hosts else (out.astype(np.float32), col)
 
     # ------------------------------------------------------------------------------------ initialisation
     def _track_initializer(self, rec: FrameRecord, pyr, exposure, rgb) -> TrackedFrame:

@@ -537,3 +537,28 @@ def test_frames_csv_leaves_a_keyframe_request_answered_later_empty():
     assert row(True, 3) == (3, "flow")       # made a keyframe before its row (deterministic DSO)
     assert row(False, -1) == (-1, "")        # the control: a frame that did not ask
     assert row(True, -1) == ("", "flow")     # asked; the mapping thread decides later
+
+
+def test_every_stage_writes_the_shared_figures_under_the_same_keys_and_the_same_points_ply(room, tmp_path):
+    """Issue 44: the tracking and odometry stages wrote the ATE as tracking.ate_rmse_all_frames where the full stage
+    writes ate_all_frames_m, and points.ply had a keyframe column in the full stage only."""
+    from mgso.io.ply import read_point_cloud_ply
+
+    keys = ("ate_all_frames_m", "ate_keyframes_m", "tracking_fps", "frames", "keyframes", "interrupted", "error",
+            "device", "image_size")
+    seen = {}
+    for stage in ("tracking", "odometry", "full"):
+        out = tmp_path / stage
+        assert main(["run", str(room), "--out", str(out), "--stage", stage, "-q", *SMALL_MAP]) == 0
+        m = json.loads((out / "metrics.json").read_text())
+        assert all(k in m for k in keys), [k for k in keys if k not in m]
+        assert 0 < m["ate_all_frames_m"] < 0.1 and m["tracking_fps"] > 0
+        assert m["frames"]["processed"] == 40 == m["frames"]["in_trajectory"] + m["frames"]["without_pose"]
+        if stage != "full":
+            assert m["ate_all_frames_m"] == m["tracking"]["ate_rmse_all_frames"]    # the stage's own section kept
+        pts, _, extra = read_point_cloud_ply(out / "points.ply")
+        hosts = np.asarray(extra["keyframe"])
+        kfs = len((out / "keyframes.txt").read_text().splitlines())
+        assert len(hosts) == len(pts) > 100 and hosts.min() >= 0 and hosts.max() < kfs
+        seen[stage] = m["ate_all_frames_m"]
+    assert seen["odometry"] < 0.05 and seen["full"] < 0.05

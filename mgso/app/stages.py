@@ -245,8 +245,9 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
         traj = odo.trajectory().at_times({float(f.timestamp) for f in odo.frames if f.index in done})
         kfs = odo.keyframe_trajectory()
         writer.write_trajectories(traj, kfs, cfg.output.trajectory_format)
-        pts, cols = odo.point_cloud_world()
-        writer.write_points(pts, cols)
+        pts, cols, hosts = odo.point_cloud_world(with_hosts=True)
+        # the full stage's layout: a keyframe column with each point's host keyframe id
+        writer.write_points(pts, cols, extra={"keyframe": hosts.astype(np.float32)})
         records = [f for f in odo.frames if f.index in done]
         counts = Counter(f.status.value for f in records)
         tracked = len(traj)
@@ -261,7 +262,16 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
             "interrupted": state.signum is not None, "error": summary.error,
         })
         ates = _tracking_ate(seq, odo, traj, kfs, summary)
-        writer.write_metrics(ate=ates, extra={"tracking": summary.figures})
+        f = summary.figures
+        # the figures the full stage also reports, under the full stage's keys (issue 44: one name for one figure;
+        # the "tracking" section keeps this stage's own detail)
+        shared = {"ate_all_frames_m": f.get("ate_rmse_all_frames"), "ate_keyframes_m": f.get("ate_rmse_keyframes"),
+                  "tracking_fps": f["fps"],
+                  "frames": {"processed": n, "unreadable": len(bad), "without_pose": n - tracked,
+                             "in_trajectory": tracked, "tracking_lost": odo.num_lost},
+                  "keyframes": {"in_trajectory": len(kfs)}, "interrupted": f["interrupted"], "error": f["error"],
+                  "device": device, "image_size": [geo.width, geo.height]}
+        writer.write_metrics(ate=ates, extra={"tracking": summary.figures, **shared})
     repeats = f" ({odo.num_duplicates} repeated images: pose of the frame before)" if odo.num_duplicates else ""
     unread = f", {len(bad)} unreadable frames skipped" if len(bad) else ""
     summary.messages.insert(0, f"tracked {tracked}/{n} frames ({100.0 * tracked / max(n, 1):.1f}%){repeats}{unread}, "

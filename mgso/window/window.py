@@ -313,7 +313,7 @@ class PointCloud:
     def __init__(self):
         self._chunks: list[MarginalizedPoints] = []
         self._base: tuple = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
-                             np.zeros(0, np.int64))
+                             np.zeros(0, np.int64), np.zeros(0, np.int64))
 
     def append(self, pts: MarginalizedPoints) -> None:
         if len(pts):
@@ -329,7 +329,8 @@ class PointCloud:
             self._base = (np.concatenate([b[0]] + [c.positions for c in ch]),
                           np.concatenate([b[1]] + [c.colors for c in ch]),
                           np.concatenate([b[2]] + [c.point_ids for c in ch]),
-                          np.concatenate([b[3]] + [np.full(len(c), c.segment, np.int64) for c in ch]))
+                          np.concatenate([b[3]] + [np.full(len(c), c.segment, np.int64) for c in ch]),
+                          np.concatenate([b[4]] + [np.asarray(c.host_keyframe_ids, np.int64) for c in ch]))
         return self._base
 
     @property
@@ -347,6 +348,10 @@ class PointCloud:
     @property
     def segments(self) -> np.ndarray:
         return self._cat()[3]
+
+    @property
+    def host_keyframe_ids(self) -> np.ndarray:
+        return self._cat()[4]
 
 
 # ---------------------------------------------------------------------------------------------------- window
