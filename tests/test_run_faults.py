@@ -314,7 +314,7 @@ def test_output_folder_problems_are_one_line_errors(room, tmp_path, capsys):
     assert "exists and is a file" in cap.err and "Traceback" not in cap.err and "ATE" not in cap.out
     good = tmp_path / "good"
     assert main(["eval", str(gt), "--gt", str(gt), "--out", str(good)]) == 0      # negative control
-    assert (good / "metrics.json").is_file()
+    assert (good / "metrics.json").is_file() and (good / "config.yaml").is_file()    # as every writing command
 
 
 @pytest.mark.parametrize("size, calib, msg", [

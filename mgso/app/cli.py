@@ -149,10 +149,12 @@ def cmd_eval(args) -> int:
     from mgso.eval import compute_ate, compute_rpe, format_report
     from mgso.io.trajectory import read_trajectory
 
+    cfg = _load_cfg(args)
+    if args.out:                        # before any work, making nothing
+        check_out_dir(args.out)
     est = read_trajectory(args.estimate)
     gt_path = Path(args.gt)
     if gt_path.is_dir():
-        cfg = _load_cfg(args)
         seq = _open(str(gt_path), args.calib, cfg, to_track=False)
         if seq.groundtruth is None:
             raise CliError(f"{gt_path}: this dataset has no ground truth to evaluate against")
@@ -168,6 +170,7 @@ def cmd_eval(args) -> int:
     writer = RunWriter(args.out) if args.out else None    # a bad --out fails before any output
     _print(args, format_report(ate=ate, rpe=rpe))
     if writer is not None:
+        writer.write_config(cfg)        # as every command that writes a folder (issue 44)
         writer.write_metrics(ate=ate, rpe=rpe)
         writer.write_trajectory_plot(ate, ref)
         _print(args, *(f"wrote {p}" for p in writer.written_paths()))
