@@ -14,7 +14,7 @@ from .errors import DatasetError
 log = logging.getLogger(__name__)
 
 __all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "read_image", "read_bytes", "is_jpeg",
-           "list_images", "natural_key", "read_table", "parse_float", "check_increasing"]
+           "list_images", "natural_key", "read_table", "parse_float", "check_increasing", "read_first_image"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
