@@ -224,9 +224,9 @@ class SystemResult:
         return self.frames_processed / self.odometry_seconds if self.odometry_seconds > 0 else 0.0
 
     @property
-    def end_to_end_fps(self) -> float:
+    def frame_loop_fps(self) -> float:
         """Frames processed per second of the frame loop, odometry and mapping together (the final refinement
-        after the last frame is not in it)."""
+        after the last frame is not in it; metrics.json's ``end_to_end_fps`` counts until the map is written)."""
         return self.frames_processed / self.loop_seconds if self.loop_seconds > 0 else 0.0
 
 

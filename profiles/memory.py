@@ -391,7 +391,7 @@ def run_system_part(args) -> dict:
             "keyframes": result.keyframes, "views": len(system.mapper.views), "gaussians": int(system.mapper.gmap.n),
             "mapper_steps": st.steps, "gaussians_seeded": st.gaussians_seeded,
             "image_size": [dso.geometry.width, dso.geometry.height], "wall_s": wall,
-            "loop_s": result.loop_seconds, "end_to_end_fps": result.end_to_end_fps,
+            "loop_s": result.loop_seconds, "frame_loop_fps": result.frame_loop_fps,
             "tracking_fps": result.tracking_fps, "mapping_train_s": st.train_seconds, "seed_s": st.seed_seconds,
             "samples": sampler.samples, "growth": growth(sampler.samples, args.warmup),
             "types_grown_after_warmup": sampler.type_growth(str(_first_at(sampler, args.warmup)),

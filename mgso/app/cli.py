@@ -2,10 +2,11 @@
 
 The CLI is where printing, progress bars and exit codes live; the core reports through observers and result values.
 Every command that writes files takes ``--out DIR``, checked before any work (:func:`~mgso.app.writer.
-check_out_dir`, which makes nothing; :func:`~mgso.app.writer.prepare_out_dir` when the folder is made), writes through one :class:`~mgso.app.writer.RunWriter` and writes the configuration it used there
-(``config.yaml``). Exit codes, the same for every command and stage (README "Exit codes"): 0 done; 1 failed (an
-error, or no frame got a pose: the outputs of what was done are written); 2 usage; 128 + the signal's number when a
-signal stopped the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP: the outputs of what was done are written).
+check_out_dir`, which makes nothing; :func:`~mgso.app.writer.prepare_out_dir` when the folder is made), writes
+through one :class:`~mgso.app.writer.RunWriter` and writes the configuration it used there (``config.yaml``).
+Exit codes, the same for every command and stage (README "Exit codes"): 0 done; 1 failed (an error, or no frame
+got a pose: the outputs of what was done are written); 2 usage; 128 + the signal's number when a signal stopped
+the run (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP: the outputs of what was done are written).
 """
 
 from __future__ import annotations

@@ -117,7 +117,8 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
                 ate[key] = compute_ate(tr, gt, align="sim3", label=label, max_diff=0.01)
             except EvaluationError as exc:
                 log.warning("no ATE on %s: %s", label, exc)
-        figures = _figures(result, mapper, seq, cfg, ate, [], map_mb, odometry_name, error, frames_unreadable, map_ready_s)
+        figures = _figures(result, mapper, seq, cfg, ate, [], map_mb, odometry_name, error, frames_unreadable,
+                           map_ready_s)
         for line in (figures["map_health"] or {}).get("warnings", []):
             log.warning("%s", line)
         figures["evaluation"] = "pending"
@@ -161,7 +162,8 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
             log.warning("no report.png: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
 
     with guard():
-        figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error, frames_unreadable, map_ready_s)
+        figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error, frames_unreadable,
+                           map_ready_s)
         figures["evaluation"] = status
         figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
         writer.write_metrics(ate=list(ate.values()), renders=renders, extra=figures)
@@ -338,7 +340,7 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "mapping_iterations_per_s": st.iterations_per_s,
         "end_to_end_fps": (result.frames_processed / (result.loop_seconds + map_ready_s)
                            if result.loop_seconds + map_ready_s > 0 else 0.0),
-        "frame_loop_fps": result.end_to_end_fps,
+        "frame_loop_fps": result.frame_loop_fps,
         "map_ready_s": map_ready_s,
         "frames": {"read": result.frames_read, "processed": result.frames_processed,
                    "dropped": result.frames_dropped, "unreadable": int(frames_unreadable),

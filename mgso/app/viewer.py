@@ -862,17 +862,13 @@ def _finite_gaussians(arrays, path: Path):
     if arrays.n == 0:
         log.warning("viewer: %s has no Gaussians: only the trajectory and points are shown", path)
         return arrays
-    ok = np.ones(arrays.n, bool)
-    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
-        a = getattr(arrays, name, None)
-        if a is not None:
-            ok &= np.isfinite(np.asarray(a, np.float64).reshape(arrays.n, -1)).all(axis=1)
+    fields = (arrays.means, arrays.log_scales, arrays.quats, arrays.opacity_logits, arrays.sh)
+    ok = np.all([np.isfinite(f.reshape(arrays.n, -1)).all(axis=1) for f in fields], axis=0)
     if ok.all():
         return arrays
     log.warning("viewer: %s: %d of %d Gaussians hold NaN or infinite values and are not shown", path,
                 int((~ok).sum()), arrays.n)
-    return type(arrays)(arrays.means[ok], arrays.log_scales[ok], arrays.quats[ok], arrays.opacity_logits[ok],
-                        arrays.sh[ok])
+    return type(arrays)(*(f[ok] for f in fields))
 
 
 def _poll_renders(sc: ViewerScene, renderer: _MapRenderer) -> None:

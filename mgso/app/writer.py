@@ -94,14 +94,7 @@ def check_out_dir(path: str | os.PathLike) -> Path:
 def prepare_out_dir(path: str | os.PathLike) -> Path:
     """Make ``path`` a usable output folder (created with its parents) or raise :class:`OutputError`: it exists as a
     file, one of its parents is a file, it cannot be created, or nothing can be written into it."""
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: exists and is a file, not a folder (give --out a folder)")
-    anc = out.parent
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if anc.exists() and not anc.is_dir():
-        raise OutputError(f"{out}: cannot make the folder: {anc} is a file")
+    out = check_out_dir(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

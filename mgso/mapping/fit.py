@@ -248,56 +248,48 @@ def fit_sequence(seq, cfg: Config, writer, *, init: str = "random", device: str 
     train_seconds = summary.seconds
     interrupted = summary.steps < tc.iterations
 
-    with guard():
-        return _write_fit(writer, seq, cam, poses, trainer, gmap, views, held_pos, train_pos, summary, tc, init_info,
-                          refine_totals, dev, t_start, interrupted)
+    with guard():           # the outputs whole whatever signal comes while they are written
+        written: list[Path] = []
+        written.append(writer.write_gaussians(gmap.to_numpy()))
+        metrics = None
+        if held_pos and not interrupted:
+            protocol = heldout_protocol(tc.holdout_every)
 
+            def pairs():
+                for i in held_pos:
+                    gt = seq.load(i).rgb
+                    rgb = trainer.render(cam, se3_inverse(poses[i]))
+                    writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0.0, 1.0))
+                    writer.write_image(f"gt/{i:06d}.png", gt)
+                    yield rgb, gt
 
-def _write_fit(writer, seq, cam, poses, trainer, gmap, views, held_pos, train_pos, summary, tc, init_info,
-               refine_totals, dev, t_start, interrupted: bool) -> FitResult:
-    out = Path(writer.out)
-    train_seconds = summary.seconds
-    written: list[Path] = []
-    written.append(writer.write_gaussians(gmap.to_numpy()))
-    metrics = None
-    if held_pos and not interrupted:
-        protocol = heldout_protocol(tc.holdout_every)
-
-        def pairs():
-            for i in held_pos:
-                gt = seq.load(i).rgb
-                rgb = trainer.render(cam, se3_inverse(poses[i]))
-                writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0.0, 1.0))
-                writer.write_image(f"gt/{i:06d}.png", gt)
-                yield rgb, gt
-
-        metrics = evaluate_renders(pairs(), held_pos, protocol)
-        written += [out / "renders", out / "gt"]
-    total_seconds = time.perf_counter() - t_start
-    n_loss = max(1, min(100, summary.steps // 10)) if summary.steps else 0
-    figures = {
-        "num_gaussians": int(gmap.n),
-        "iterations": int(summary.steps),
-        "train_time_s": train_seconds,
-        "total_time_s": total_seconds,
-        "iterations_per_s": summary.iterations_per_s if summary.steps else 0.0,
-        "stage_time_s": summary.times,
-        "train_views": len(views),
-        "heldout_frames": len(held_pos),
-        "image_size": [cam.width, cam.height],
-        "device": dev,
-        "threads": runtime.cpu_threads(),
-        "init": init_info,
-        "scene_extent": float(gmap.scene_extent),
-        "densification": refine_totals,
-        "loss_first": float(summary.losses[:n_loss].mean()) if n_loss else None,
-        "loss_last": float(summary.losses[-n_loss:].mean()) if n_loss else None,
-        "loss_window": n_loss,
-        "sequence": {"path": str(seq.path), "layout": seq.layout, "frames": len(seq)},
-        "interrupted": interrupted,
-        "evaluation": "skipped: interrupted" if interrupted and held_pos else ("done" if held_pos else "none"),
-    }
-    written.append(writer.write_metrics(renders=metrics, extra=figures))
-    return FitResult(out_dir=out, metrics=metrics, num_gaussians=int(gmap.n), iterations=int(summary.steps),
-                     train_seconds=train_seconds, total_seconds=total_seconds, train_frames=train_pos,
-                     heldout_frames=held_pos, summary=summary, figures=figures, written=written)
+            metrics = evaluate_renders(pairs(), held_pos, protocol)
+            written += [out / "renders", out / "gt"]
+        total_seconds = time.perf_counter() - t_start
+        n_loss = max(1, min(100, summary.steps // 10)) if summary.steps else 0
+        figures = {
+            "num_gaussians": int(gmap.n),
+            "iterations": int(summary.steps),
+            "train_time_s": train_seconds,
+            "total_time_s": total_seconds,
+            "iterations_per_s": summary.iterations_per_s if summary.steps else 0.0,
+            "stage_time_s": summary.times,
+            "train_views": len(views),
+            "heldout_frames": len(held_pos),
+            "image_size": [cam.width, cam.height],
+            "device": dev,
+            "threads": runtime.cpu_threads(),
+            "init": init_info,
+            "scene_extent": float(gmap.scene_extent),
+            "densification": refine_totals,
+            "loss_first": float(summary.losses[:n_loss].mean()) if n_loss else None,
+            "loss_last": float(summary.losses[-n_loss:].mean()) if n_loss else None,
+            "loss_window": n_loss,
+            "sequence": {"path": str(seq.path), "layout": seq.layout, "frames": len(seq)},
+            "interrupted": interrupted,
+            "evaluation": "skipped: interrupted" if interrupted and held_pos else ("done" if held_pos else "none"),
+        }
+        written.append(writer.write_metrics(renders=metrics, extra=figures))
+        return FitResult(out_dir=out, metrics=metrics, num_gaussians=int(gmap.n), iterations=int(summary.steps),
+                         train_seconds=train_seconds, total_seconds=total_seconds, train_frames=train_pos,
+                         heldout_frames=held_pos, summary=summary, figures=figures, written=written)

@@ -435,6 +435,23 @@ def test_what_is_queued_when_the_stream_ends_is_applied_on_the_final_threads(wp_
         runtime.set_cpu_threads(setting)
 
 
+@pytest.mark.parametrize("coarse", [False, True])
+def test_keyframe_steps_coarse_trains_the_steps_after_a_keyframe_at_the_running_level(wp_device, seq, cam, coarse):
+    """mapping.mapper.keyframe_steps_coarse (deterministic mode): the steps after each keyframe at the level
+    running_max_pixels gives (80x60 at 4,000 pixels: 40x30), the final refinement at full resolution; off (the
+    control, the default) every step at full resolution."""
+    mp = Mapper(_cfg("mapping.mapper.running_max_pixels=4000", f"mapping.mapper.keyframe_steps_coarse={coarse}"),
+                device=wp_device)
+    levels = []
+    step = mp.trainer.step
+    mp.trainer.step = lambda view_id=None, min_level=0: levels.append(min_level) or step(view_id, min_level)
+    for i in (0, 4):
+        mp.submit(_kf(seq, cam, i))
+    mp.process_pending()
+    mp.stop()
+    assert levels == [int(coarse)] * 6 + [0] * 4     # 3 steps after each of 2 keyframes, then 4 final ones
+
+
 def test_the_running_level_and_when_training_is_owed(wp_device, seq, cam):
     mp = Mapper(_cfg("mapping.mapper.queue_size=4"), device=wp_device)
     assert mp.running_level() == 0                                      # no view yet
