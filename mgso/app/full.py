@@ -259,7 +259,7 @@ def _headline(f: dict) -> list[str]:
 def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, render_traj,
                       progress) -> list:
     """Rendering quality at the final poses (no alignment needed: the map is in their frame)."""
-    from mgso.eval import MONOGS, PHOTO_SLAM, evaluate_renders, select_frames
+    from mgso.eval import MONOGS, PHOTO_SLAM, evaluate_protocols, select_frames
 
     pose_at = {float(t): T for t, T in zip(render_traj.timestamps, render_traj.cam_to_world)}
     log_ = result.frame_log
@@ -279,40 +279,40 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
             return None
         return mapper.exposure_for(log_.affine[k], log_.exposure_ms[k])
 
-    def pairs(indices, save: bool, bar):
-        for i in indices:
-            k = pos_of[i]
-            w2c = se3_inverse(pose_at[log_.timestamp[k]])
-            w2c[:3, :3] = orthonormalize(w2c[:3, :3])
-            rgb = mapper.render(cam, w2c, exposure=exposure_of(k))
-            gt_img = seq.load(i).rgb
-            if save:
-                if sc.renders_side_by_side:
-                    writer.write_image(f"renders/{i:06d}.png", np.concatenate([gt_img, np.clip(rgb, 0, 1)], axis=1))
-                else:
-                    writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0, 1))
-                    writer.write_image(f"gt/{i:06d}.png", gt_img)
-            if bar is not None:
-                bar.update(1)
-            yield rgb, gt_img
+    def render(i: int) -> np.ndarray:
+        k = pos_of[i]
+        w2c = se3_inverse(pose_at[log_.timestamp[k]])
+        w2c[:3, :3] = orthonormalize(w2c[:3, :3])
+        return mapper.render(cam, w2c, exposure=exposure_of(k))
 
-    renders = []
+    save_renders = cfg.output.save_renders
+
+    def on_frame(i: int, rgb, gt_img, keys) -> None:
+        if save_renders and MONOGS.key in keys:
+            if sc.renders_side_by_side:
+                writer.write_image(f"renders/{i:06d}.png", np.concatenate([gt_img, np.clip(rgb, 0, 1)], axis=1))
+            else:
+                writer.write_image(f"renders/{i:06d}.png", np.clip(rgb, 0, 1))
+                writer.write_image(f"gt/{i:06d}.png", gt_img)
+        if bar is not None:
+            bar.update(1)
+
     if not (seq is not None and mapper.gmap.n > 0 and tracked_idx):
-        return renders
-    for proto, on in ((MONOGS, sc.eval_monogs), (PHOTO_SLAM, sc.eval_photo_slam)):
-        if not on:
-            continue
-        frames = select_frames(proto, tracked_idx, kf_idx)
-        if not frames:
-            continue
-        save = proto is MONOGS and cfg.output.save_renders
-        bar = progress(len(frames), f"eval {proto.key}") if progress is not None else None
-        try:
-            renders.append(evaluate_renders(pairs(frames, save, bar), frames, proto))
-        finally:
-            if bar is not None:
-                bar.close()
-    return renders
+        return []
+    selections = {proto: select_frames(proto, tracked_idx, kf_idx)
+                  for proto, on in ((MONOGS, sc.eval_monogs), (PHOTO_SLAM, sc.eval_photo_slam)) if on}
+    selections = {proto: frames for proto, frames in selections.items() if frames}
+    if not selections:
+        return []
+    # each frame rendered once for every protocol that takes it; its figures (and the saved PNGs) in a worker thread
+    # while the next frame renders
+    n_frames = len(set().union(*selections.values()))
+    bar = progress(n_frames, "eval " + " + ".join(p.key for p in selections)) if progress is not None else None
+    try:
+        return evaluate_protocols(selections, render, lambda i: seq.load(i).rgb, on_frame=on_frame)
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, renders: list, map_mb: float,

@@ -24,7 +24,9 @@ give different numbers (by 0.001-0.02 on 320x240-640x480 images), so every figur
 
 **Protocols** (:data:`MONOGS`, :data:`PHOTO_SLAM`): which frames are evaluated and how the metrics are taken, so
 that a figure can be compared with a paper's table. The caller renders the frames that :func:`select_frames` picks
-and passes the pairs to :func:`evaluate_renders`; the result carries the protocol's name.
+and passes the pairs to :func:`evaluate_renders`, or gives :func:`evaluate_protocols` the selections of several
+protocols and a render function, which renders each frame once for all of them; the result carries the protocol's
+name.
 
 - MonoGS (``eval_rendering``): frames ``0, 5, 10, ...`` by position in the sequence, stopping before the last frame
   (``range(0, len(frames) - 1, 5)``), keyframes skipped; the render clamped to [0, 1]; PSNR over the elements whose
@@ -38,7 +40,7 @@ LPIPS is not provided (it needs downloaded network weights).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import cv2
@@ -46,7 +48,7 @@ import cv2
 __all__ = [
     "SSIM_BORDERS", "SSIM_WINDOW_SIZE", "SSIM_SIGMA", "gaussian_window_1d", "psnr", "ssim", "ssim_map",
     "RenderProtocol", "MONOGS", "PHOTO_SLAM", "PROTOCOLS", "get_protocol", "select_frames",
-    "select_monogs_frames", "select_photo_slam_frames", "RenderMetrics", "evaluate_renders",
+    "select_monogs_frames", "select_photo_slam_frames", "RenderMetrics", "evaluate_renders", "evaluate_protocols",
 ]
 
 SSIM_BORDERS: tuple[str, ...] = ("same-zero", "valid")
@@ -62,7 +64,11 @@ def gaussian_window_1d(size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA) 
     return g / g.sum()
 
 
-def _as_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:
+_STRIP_ROWS = 32  # rows of an image the metrics take at a time: the strip's float64 arrays stay in the cache
+
+
+def _check_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The two images as [H, W, C] arrays of their own dtype (no copy), after the checks every metric makes."""
     a, b = np.asarray(a), np.asarray(b)
     for name, x in (("rendered", a), ("reference", b)):
         if not np.issubdtype(x.dtype, np.floating):
@@ -72,12 +78,11 @@ def _as_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{what}: the {name} image must be [H, W] or [H, W, C], got shape {x.shape}")
     if a.shape != b.shape:
         raise ValueError(f"{what}: rendered image {a.shape} and reference {b.shape} differ in shape")
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise ValueError(f"{what}: non-finite pixel values (NaN or inf)")
-    a64, b64 = a.astype(np.float64), b.astype(np.float64)
-    if a64.ndim == 2:
-        a64, b64 = a64[..., None], b64[..., None]
-    return a64, b64
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    return a, b
 
 
 def psnr(rendered, reference, *, data_range: float = 1.0, mask=None) -> float:
@@ -86,62 +91,109 @@ def psnr(rendered, reference, *, data_range: float = 1.0, mask=None) -> float:
     ``mask``: optional boolean array of the image's shape (or ``[H, W]`` for all channels) selecting the elements
     the MSE is taken over.
     """
-    a, b = _as_pair(rendered, reference, "psnr")
-    d2 = (a - b) ** 2
+    a, b = _check_pair(rendered, reference, "psnr")
+    m = None
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
-        if m.ndim == 2:
-            m = np.broadcast_to(m[..., None], d2.shape)
+        if m.ndim == 2 and np.ndim(rendered) == 3:
+            m = m[..., None]                     # [H, W]: all channels
         elif m.shape != np.shape(rendered):
             raise ValueError(f"psnr: mask shape {m.shape} does not match the image {np.shape(rendered)}")
-        m = m.reshape(d2.shape)
+        try:
+            m = np.broadcast_to(m.reshape(m.shape[:2] + (-1,)), a.shape)
+        except ValueError:
+            raise ValueError(f"psnr: mask shape {np.shape(mask)} does not match the image "
+                             f"{np.shape(rendered)}") from None
         if not m.any():
             raise ValueError("psnr: the mask selects no pixel")
-        mse = float(d2[m].mean())
-    else:
-        mse = float(d2.mean())
+    # the squared differences in float64, a strip of rows at a time (the same sum as over the whole image, in
+    # another order: a few ulp)
+    total, count = 0.0, 0
+    for y0 in range(0, a.shape[0], _STRIP_ROWS):
+        d = a[y0:y0 + _STRIP_ROWS].astype(np.float64)
+        d -= b[y0:y0 + _STRIP_ROWS]
+        d *= d
+        if m is None:
+            total += float(d.sum())
+            count += d.size
+        else:
+            ms = m[y0:y0 + _STRIP_ROWS]
+            total += float(d[ms].sum())
+            count += int(np.count_nonzero(ms))
+    mse = total / count
     if mse == 0.0:
         return float("inf")
     return float(10.0 * np.log10(data_range * data_range / mse))
 
 
-def ssim_map(rendered, reference, *, border: str = "same-zero", data_range: float = 1.0) -> np.ndarray:
-    """Per-pixel SSIM, ``[H, W, C]`` for ``border="same-zero"`` and ``[H - 10, W - 10, C]`` for ``"valid"``."""
+def _ssim_strips(rendered, reference, border: str, data_range: float, what: str):
+    """The SSIM map a strip of rows at a time (``[rows, W, C]``, or the ``valid`` crop of them), top to bottom.
+
+    Each strip is blurred with the 5 rows above and below it that the window reaches (real rows inside the image,
+    OpenCV's zero padding at its edges), so the strips' values are the whole image's, bit for bit; float64 strips of
+    32 rows stay in the cache, where whole-image float64 temporaries (7 MB each at 640x480) cost twice the time in
+    memory traffic and page faults."""
     if border not in SSIM_BORDERS:
         raise ValueError(f"ssim: border must be one of {SSIM_BORDERS}, got {border!r}")
-    a, b = _as_pair(rendered, reference, "ssim")
+    a, b = _check_pair(rendered, reference, what)
     H, W = a.shape[:2]
     if border == "valid" and (H < SSIM_WINDOW_SIZE or W < SSIM_WINDOW_SIZE):
         raise ValueError(f"ssim: a {H}x{W} image is smaller than the {SSIM_WINDOW_SIZE}x{SSIM_WINDOW_SIZE} window "
                          f"(border='valid' needs at least that)")
     g = gaussian_window_1d()
-
-    def blur(x):
-        # zero padding ('constant', 0) on both axes == F.conv2d(x, outer(g, g), padding=5); for 'valid' the interior
-        # is unaffected by the padding and is cropped below. OpenCV's separable filter in float64 (20-40x faster
-        # than scipy.ndimage here; the same sums to round-off), channel by channel beyond OpenCV's 4.
-        if x.ndim == 3 and x.shape[2] > 4:
-            return np.stack([blur(x[..., c]) for c in range(x.shape[2])], axis=-1)
-        return cv2.sepFilter2D(x, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT).reshape(x.shape)
-
-    mu1, mu2 = blur(a), blur(b)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1 = blur(a * a) - mu1_sq
-    s2 = blur(b * b) - mu2_sq
-    s12 = blur(a * b) - mu12
+    r = SSIM_WINDOW_SIZE // 2
     c1 = (_K1 * data_range) ** 2
     c2 = (_K2 * data_range) ** 2
-    m = ((2.0 * mu12 + c1) * (2.0 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
-    if border == "valid":
-        r = SSIM_WINDOW_SIZE // 2
-        m = m[r:H - r, r:W - r]
-    return m
+    lo, hi = (r, H - r) if border == "valid" else (0, H)
+    cols = slice(r, W - r) if border == "valid" else slice(0, W)
+    for y0 in range(lo, hi, _STRIP_ROWS):
+        y1 = min(y0 + _STRIP_ROWS, hi)
+        s0, s1 = max(y0 - r, 0), min(y1 + r, H)
+        top = y0 - s0
+
+        def blur(x):
+            # zero padding ('constant', 0) == F.conv2d(x, outer(g, g), padding=5) at the image's edges; OpenCV's
+            # separable filter in float64 (20-40x faster than scipy.ndimage, the same sums to round-off), channel
+            # by channel beyond OpenCV's 4
+            if x.shape[2] > 4:
+                return np.stack([blur(x[..., c:c + 1])[..., 0] for c in range(x.shape[2])], axis=-1)
+            out = cv2.sepFilter2D(x, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT).reshape(x.shape)
+            return out[top:top + y1 - y0]
+
+        A = a[s0:s1].astype(np.float64)
+        B = b[s0:s1].astype(np.float64)
+        mu1, mu2 = blur(A), blur(B)
+        s11, s22, s12 = blur(A * A), blur(B * B), blur(A * B)
+        mu12 = mu1 * mu2
+        mu1 *= mu1
+        mu2 *= mu2
+        s11 -= mu1
+        s22 -= mu2
+        s12 -= mu12
+        num = (2.0 * mu12 + c1) * (2.0 * s12 + c2)
+        mu1 += mu2
+        mu1 += c1
+        s11 += s22
+        s11 += c2
+        yield (num / (mu1 * s11))[:, cols]
+
+
+def ssim_map(rendered, reference, *, border: str = "same-zero", data_range: float = 1.0) -> np.ndarray:
+    """Per-pixel SSIM, ``[H, W, C]`` for ``border="same-zero"`` and ``[H - 10, W - 10, C]`` for ``"valid"``."""
+    strips = list(_ssim_strips(rendered, reference, border, data_range, "ssim"))
+    if not strips:
+        return np.zeros((0,) + np.shape(rendered)[1:], np.float64)
+    return np.concatenate(strips, axis=0)
 
 
 def ssim(rendered, reference, *, border: str = "same-zero", data_range: float = 1.0) -> float:
     """Mean SSIM over pixels and channels; ``border`` is ``"same-zero"`` (3DGS / MonoGS, default) or ``"valid"``
     (pytorch_msssim / Photo-SLAM / scikit-image); see the module text."""
-    return float(ssim_map(rendered, reference, border=border, data_range=data_range).mean())
+    total, count = 0.0, 0
+    for m in _ssim_strips(rendered, reference, border, data_range, "ssim"):
+        total += float(m.sum())
+        count += m.size
+    return total / count if count else float("nan")
 
 
 # ------------------------------------------------------------------------------------------------- protocols
@@ -231,6 +283,26 @@ class RenderMetrics:
                            for f, p, s in zip(self.frame_indices, self.psnr, self.ssim)]}
 
 
+def _frame_figures(p: RenderProtocol, rendered, reference) -> tuple[float, float]:
+    """One frame's PSNR and SSIM the way ``p`` takes them."""
+    rendered = np.asarray(rendered)
+    if p.clamp_rendered and np.issubdtype(rendered.dtype, np.floating):
+        rendered = np.clip(rendered, 0.0, 1.0)
+    mask = (np.asarray(reference) > 0) if p.psnr_mask_zero_reference else None
+    return psnr(rendered, reference, mask=mask), ssim(rendered, reference, border=p.ssim_border)
+
+
+def _metrics(p: RenderProtocol, frames, ps, ss) -> RenderMetrics:
+    if len(ps) != len(frames):
+        raise ValueError(f"evaluate_renders: {len(ps)} image pairs for {len(frames)} frame indices")
+    if not ps:
+        raise ValueError(f"evaluate_renders: no frame to evaluate under the {p.name}")
+    psnr_arr, ssim_arr = np.asarray(ps, np.float64), np.asarray(ss, np.float64)
+    return RenderMetrics(protocol=p.name, protocol_key=p.key, ssim_border=p.ssim_border,
+                         frame_indices=np.asarray(frames, np.int64), psnr=psnr_arr, ssim=ssim_arr,
+                         mean_psnr=float(psnr_arr.mean()), mean_ssim=float(ssim_arr.mean()))
+
+
 def evaluate_renders(pairs: Iterable[tuple[np.ndarray, np.ndarray]], frame_indices: Sequence[int],
                      protocol: str | RenderProtocol = MONOGS) -> RenderMetrics:
     """PSNR and SSIM of ``(rendered, reference)`` pairs (float [0, 1] images), one per entry of ``frame_indices``
@@ -238,26 +310,75 @@ def evaluate_renders(pairs: Iterable[tuple[np.ndarray, np.ndarray]], frame_indic
     so frames can be rendered one at a time. The mean PSNR is the mean of per-frame PSNRs (as both papers' scripts);
     a frame equal to its reference (PSNR = inf) makes the mean inf."""
     p = get_protocol(protocol)
-    frames = np.asarray([int(f) for f in frame_indices], dtype=np.int64)
+    frames = [int(f) for f in frame_indices]
     ps, ss = [], []
-    for k, pair in enumerate(pairs):
+    for k, (rendered, reference) in enumerate(pairs):
         if k >= len(frames):
             raise ValueError(f"evaluate_renders: more image pairs than the {len(frames)} frame indices given")
-        rendered, reference = pair
-        rendered = np.asarray(rendered)
-        if p.clamp_rendered and np.issubdtype(rendered.dtype, np.floating):
-            rendered = np.clip(rendered, 0.0, 1.0)
         try:
-            mask = (np.asarray(reference) > 0) if p.psnr_mask_zero_reference else None
-            ps.append(psnr(rendered, reference, mask=mask))
-            ss.append(ssim(rendered, reference, border=p.ssim_border))
+            pk, sk = _frame_figures(p, rendered, reference)
         except ValueError as e:
             raise ValueError(f"frame {frames[k]}: {e}") from None
-    if len(ps) != len(frames):
-        raise ValueError(f"evaluate_renders: {len(ps)} image pairs for {len(frames)} frame indices")
-    if not ps:
-        raise ValueError(f"evaluate_renders: no frame to evaluate under the {p.name}")
-    psnr_arr, ssim_arr = np.asarray(ps), np.asarray(ss)
-    return RenderMetrics(protocol=p.name, protocol_key=p.key, ssim_border=p.ssim_border, frame_indices=frames,
-                         psnr=psnr_arr, ssim=ssim_arr, mean_psnr=float(psnr_arr.mean()),
-                         mean_ssim=float(ssim_arr.mean()))
+        ps.append(pk)
+        ss.append(sk)
+    return _metrics(p, frames, ps, ss)
+
+
+def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]], render: Callable[[int], np.ndarray],
+                       reference: Callable[[int], np.ndarray], *,
+                       on_frame: Callable[[int, np.ndarray, np.ndarray, tuple[str, ...]], Any] | None = None,
+                       pipelined: bool = True) -> list[RenderMetrics]:
+    """The figures of several protocols, each frame rendered once: ``selections`` maps each protocol to its frames
+    (``select_frames``); ``render(i)`` and ``reference(i)`` give frame ``i``'s render and reference image. The
+    frames of all selections are taken in increasing order; each frame's figures are those
+    :func:`evaluate_renders` gives (bit for bit), one :class:`RenderMetrics` per protocol, in ``selections``' order.
+
+    ``on_frame(i, rendered, reference, keys)`` is called once a frame's figures are taken (``keys``: the protocols
+    that selected it), e.g. to save the render or advance a progress bar. ``pipelined``: the figures and
+    ``on_frame`` of a frame run in a worker thread while the next frame renders (the metrics are NumPy and OpenCV,
+    which leave the interpreter lock to the renderer); at most two frames are in flight. An exception in either
+    thread stops the evaluation (the worker's frame finishes first) and is raised here; a ``ValueError`` about an
+    image names its frame.
+    """
+    protos = [get_protocol(p) for p in selections]
+    if len({p.key for p in protos}) != len(protos):
+        raise ValueError("evaluate_protocols: a protocol is selected twice")
+    sel = [[int(f) for f in frames] for frames in selections.values()]
+    members: dict[int, list[int]] = {}
+    for j, frames in enumerate(sel):
+        if len(set(frames)) != len(frames):
+            raise ValueError(f"evaluate_protocols: the {protos[j].name}'s frames have duplicates")
+        for f in frames:
+            members.setdefault(f, []).append(j)
+    figures: dict[tuple[int, int], tuple[float, float]] = {}
+
+    def finish(i: int, rendered, ref) -> None:
+        try:
+            for j in members[i]:
+                figures[(j, i)] = _frame_figures(protos[j], rendered, ref)
+        except ValueError as e:
+            raise ValueError(f"frame {i}: {e}") from None
+        if on_frame is not None:
+            on_frame(i, rendered, ref, tuple(protos[j].key for j in members[i]))
+
+    order = sorted(members)
+    if not pipelined:
+        for i in order:
+            finish(i, render(i), reference(i))
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+        pending: list = []
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mgso-eval") as pool:
+            try:
+                for i in order:
+                    rendered, ref = render(i), reference(i)
+                    while len(pending) >= 2:
+                        pending.pop(0).result()
+                    pending.append(pool.submit(finish, i, rendered, ref))
+                for fut in pending:
+                    fut.result()
+            finally:
+                for fut in pending:
+                    fut.cancel()
+    return [_metrics(p, sel[j], [figures[(j, i)][0] for i in sel[j]], [figures[(j, i)][1] for i in sel[j]])
+            for j, p in enumerate(protos)]

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.signal import convolve2d
 
-from mgso.eval.render_metrics import (MONOGS, PHOTO_SLAM, evaluate_renders, gaussian_window_1d, get_protocol, psnr,
-                                      select_frames, select_monogs_frames, select_photo_slam_frames, ssim, ssim_map)
+from mgso.eval.render_metrics import (MONOGS, PHOTO_SLAM, evaluate_protocols, evaluate_renders, gaussian_window_1d,
+                                      get_protocol, psnr, select_frames, select_monogs_frames,
+                                      select_photo_slam_frames, ssim, ssim_map)
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 
@@ -158,3 +159,59 @@ def test_evaluate_renders_under_both_protocols():
         evaluate_renders(zip(renders[:2], refs[:2]), frames, PHOTO_SLAM)
     with pytest.raises(ValueError, match="frame 10"):
         evaluate_renders(zip(renders, [refs[0], refs[1], refs[2][:5]]), frames, PHOTO_SLAM)
+
+
+@pytest.mark.parametrize("border", ["same-zero", "valid"])
+def test_ssim_in_strips_equals_the_whole_image(border):
+    """The metrics take 32 rows at a time with the window's 5-row halo: on an image of several strips (and a last
+    strip cut part-way) the map equals the direct 2-D convolution's, and so do PSNR with and without a mask."""
+    a, b = _images(np.random.default_rng(7), shape=(101, 47, 3))
+    assert ssim(a, b, border=border) == pytest.approx(_ssim_by_2d_convolution(a, b, border), abs=1e-12)
+    m = ssim_map(a, b, border=border)
+    assert m.shape == ((101, 47, 3) if border == "same-zero" else (91, 37, 3))
+    mask = np.random.default_rng(8).random(a.shape[:2]) > 0.3
+    d2 = (a - b) ** 2
+    assert psnr(a, b) == pytest.approx(10 * np.log10(1 / d2.mean()), abs=1e-10)
+    assert psnr(a, b, mask=mask) == pytest.approx(10 * np.log10(1 / d2[mask].mean()), abs=1e-10)
+
+
+@pytest.mark.parametrize("pipelined", [True, False])
+def test_evaluate_protocols_renders_each_frame_once_with_the_same_figures(pipelined):
+    rng = np.random.default_rng(5)
+    refs = {i: np.clip(rng.random((40, 30, 3)), 0.0, 0.9).astype(np.float32) for i in range(12)}
+    renders = {i: (r + rng.normal(0, 0.1, r.shape)).astype(np.float32) for i, r in refs.items()}
+    renders[5][:3] = 1.4                                       # clamped by MonoGS only
+    mono_frames, photo_frames = [0, 5, 10], list(range(12))
+    calls, seen = [], []
+
+    def render(i):
+        calls.append(i)
+        return renders[i]
+
+    out = evaluate_protocols({MONOGS: mono_frames, "photo-slam": photo_frames}, render, refs.__getitem__,
+                             on_frame=lambda i, r, g, keys: seen.append((i, keys)), pipelined=pipelined)
+    assert calls == list(range(12))                           # each frame rendered once, in order
+    assert [s[0] for s in seen] == list(range(12)) and dict(seen)[5] == ("monogs", "photo-slam")
+    assert dict(seen)[6] == ("photo-slam",)
+    for got, proto, frames in zip(out, (MONOGS, PHOTO_SLAM), (mono_frames, photo_frames)):
+        want = evaluate_renders(((renders[i], refs[i]) for i in frames), frames, proto)
+        assert got.protocol == want.protocol
+        np.testing.assert_array_equal(got.frame_indices, want.frame_indices)
+        np.testing.assert_array_equal(got.psnr, want.psnr)      # bit for bit
+        np.testing.assert_array_equal(got.ssim, want.ssim)
+    assert out[0].psnr[1] != out[1].psnr[5]                    # the clamp differs between the two protocols
+
+
+def test_evaluate_protocols_names_the_bad_frame_and_stops():
+    refs = {i: np.full((20, 20, 3), 0.5, np.float32) for i in range(6)}
+    rendered = []
+
+    def render(i):
+        rendered.append(i)
+        return refs[i][:10] if i == 2 else refs[i] + 0.1
+
+    with pytest.raises(ValueError, match="frame 2: .*differ in shape"):
+        evaluate_protocols({PHOTO_SLAM: list(range(6))}, render, refs.__getitem__)
+    assert max(rendered) <= 4                                  # stopped within the two frames in flight
+    with pytest.raises(ValueError, match="selected twice"):
+        evaluate_protocols({PHOTO_SLAM: [0], "photo_slam": [1]}, render, refs.__getitem__)
