@@ -959,7 +959,12 @@ class LoopConfig:
                                        "whatever their appearance score; 0 = appearance only")
     min_matches: int = opt(40, "ratio-test ORB matches for a keyframe to be a candidate by appearance")
     match_ratio: float = opt(0.75, "Lowe's ratio test on Hamming distances (best < ratio x second best)")
-    ransac_iterations: int = opt(300, "Sim(3) RANSAC hypotheses (3 point pairs each) per candidate")
+    geometry: str = opt("both", "where verification takes 3D points from: both = the two keyframes' DSO depths, "
+                                "Sim(3) RANSAC on 3D-3D pairs (LDSO); current = the new keyframe's alone, PnP RANSAC "
+                                "on its points seen in the old keyframe's image, the old keyframe's depths only for "
+                                "the scale (ORB-SLAM's habit: the old side's depths are the loosest, docs/loop.md)")
+    ransac_iterations: int = opt(300, "RANSAC hypotheses per candidate (3 point pairs each for Sim(3), 4 points for "
+                                      "PnP)")
     inlier_px: float = opt(3.0, "a match is an inlier when it reprojects within this many pixels in both keyframes "
                                 "(ORB-SLAM's Sim3Solver habit; level-0 pixels)")
     min_inliers: int = opt(30, "RANSAC inliers for a candidate to go on to the photometric check (ORB-SLAM accepts "
@@ -998,6 +1003,7 @@ class LoopConfig:
         c.gt(0, "depth_tolerance")
         c.ge(3, "min_inliers")
         c.ge(0, "min_keyframe_gap", "min_matches", "proximity_depths")
+        c.one_of(("both", "current"), "geometry")
         c.gt(0, "depth_radius_px", "inlier_px", "max_photometric_rmse", "loop_edge_weight")
         c.within(0, 1, "match_ratio", "min_photometric_inliers", open_lo=True)
         c.done()
