@@ -116,7 +116,9 @@ def test_without_running_training_no_step_is_taken_while_the_frames_come(room, i
     system, seq, _ = _system(room, "system.mode=realtime", "system.playback_speed=0.5",
                              f"system.mapper_process={str(in_process).lower()}", "mapping.mapper.running_training=false")
     st = system.run(seq.frames()).mapper
-    assert st.steps_while_streaming == 0 and st.steps == st.final_steps == 60 and st.keyframes == 6
+    # between the stream's end and the stop message the idle mapper may step once or twice (measured 0 and 1 in
+    # two CI runs): after the frames, so not while they came
+    assert st.steps_while_streaming == 0 and st.final_steps == 60 and 60 <= st.steps <= 63 and st.keyframes == 6
 
 
 @pytest.mark.parametrize("in_process", [True, False])
