@@ -17,7 +17,9 @@ Stages, in order of how far they go:
 - ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end):
   a pose for every tracked frame (``trajectory.txt``), the keyframes (``keyframes.txt``), a per-frame log
   (``frames.csv``), the marginalised points (``points.ply``), ``metrics.json`` (ATE with ground truth) and
-  ``trajectory.png``.
+  ``trajectory.png``; with ``loop.enabled`` the loop closer (:mod:`mgso.loop.closer`) sees the odometry's messages
+  between frames and the outputs are corrected as the full stage's (``trajectory_odometry.txt`` keeps the odometry's
+  own poses, ``metrics.json`` a ``loop`` section).
 - ``odometry``: the same outputs with the back end ``window.backend`` names (default ``bundle``: DSO's sliding-window
   bundle adjustment with marginalisation, docs/window.md).
 - ``full``: the whole MGSO system (:mod:`mgso.system`): the DSO odometry and the Gaussian mapper seeded from its
@@ -205,7 +207,14 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     cam = seq.calibration.output
     geo = geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg)
     frame_log = writer.open_frame_log()
-    odo = Odometry(geo, cfg, device=device)
+    # loop closure (loop.enabled): the full stage's closer and pose graph on the odometry's messages, between
+    # frames (deterministic: the same loops on every run); the odometry's own poses and window are never changed
+    closer = None
+    if cfg.loop.enabled:
+        from mgso.loop.closer import LoopCloser
+
+        closer = LoopCloser(cfg, device=device)
+    odo = Odometry(geo, cfg, device=device, emit_messages=closer is not None)
     bad = UnreadableFrames(cfg.input.on_bad_frame, writer, seq)
     t0 = time.perf_counter()
     n = 0
@@ -215,6 +224,8 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
         with stop_signals(state, _end_input(seq)), progress(_total(seq), "track") as bar:
             for frame in seq.frames(on_unreadable=bad):
                 r = odo.process(frame)
+                if closer is not None:
+                    _to_closer(closer, r.messages)
                 with state.held():        # a signal here would leave a row without its count
                     frame_log.add(frame_row(r))
                     done.add(r.index)
@@ -232,7 +243,10 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     wall = time.perf_counter() - t0
     try:
         with stop_signals(state):
-            odo.finish()
+            final = odo.finish()
+            if closer is not None and state.signum is None:
+                _to_closer(closer, final, final=True)
+                closer.finish()
     except KeyboardInterrupt as exc:  # a further signal: the poses stay as they are
         _record(state, exc)
     except Exception as exc:  # noqa: BLE001
@@ -241,11 +255,19 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
 
     # a frame cut off mid-way by an interrupt is in no output
     summary.frames = n
+    if closer is not None:
+        closer.close()                    # an interrupt drops the loops not yet solved; those found stay
     with deferred_signals(state):
         traj = odo.trajectory().at_times({float(f.timestamp) for f in odo.frames if f.index in done})
         kfs = odo.keyframe_trajectory()
-        writer.write_trajectories(traj, kfs, cfg.output.trajectory_format)
         pts, cols, hosts = odo.point_cloud_world(with_hosts=True)
+        traj_odo = None                   # the odometry's own poses, when a loop corrected them
+        if closer is not None and closer.corrected:
+            traj_odo = traj
+            traj, kfs = closer.correct_trajectory(traj), closer.correct_keyframes(kfs)
+            pts = closer.correct_points(pts, hosts)
+            writer.write_trajectories(traj_odo, None, "tum", name="trajectory_odometry")
+        writer.write_trajectories(traj, kfs, cfg.output.trajectory_format)
         # the full stage's layout: a keyframe column with each point's host keyframe id
         writer.write_points(pts, cols, extra={"keyframe": hosts.astype(np.float32)})
         records = [f for f in odo.frames if f.index in done]
@@ -261,7 +283,7 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
             "device": device, "image_size": [geo.width, geo.height], "pyramid_levels": geo.levels,
             "interrupted": state.signum is not None, "error": summary.error,
         })
-        ates = _tracking_ate(seq, odo, traj, kfs, summary)
+        ates = _tracking_ate(seq, odo, traj, kfs, summary, traj_odo)
         f = summary.figures
         # the figures the full stage also reports, under the full stage's keys (issue 44: one name for one figure;
         # the "tracking" section keeps this stage's own detail)
@@ -270,8 +292,13 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
                   "frames": {"processed": n, "unreadable": len(bad), "without_pose": n - tracked,
                              "in_trajectory": tracked, "tracking_lost": odo.num_lost},
                   "keyframes": {"in_trajectory": len(kfs)}, "interrupted": f["interrupted"], "error": f["error"],
-                  "device": device, "image_size": [geo.width, geo.height]}
+                  "device": device, "image_size": [geo.width, geo.height],
+                  "loop": None if closer is None else closer.stats.as_dict(),
+                  "ate_odometry_all_frames_m": f.get("ate_rmse_odometry_all_frames")}
         writer.write_metrics(ate=ates, extra={"tracking": summary.figures, **shared})
+    lp = shared["loop"]
+    if lp:
+        summary.messages.append(_loop_line(lp))
     repeats = f" ({odo.num_duplicates} repeated images: pose of the frame before)" if odo.num_duplicates else ""
     unread = f", {len(bad)} unreadable frames skipped" if len(bad) else ""
     summary.messages.insert(0, f"tracked {tracked}/{n} frames ({100.0 * tracked / max(n, 1):.1f}%){repeats}{unread}, "
@@ -290,7 +317,25 @@ def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, prog
     summary.conclude(state, no_pose=(tracked == 0 and n > 0))
 
 
-def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary) -> list:
+def _to_closer(closer, messages, final: bool = False) -> None:
+    """The odometry's messages of a frame (or of its end) to the loop closer, then its correction collected (the
+    stage keeps none: its outputs are corrected at the end)."""
+    for msg in messages:
+        closer.observe(msg, final=final)
+        closer.correct(msg)
+    closer.poll()
+
+
+def _loop_line(lp: dict) -> str:
+    """The summary's loop closure line (the same for every stage)."""
+    why = ", ".join(f"{n} {r}" for r, n in lp["rejected"].items())
+    return (f"loop closure: {lp['accepted']} loops accepted of {lp['candidates']} candidates verified"
+            + (f" (rejected: {why})" if why else "") + f", {lp['seconds']:.1f} s"
+            + (f"; it failed and was off from then on: {lp['error']}" if lp.get("error") else "")
+            + ("; trajectory.txt is corrected, trajectory_odometry.txt the odometry's" if lp["accepted"] else ""))
+
+
+def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary, traj_odo=None) -> list:
     from mgso.eval import EvaluationError, compute_ate
     from mgso.io.trajectory import Trajectory
 
@@ -308,6 +353,11 @@ def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary) -> list:
             ates.append(ak)
             summary.messages.append(ak.summary() + " [keyframes]")
             summary.figures["ate_rmse_keyframes"] = ak.rmse
+        if traj_odo is not None and len(traj_odo) >= 3:
+            ao = compute_ate(traj_odo, gt, align="sim3", label="all frames, the odometry's before loop closure")
+            ates.append(ao)
+            summary.messages.append(ao.summary() + " [the odometry's, before loop closure]")
+            summary.figures["ate_rmse_odometry_all_frames"] = ao.rmse
         segs = {}
         for s in range(odo.segment + 1):
             fr = [f for f in odo.frames if f.pose_valid and f.segment == s]
@@ -421,12 +471,7 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
                     if rt["queue_waits"] else ""))
     lp = metrics.get("loop")
     if lp:
-        why = ", ".join(f"{n} {r}" for r, n in lp["rejected"].items())
-        m.append(f"loop closure: {lp['accepted']} loops accepted of {lp['candidates']} candidates verified"
-                 + (f" (rejected: {why})" if why else "") + f", {lp['seconds']:.1f} s"
-                 + (f"; it failed and was off from then on: {lp['error']}" if lp.get("error") else "")
-                 + ("; trajectory.txt is corrected, trajectory_odometry.txt the odometry's" if lp["accepted"]
-                    else ""))
+        m.append(_loop_line(lp))
     no_pose = metrics["frames"]["in_trajectory"] == 0 and result.frames_processed > 0
     if no_pose:
         m.append("no frame got a pose: the odometry never initialised (a monocular start needs the camera to "
