@@ -265,6 +265,21 @@ def test_the_closer_runs_on_the_odometrys_device_or_else_the_systems(loop_folder
     assert System(OnDevice(), cfg, device="cpu").loop.device == "cpu:odometry"
 
 
+def test_a_loop_with_a_threefold_scale_drift_is_closed(loop_folder, tmp_path):
+    """Issue 43: monocular scale drifting 3x between the passes (1.25 % a frame over the 88 frames) is what a real
+    first pass does; the Sim(3) loop edge and the pose graph take it. Measured: 3 loops (frames 76-84 on 0-4, scales
+    0.37-0.38), ATE 0.229 -> 0.080 m (the same with loop.geometry=current). The map after the loop renders 1.1 dB
+    below the run without loop closure (22.39 against 23.52 dB): not asserted, reported in docs/loop.md."""
+    drift = (DRIFT[0], DRIFT[1], 0.0125)
+    _, m, _ = _run(loop_folder, tmp_path, oracle=dict(ORACLE, drift=drift))
+    lp = m["loop"]
+    assert lp["accepted"] >= 1
+    for rec in lp["loops"]:
+        assert rec["scale"] == pytest.approx(np.exp(-drift[2] * (rec["frame_index"] - rec["candidate_frame_index"])),
+                                             rel=0.1)
+    assert m["ate_odometry_all_frames_m"] > 0.15                       # the drift is there (measured 0.229 m)
+    assert m["ate_all_frames_m"] < 0.5 * m["ate_odometry_all_frames_m"]   # halved (measured 0.35x)
+
 def test_the_odometry_stage_closes_loops_too(loop_folder, tmp_path):
     """`mgso run --stage odometry` runs the same closer and pose graph on DSO's messages (issue 43): the loop
     section in metrics.json, the corrected outputs, the odometry's own poses in trajectory_odometry.txt. Control:
