@@ -56,6 +56,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -204,7 +205,10 @@ class Mapper:
     mapping thread in real time).
     """
 
-    def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None):
+    def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
+                 messages: "queue.Queue | None" = None, board: SnapshotBoard | None = None,
+                 safe_point_hook: Callable[[], None] | None = None, drain_until_stop: bool = False,
+                 final_threads: int | None = None, before_final: Callable[[], None] | None = None):
         self.config = config
         # mapping.train.refine_poses null: the map refines the poses of the keyframes whose depths disagree with it
         # (the seeding's depth rule stood down), true: of every keyframe but the first, false: of none
@@ -227,7 +231,9 @@ class Mapper:
                                train_step=step, seed=seed)
         self.observer = observer or Observer()
         self.stats = MapperStats()
-        self.queue: queue.Queue = queue.Queue(maxsize=self.cfg.queue_size)
+        # the messages' queue: a bounded queue.Queue of its own, or the caller's (the mapper's process: messages
+        # and images from the main process)
+        self.queue: queue.Queue = messages if messages is not None else queue.Queue(maxsize=self.cfg.queue_size)
         self._rng = np.random.default_rng([seed, 0x5EED])
         # DSO's part of each view's exposure, so that a refined (a, b) shifts the view and keeps what was learned.
         self._dso_exposure: dict[int, tuple[float, float]] = {}
@@ -243,19 +249,20 @@ class Mapper:
         self._done = threading.Event()      # set by the mapping thread as it ends (see stop)
         self._error: BaseException | None = None
         self._stopped = False
-        # Watchers' requests for copies and renders of the map, served at safe points (mgso.mapping.snapshot).
-        self.board = SnapshotBoard()
+        # Watchers' requests for copies and renders of the map, served at safe points (mgso.mapping.snapshot; the
+        # mapper's process passes one that forwards to the main process).
+        self.board = board if board is not None else SnapshotBoard()
         # Called at every safe point by the thread that owns the map (the mapper's process polls its pipes here).
-        self.safe_point_hook = None
+        self.safe_point_hook = safe_point_hook
         # After an interrupt, keep applying messages until Stop arrives instead of ending when the queue looks empty
         # (the mapper's process: messages may still be in the pipe when the interrupt arrives).
-        self.drain_until_stop = False
+        self.drain_until_stop = bool(drain_until_stop)
         # CPU threads of the final refinement's kernel launches (None: as while running). The mapper's process
         # runs on its share of the cores while the camera runs; after Stop the odometry has finished and waits,
         # so the refinement takes every core (0).
-        self.final_threads: int | None = None
+        self.final_threads: int | None = final_threads
         # Called as the final refinement begins (the mapper's process: its priority back to normal where allowed).
-        self.before_final = None
+        self.before_final = before_final
         # Real time: set when the stream has ended (stop() was called; the mapper's process: by the main process,
         # before Stop is queued). The messages still queued then are applied on the final refinement's threads and
         # priority, without the training share: the odometry is done and waits for the map (_end_of_stream).
@@ -352,6 +359,22 @@ class Mapper:
             raise RuntimeError("Mapper.start: already started")
         self._thread = threading.Thread(target=self._run, name="mgso-mapper", daemon=True)
         self._thread.start()
+
+    def run_here(self) -> BaseException | None:
+        """Real-time mode in the calling thread (the mapper's process runs it in its main thread): the mapping
+        loop until :class:`Stop` or an interrupt, then its error (``None`` when it ended well; the error is
+        handed over, not raised)."""
+        if self._thread is not None:
+            raise RuntimeError("Mapper.run_here: already started")
+        self._thread = threading.current_thread()
+        self._run()
+        err, self._error = self._error, None
+        return err
+
+    def interrupt(self) -> None:
+        """Stop as soon as the queued messages are applied (views, poses, seeds), without training on; in real
+        time from any thread."""
+        self._interrupt.set()
 
     def running_level(self) -> int:
         """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most

@@ -264,17 +264,12 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: boo
     wire = _WireQueue(messages, released)
     try:
         dev = runtime.init(device, threads=threads, blas_threads=1)
-        mapper = Mapper(config, device=dev, observer=_EventObserver(events))
-        mapper.stats.priority = priority
+        board = _ForwardingBoard(events)
+        parent = mp.parent_process()
+        last_check = [time.monotonic()]
 
         def before_final() -> None:
             mapper.stats.final_priority = restore_priority(priority, nice)
-
-        mapper.before_final = before_final
-        board = mapper.board = _ForwardingBoard(events)
-        mapper.queue = wire
-        parent = mp.parent_process()
-        last_check = [time.monotonic()]
 
         def hook() -> None:
             while True:
@@ -288,7 +283,7 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: boo
                     board.render_ticket = req[1]
                     SnapshotBoard.request_render(board, req[2], req[3], req[4])
             if interrupt.is_set():
-                mapper._interrupt.set()
+                mapper.interrupt()
             if stream_ended.is_set():
                 mapper.stream_ended.set()         # the rest of the queue on every core (Mapper._end_of_stream)
             now = time.monotonic()
@@ -297,17 +292,18 @@ def _mapper_main(config: Config, device: str, threads: int, nice: int, idle: boo
                 if parent is not None and not parent.is_alive():
                     os._exit(3)                       # the run is gone: nobody would read the map
 
-        mapper.safe_point_hook = hook
-        mapper.drain_until_stop = True
-        mapper.final_threads = 0          # the odometry has finished when Stop comes: every core refines
+        # the messages and images from the main process, a board that forwards watchers' requests, the pipes
+        # polled at every safe point; after an interrupt the messages still in the pipe are applied until Stop; the
+        # odometry has finished when Stop comes: every core refines (final_threads 0) at normal priority
+        mapper = Mapper(config, device=dev, observer=_EventObserver(events), messages=wire, board=board,
+                        safe_point_hook=hook, drain_until_stop=True, final_threads=0, before_final=before_final)
+        mapper.stats.priority = priority
         mapper.load_kernels()             # before "ready": the camera plays after it (a compile takes seconds)
         events.put(("ready",))
-        mapper._thread = threading.current_thread()   # Mapper's real-time loop, run here in the main thread
         cpu0 = time.process_time()
-        mapper._run()
+        err = mapper.run_here()           # Mapper's real-time loop, in this process's main thread
         mapper.stats.cpu_seconds = time.process_time() - cpu0    # all its threads (split kernel launches)
-        if mapper._error is not None:
-            err = mapper._error
+        if err is not None:
             events.put(("error", f"{type(err).__name__}: {err}",
                         "".join(traceback.format_exception(type(err), err, err.__traceback__))))
         events.put(("final", mapper.export_state()))

@@ -411,8 +411,7 @@ def test_what_is_queued_when_the_stream_ends_is_applied_on_the_final_threads(wp_
     runtime.set_cpu_threads(1)
     try:
         mp = Mapper(_cfg("mapping.mapper.final_iterations=0", "mapping.mapper.running_train_share=0.5"),
-                    device=wp_device)
-        mp.final_threads = final_threads
+                    device=wp_device, final_threads=final_threads)
         seen, handle = [], mp.handle
 
         def spy(msg):
