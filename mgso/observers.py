@@ -38,7 +38,7 @@ class Observer:
         """Points left the window for good (the DSO point cloud grows)."""
 
     def on_loop_closed(self, correction: Any) -> None:
-        """Loop closure moved keyframes (a :class:`~mgso.mapping.messages.LoopCorrection`: each keyframe's Sim(3)
+        """Loop closure moved keyframes (a :class:`~mgso.messages.LoopCorrection`: each keyframe's Sim(3)
         from the world it had to the corrected one). Messages before this one were in the old world, those after
         it are in the corrected one; the odometry's own frame results stay in its world."""
 

@@ -517,7 +517,7 @@ class Odometry:
         """End of the sequence: keyframes still in the window get their final pose, and every frame is re-chained to
         its reference keyframe's final pose (DSO prints the trajectory this way). With ``emit_messages``, returns the
         last messages for the mapper: what is still in the outbox, the final pose of every keyframe and the points
-        still active (as :class:`~mgso.mapping.messages.PointsMessage`); otherwise ``[]``."""
+        still active (as :class:`~mgso.messages.PointsMessage`); otherwise ``[]``."""
         if self.map_thread:
             self._stop_map_thread()  # every queued frame mapped first
         w = self.window
@@ -528,7 +528,7 @@ class Odometry:
         self._rechain_frames()
         if not self.emit_messages:
             return []
-        from .mapping.messages import PointsMessage, PoseUpdate
+        from .messages import PointsMessage, PoseUpdate
 
         out = self._take_ready() + self._drain()
         kt = self.keyframe_trajectory()
@@ -544,7 +544,7 @@ class Odometry:
         return out
 
     # ------------------------------------------------------------------------------- mapper messages
-    # With ``emit_messages`` the odometry speaks the mapper's language (:mod:`mgso.mapping.messages`) itself: it
+    # With ``emit_messages`` the odometry speaks the mapper's language (:mod:`mgso.messages`) itself: it
     # owns the window whose images, affine parameters and points the messages carry.
     def _world_points(self, positions: np.ndarray, segment: int) -> np.ndarray:
         S = self.segment_similarity(segment)
@@ -565,12 +565,12 @@ class Odometry:
             self._outbox.append(("keyframe", (keyframe_id, rec, np.array(cam_to_world_world, np.float64))))
 
     def _keyframe_message(self, keyframe_id: int, rec: FrameRecord, c2w: np.ndarray):
-        """A :class:`~mgso.mapping.messages.KeyframeMessage`: the keyframe's RGB and camera in the odometry's image
+        """A :class:`~mgso.messages.KeyframeMessage`: the keyframe's RGB and camera in the odometry's image
         geometry (the pyramid crop), its pose in the common world, DSO's affine (a, b) and exposure time, and every
         active point of the window (depth refined by the window) projected into it (the depth map the coarse
         tracker tracks against; a new keyframe hosts no point with a depth yet); ``mask``: the frames' ``valid``
         pixels (``None`` when all are), so that the map never trains on pixels undistortion had no source for."""
-        from .mapping.messages import KeyframeMessage
+        from .messages import KeyframeMessage
 
         w = self.window
         try:
@@ -598,7 +598,7 @@ class Odometry:
             self._outbox.append(("window", (list(keyframe_ids), np.array(cam_to_world, np.float64))))
 
     def _pose_update(self, keyframe_ids: list[int], cam_to_world: np.ndarray):
-        from .mapping.messages import PoseUpdate
+        from .messages import PoseUpdate
 
         w = self.window
         aff = {}
@@ -614,7 +614,7 @@ class Odometry:
             self._outbox.append(("points", marg))
 
     def _points_messages(self, marg: MarginalizedPoints) -> list:
-        from .mapping.messages import PointsMessage
+        from .messages import PointsMessage
 
         pos = self._world_points(marg.positions, marg.segment)
         hosts = np.asarray(marg.host_keyframe_ids)

@@ -8,9 +8,9 @@ can be tested and measured apart from tracking:
   (:mod:`mgso.tracking.pixel_selector`) on the keyframe and their inverse depth from the depth map (times
   ``1 + N(0, idepth_noise)``);
 - the keyframe's pose with a random error (``pose_noise_m``, ``pose_noise_rad``, per axis) when it is made, then the
-  exact pose in a :class:`~mgso.mapping.messages.PoseUpdate` at the next keyframe (the window refined it), for the
+  exact pose in a :class:`~mgso.messages.PoseUpdate` at the next keyframe (the window refined it), for the
   keyframes of a ``window`` of the newest ones;
-- a keyframe leaving the window marginalises its points (:class:`~mgso.mapping.messages.PointsMessage`, world
+- a keyframe leaving the window marginalises its points (:class:`~mgso.messages.PointsMessage`, world
   positions at the exact pose, colours over DSO's pattern); :meth:`finish` marginalises the rest.
 
 ``drift`` (rotation rad, translation m, log-scale, each per frame) bends the whole estimate as an odometry drifts:
@@ -41,7 +41,7 @@ import numpy as np
 from mgso.camera import PinholeCamera
 from mgso.geometry import orthonormalize, se3_exp, sim3_exp
 from mgso.io.trajectory import Trajectory
-from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, sim3_apply_to_pose
+from mgso.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, sim3_apply_to_pose
 from mgso.mapping.seeding import backproject, sample_pattern_colors
 from mgso.system import OdometryFrame
 

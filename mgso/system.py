@@ -31,7 +31,7 @@ stand-in for tests and profiles.
 **Loop closure** (``loop.enabled``, :mod:`mgso.loop`): a :class:`~mgso.loop.closer.LoopCloser` sees every message
 of the odometry, looks for a revisit at each keyframe (in the caller's thread in the deterministic mode, on a thread
 of its own in real time), and the mapper gets the messages moved into the corrected world and a
-:class:`~mgso.mapping.messages.LoopCorrection` after each loop. The result's trajectories and point cloud are the
+:class:`~mgso.messages.LoopCorrection` after each loop. The result's trajectories and point cloud are the
 corrected ones (the odometry's stay in ``SystemResult.odometry_trajectory``).
 
 After the last frame: ``odometry.finish()``, its messages to the mapper, the final refinement; the application
@@ -43,9 +43,9 @@ odometry or of the frame source stops the mapper and raises :class:`SystemRunErr
 what was done (so that its outputs can still be written). A frame cut off mid-way by an interrupt is in no result.
 
 Nothing here prints; observers (:mod:`mgso.observers`) get ``on_sequence_start``, ``on_frame`` (an
-:class:`OdometryFrame`), ``on_keyframe`` (a :class:`~mgso.mapping.messages.KeyframeMessage`),
-``on_window_optimized`` (a :class:`~mgso.mapping.messages.PoseUpdate`), ``on_points_marginalized`` (a
-:class:`~mgso.mapping.messages.PointsMessage`), ``on_map_updated`` (from the mapper) and ``on_sequence_end``
+:class:`OdometryFrame`), ``on_keyframe`` (a :class:`~mgso.messages.KeyframeMessage`),
+``on_window_optimized`` (a :class:`~mgso.messages.PoseUpdate`), ``on_points_marginalized`` (a
+:class:`~mgso.messages.PointsMessage`), ``on_map_updated`` (from the mapper) and ``on_sequence_end``
 (the :class:`SystemResult`).
 """
 
@@ -68,7 +68,7 @@ from mgso.config import Config
 from mgso.io.trajectory import Trajectory
 from mgso.loop.closer import LoopCloser, LoopStats
 from mgso.mapping.mapper import Mapper, MapperStats
-from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
+from mgso.messages import KeyframeMessage, PointsMessage, PoseUpdate
 from mgso.mapping.process import MapperProcess, split_threads
 from mgso.observers import Observer, ObserverList
 from mgso_kernels import runtime

@@ -104,7 +104,7 @@ def _odometry_key(cfg, seq_path: str) -> str:
 
 
 def record(seq, cfg, device, cache: Path, seq_path: str) -> Recording:
-    from mgso.mapping.messages import KeyframeMessage
+    from mgso.messages import KeyframeMessage
     from mgso.odometry import Odometry
     from mgso.system import OdometryFrame
 
@@ -137,7 +137,7 @@ def with_true_poses(rec: Recording, gt, local_scale: bool = False) -> Recording:
     metre on the 7-Scenes excerpt): the true path length over DSO's between the keyframes 5 before and 5 after it."""
     from mgso.eval import compute_ate
     from mgso.io.trajectory import Trajectory
-    from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate
+    from mgso.messages import KeyframeMessage, PointsMessage, PoseUpdate
 
     al = compute_ate(rec.trajectory, gt, align="sim3", max_diff=0.01)
     s_all = float(al.alignment.scale)
@@ -219,7 +219,7 @@ def with_extra_views(rec: Recording, seq, per_interval: int) -> Recording:
     relative pose at tracking time, and it moves when the window moves that keyframe. Frames the MonoGS protocol
     evaluates (every 5th frame with a pose) are never chosen, so both arms are evaluated on the same frames."""
     from mgso.eval import MONOGS, select_frames
-    from mgso.mapping.messages import KeyframeMessage, PoseUpdate
+    from mgso.messages import KeyframeMessage, PoseUpdate
 
     with_pose = {round(float(t), 6) for t in rec.trajectory.timestamps}   # the evaluation's frames: the final path's
     evaluated = set(select_frames(MONOGS, [r.index for r in rec.frames if round(float(r.timestamp), 6) in with_pose]))

@@ -265,6 +265,9 @@ PROBES = [
     ("domain-not-app", "mgso/app/_probe_wing.py", "", None),
     ("domain-not-app", "mgso/geometry.py", "from mgso.app import _probe_wing", "mgso.geometry -> mgso.app._probe_wing"),
     ("domain-not-app", "mgso/system.py", "from mgso.app import writer", "mgso.system -> mgso.app.writer"),
+    # the odometry importing the map again (the messages lived in mgso.mapping until 2026-12-05)
+    ("odometry-not-map", "mgso/loop/graph.py", "from mgso.mapping import messages",
+     "mgso.loop.graph -> mgso.mapping.messages"),
     ("kernels-layers", "mgso_kernels/runtime.py", "from . import image", "mgso_kernels.runtime -> mgso_kernels.image"),
     ("kernels-layers", "mgso_kernels/adam.py", "from .splat import Rasterizer",
      "mgso_kernels.adam -> mgso_kernels.splat"),

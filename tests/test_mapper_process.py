@@ -21,7 +21,7 @@ from mgso import synthetic
 from mgso.config import load_config
 from mgso.io import open_sequence
 from mgso.mapping.mapper import Mapper, MapperError
-from mgso.mapping.messages import KeyframeMessage, PointsMessage, PoseUpdate, Stop
+from mgso.messages import KeyframeMessage, PointsMessage, PoseUpdate, Stop
 from mgso.mapping.process import MapperProcess, split_threads
 from mgso.observers import Observer
 from mgso.oracle import OracleOdometry

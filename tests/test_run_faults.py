@@ -392,7 +392,7 @@ def test_the_full_stage_writes_frames_csv(wp_device, room, tmp_path):
 def test_messages_show_plain_numbers_not_numpy_reprs():
     """Defect 7: `np.float64(...)` appeared in messages (NumPy 2's repr of its scalars)."""
     from mgso.camera import PhotometricCalibration
-    from mgso.mapping.messages import _affine
+    from mgso.messages import _affine
 
     with pytest.raises(ValueError) as e1:
         _affine((np.float64(np.nan), np.float64(1.0)), "KeyframeMessage(3).affine")

@@ -643,7 +643,7 @@ def test_dso_keyframe_messages_carry_the_frames_valid_mask(wp_device):
     """Pixels undistortion had no source for (Frame.valid False) are left out of the map's loss: the DSO odometry
     puts them in every KeyframeMessage's mask. Frames without a mask give none (negative control)."""
     from mgso.io.sequence import Frame
-    from mgso.mapping.messages import KeyframeMessage
+    from mgso.messages import KeyframeMessage
     from mgso.odometry import Odometry
 
     folder = synthetic.cached_sequence_folder(num_frames=24, width=96, height=72, seed=0)

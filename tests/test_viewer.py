@@ -350,7 +350,7 @@ def test_a_map_with_nan_or_no_gaussians_and_far_points_are_served_with_a_word(pl
 
 def test_callbacks_keep_references_not_copies():
     """The observer's side costs O(1): the newest values are the messages' own arrays (no copies, no pushes)."""
-    from mgso.mapping.messages import PointsMessage, PoseUpdate
+    from mgso.messages import PointsMessage, PoseUpdate
     from mgso.system import OdometryFrame
 
     v = V.LiveViewer(port=0)              # not started: no server, no thread; the callbacks alone
@@ -412,7 +412,7 @@ def test_a_loop_correction_moves_what_came_before_it_only():
     from types import SimpleNamespace
 
     from mgso.geometry import se3_exp
-    from mgso.mapping.messages import LoopCorrection, PointsMessage, sim3_apply_to_pose
+    from mgso.messages import LoopCorrection, PointsMessage, sim3_apply_to_pose
 
     v = V.LiveViewer(port=0)
     T7, T8 = se3_exp([0.1, 0, 0, 0, 0.2, 0]), se3_exp([0, 0.3, 0, 0.1, 0, 0])

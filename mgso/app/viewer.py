@@ -31,7 +31,7 @@ import numpy as np
 
 from mgso.geometry import matrix_to_quat_wxyz
 from mgso.io.trajectory import Trajectory
-from mgso.mapping.messages import sim3_apply_to_pose
+from mgso.messages import sim3_apply_to_pose
 from mgso.observers import Observer
 
 __all__ = ["ViewerError", "ViewerScene", "LiveViewer", "open_run", "require_viser", "INSTALL_HINT", "FRAME_HZ",

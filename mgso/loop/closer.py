@@ -3,7 +3,7 @@
 The system (:class:`mgso.system.System`) shows the closer every message the odometry emits, in the odometry's world
 (:meth:`LoopCloser.observe`), and sends the mapper the message moved into the corrected world
 (:meth:`LoopCloser.correct`). After each frame it asks for a finished loop (:meth:`LoopCloser.poll`), which comes as
-a :class:`~mgso.mapping.messages.LoopCorrection` for the mapper: the Sim(3) each keyframe moved by.
+a :class:`~mgso.messages.LoopCorrection` for the mapper: the Sim(3) each keyframe moved by.
 
 **What the closer keeps.** Per keyframe: the odometry's latest pose ``T_k`` (its world, never changed by the closer:
 the odometry goes on in its own world, as LDSO's does) and a correction ``C_k``, a Sim(3) of the world, so that the
@@ -52,7 +52,7 @@ import numpy as np
 from mgso.config import Config
 from mgso.geometry import sim3_exp, sim3_inverse, sim3_log, sim3_to_parts, so3_log
 from mgso.io.trajectory import Trajectory
-from mgso.mapping.messages import (KeyframeMessage, LoopCorrection, PointsMessage, PoseUpdate,
+from mgso.messages import (KeyframeMessage, LoopCorrection, PointsMessage, PoseUpdate,
                                    sim3_apply_to_pose)
 
 __all__ = ["LoopCloser", "LoopStats", "LoopRecord"]

@@ -103,7 +103,7 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) RGB float in [0, 1] (a :class:`~mgso.mapping.messages.KeyframeMessage`'s image), (H, W) float
+    """(H, W, 3) RGB float in [0, 1] (a :class:`~mgso.messages.KeyframeMessage`'s image), (H, W) float
     0-255 or uint8 -> (H, W) uint8 gray (OpenCV's luma weights, as the readers make the odometry's gray)."""
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 3:

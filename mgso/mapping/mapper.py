@@ -2,19 +2,19 @@
 
 The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.GaussianMap`), the training views
 (:class:`~mgso.mapping.views.ViewSet`, one per keyframe) and the trainer. It reads typed messages
-(:mod:`mgso.mapping.messages`) from a bounded :class:`queue.Queue` and applies them between training steps:
+(:mod:`mgso.messages`) from a bounded :class:`queue.Queue` and applies them between training steps:
 
-- :class:`~mgso.mapping.messages.KeyframeMessage`: seed new Gaussians from the keyframe's DSO points where the map
+- :class:`~mgso.messages.KeyframeMessage`: seed new Gaussians from the keyframe's DSO points where the map
   is still empty (:func:`~mgso.mapping.seeding.seed_keyframe`: coverage render, Delaunay fill, visibility filter),
   then add the keyframe as a training view with its exposure (below);
-- :class:`~mgso.mapping.messages.PoseUpdate`: move the views of refined keyframes (the map follows the odometry;
+- :class:`~mgso.messages.PoseUpdate`: move the views of refined keyframes (the map follows the odometry;
   the odometry never waits for the map);
-- :class:`~mgso.mapping.messages.PointsMessage`: seed from points with their final depth, seen from their host
+- :class:`~mgso.messages.PointsMessage`: seed from points with their final depth, seen from their host
   keyframe, where the map is still empty (no Delaunay fill: that keyframe was filled when it arrived); in real time
   the points wait while messages are queued and one host's are seeded together (:meth:`Mapper._on_points`);
-- :class:`~mgso.mapping.messages.LoopCorrection`: loop closure moved keyframes: move their views, depth points and
+- :class:`~mgso.messages.LoopCorrection`: loop closure moved keyframes: move their views, depth points and
   the Gaussians anchored to them by each keyframe's Sim(3);
-- :class:`~mgso.mapping.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
+- :class:`~mgso.messages.Stop`: run the final refinement (``mapping.mapper.final_iterations`` steps over all
   keyframes, chosen as while running) unless the run was interrupted, and stop.
 
 Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
@@ -25,7 +25,7 @@ Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
 
 **Exposure.** Each view's exposure ``(a', b')`` (the loss compares ``exp(a') render + b'`` with the keyframe) follows
 ``mapping.mapper.exposure`` (:meth:`Mapper.exposure_for`); with ``odometry`` it starts from DSO's affine brightness
-and exposure time (:func:`~mgso.mapping.messages.map_exposure`), so the map stores
+and exposure time (:func:`~mgso.messages.map_exposure`), so the map stores
 radiance at the first keyframe's exposure, not each image's brightness; seed colours are converted to radiance the
 same way. With ``mapping.train.learn_exposure`` the trainer learns a correction on top (its own Adam per view); a
 pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change and keeps the learned correction.
@@ -63,7 +63,7 @@ import numpy as np
 from mgso.config import Config
 from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log, sim3_to_parts
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
-from mgso.mapping.messages import (KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop,
+from mgso.messages import (KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop,
                                    map_exposure, sim3_apply_to_pose)
 from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
                                   plan_seeds, seed_keyframe, seed_scales)
@@ -545,7 +545,7 @@ class Mapper:
             w2c = se3_inverse(self.correction(self._latest_kid) @ msg.cam_to_world)
         view = TrainView(kid, msg.image, msg.camera, w2c, mask=msg.mask, exposure=exposure,
                          timestamp=msg.timestamp, name=f"keyframe {kid} (frame {msg.frame_index})")
-        seed_in = msg.seed_input(exposure=exposure)
+        seed_in = KeyframeSeedInput.from_message(msg, exposure=exposure)
         if self.refines_poses:
             seed_in = dataclasses.replace(seed_in, cam_to_world=view.cam_to_world)
         res = None
@@ -671,7 +671,7 @@ class Mapper:
     def exposure_for(self, affine: tuple[float, float], exposure_ms: float | None) -> tuple[float, float]:
         """The trainer's exposure ``(a', b')`` of an image with the odometry's affine brightness ``affine`` (0-255)
         and exposure time ``exposure_ms``, by ``mapping.mapper.exposure``: ``odometry`` (DSO's affine and the
-        exposure time, :func:`~mgso.mapping.messages.map_exposure`), ``exposure_time`` (the exposure time's gain
+        exposure time, :func:`~mgso.messages.map_exposure`), ``exposure_time`` (the exposure time's gain
         only) or ``none`` (the image as it is). Evaluation renders use the same rule."""
         mode = self.cfg.exposure
         if mode == "none":

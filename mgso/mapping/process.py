@@ -55,7 +55,7 @@ import numpy as np
 
 from mgso.config import Config
 from mgso.mapping.mapper import MapperError, MapperStats, MapState
-from mgso.mapping.messages import KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop
+from mgso.messages import KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard
 from mgso.observers import Observer
 

@@ -41,6 +41,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from mgso.camera import PinholeCamera
 from mgso.config import SeedingConfig
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap, rgb_to_sh_dc
+from mgso.messages import PointKind, check_points, frozen_array as _frozen_array
 
 __all__ = [
     "PointKind", "SeedStatus", "KeyframeSeedInput", "FillPoints", "SeedCandidates", "SeedResult", "SeedPlan",
@@ -53,15 +54,6 @@ log = logging.getLogger(__name__)
 # DSO's 8-pixel residual pattern (mgso_kernels.photometric.PATTERN_NP, DSO patternP = staticPattern[8]); kept here as
 # a copy so that importing this module does not import Warp kernels. tests/mapping/test_seeding.py checks equality.
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]], dtype=np.float64)
-
-
-class PointKind(enum.IntEnum):
-    """Where a seed comes from (DSO's point states, plus the Delaunay fill)."""
-
-    ACTIVE = 0          # in the window's optimisation
-    MARGINALIZED = 1    # marginalised with its host keyframe (final depth)
-    IMMATURE = 2        # immature point whose depth interval is good enough (traced, not yet activated)
-    FILL = 3            # made by the Delaunay fill (never given by the caller)
 
 
 class SeedStatus(enum.Enum):
@@ -81,46 +73,6 @@ def _as_pinhole(camera) -> PinholeCamera:
     except AttributeError:
         raise TypeError("KeyframeSeedInput.camera: expected an object with fx, fy, cx, cy, width, height (e.g. "
                         f"mgso.camera.PinholeCamera), got {type(camera).__name__}") from None
-
-
-def _frozen_array(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a)
-    a.setflags(write=False)
-    return a
-
-
-def check_points(where: str, points_uv, idepths, kinds=None, weights=None, colors=None):
-    """DSO's points of one keyframe as read-only arrays ``(uv [M, 2] float64, idepths [M] float64, kinds [M] int8,
-    weights [M] float64 | None, colors [M, 3] float32 | None)``, or a ValueError naming ``where`` and the field.
-    An empty ``points_uv`` is zero points. (The seed input and the mapper's keyframe message both take points.)"""
-    uv = np.array(points_uv, dtype=np.float64)
-    if uv.size == 0:
-        uv = uv.reshape(0, 2)
-    if uv.ndim != 2 or uv.shape[1] != 2:
-        raise ValueError(f"{where}.points_uv: expected (M, 2) pixel coordinates, got {uv.shape}")
-    m = len(uv)
-    idepths = np.array(idepths, dtype=np.float64).reshape(-1)
-    if idepths.shape != (m,):
-        raise ValueError(f"{where}.idepths: expected ({m},) for {m} points, got {idepths.shape}")
-    kinds = np.zeros(m, np.int8) if kinds is None else np.array(kinds).reshape(-1)
-    if kinds.shape != (m,):
-        raise ValueError(f"{where}.kinds: expected ({m},), got {kinds.shape}")
-    valid = {int(PointKind.ACTIVE), int(PointKind.MARGINALIZED), int(PointKind.IMMATURE)}
-    if m and not set(np.unique(kinds).tolist()) <= valid:
-        raise ValueError(f"{where}.kinds: values must be PointKind ACTIVE/MARGINALIZED/IMMATURE "
-                         f"({sorted(valid)}), got {sorted(set(np.unique(kinds).tolist()) - valid)}")
-    out = [_frozen_array(uv), _frozen_array(idepths), _frozen_array(kinds.astype(np.int8))]
-    for name, v, dtype, shape in (("weights", weights, np.float64, (m,)), ("colors", colors, np.float32, (m, 3))):
-        if v is None:
-            out.append(None)
-            continue
-        arr = np.array(v, dtype=dtype)
-        if name == "weights":
-            arr = arr.reshape(-1)
-        if arr.shape != shape:
-            raise ValueError(f"{where}.{name}: expected {shape}, got {arr.shape}")
-        out.append(_frozen_array(arr))
-    return tuple(out)
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,6 +135,13 @@ class KeyframeSeedInput:
             if not (math.isfinite(a) and math.isfinite(b)):
                 raise ValueError(f"KeyframeSeedInput.exposure: (a, b) must be finite, got {self.exposure}")
             object.__setattr__(self, "exposure", (a, b))
+
+    @classmethod
+    def from_message(cls, msg, exposure: tuple[float, float] | None = None) -> "KeyframeSeedInput":
+        """What :func:`seed_keyframe` needs of a :class:`~mgso.messages.KeyframeMessage` (``exposure``: the
+        trainer's (a', b') of the view, so that seed colours are radiance)."""
+        return cls(msg.image, msg.camera, msg.cam_to_world, msg.points_uv, msg.idepths, kinds=msg.kinds,
+                   weights=msg.weights, colors=msg.colors, exposure=exposure, keyframe_id=msg.keyframe_id)
 
     @property
     def num_points(self) -> int:

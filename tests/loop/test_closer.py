@@ -223,7 +223,7 @@ def test_the_window_is_what_the_last_window_update_named_not_the_final_one(loop_
     closer moves the window rigidly and gives the others the graph's solution, so the final update must not make
     every keyframe a window keyframe."""
     from mgso.loop.closer import LoopCloser
-    from mgso.mapping.messages import KeyframeMessage, PoseUpdate
+    from mgso.messages import KeyframeMessage, PoseUpdate
 
     cfg = load_config(None, BASE)
     seq = open_sequence(str(loop_folder), config=cfg.input)

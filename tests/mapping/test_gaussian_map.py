@@ -286,7 +286,7 @@ def test_transform_anchored_moves_only_its_keyframes_gaussians_and_renders_the_s
     from mgso.camera import PinholeCamera
     from mgso.config import load_config
     from mgso.geometry import make_pose, se3_inverse, sim3_from_parts, so3_exp
-    from mgso.mapping.messages import sim3_apply_to_pose
+    from mgso.messages import sim3_apply_to_pose
     from mgso.mapping.trainer import TrainStep
 
     rng = np.random.default_rng(5)

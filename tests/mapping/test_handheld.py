@@ -17,7 +17,7 @@ from mgso.camera import PinholeCamera
 from mgso.config import load_config
 from mgso.io import open_sequence
 from mgso.mapping.mapper import Mapper
-from mgso.mapping.messages import KeyframeMessage, Stop
+from mgso.messages import KeyframeMessage, Stop
 from mgso.oracle import OracleOdometry
 from mgso.system import System
 from mgso.app.full import write_outputs

@@ -1,4 +1,4 @@
-"""MGSO's mapper (mgso.mapping.mapper) and its messages (mgso.mapping.messages), driven by hand-made messages."""
+"""MGSO's mapper (mgso.mapping.mapper) and its messages (mgso.messages), driven by hand-made messages."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from mgso.camera import PinholeCamera
 from mgso.config import ConfigError, load_config
 from mgso.geometry import se3_exp, se3_inverse
 from mgso.mapping.mapper import Mapper, MapperError
-from mgso.mapping.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, Stop, map_exposure
+from mgso.messages import KeyframeMessage, PointsMessage, PointKind, PoseUpdate, Stop, map_exposure
 from mgso.mapping.seeding import backproject
 
 
@@ -542,7 +542,7 @@ def test_loop_correction_moves_views_depths_and_anchored_gaussians(wp_device, se
     """A LoopCorrection moves keyframe 4's view, depth points and Gaussians by its Sim(3) and leaves keyframe 0's:
     keyframe 4 then renders from its moved pose as it did before, and keyframe 0 renders what it did."""
     from mgso.geometry import sim3_from_parts, so3_exp
-    from mgso.mapping.messages import LoopCorrection, sim3_apply_to_pose
+    from mgso.messages import LoopCorrection, sim3_apply_to_pose
 
     mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.train.depth_weight=0.2"), device=wp_device)
     mp.submit(_kf(seq, cam, 0))

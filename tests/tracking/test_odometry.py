@@ -341,7 +341,7 @@ def test_map_thread_maps_keyframes_off_the_tracking_thread(wp_device, seq160):
     keyframe on the caller's thread."""
     import threading
 
-    from mgso.mapping.messages import KeyframeMessage
+    from mgso.messages import KeyframeMessage
 
     class Threads(Recorder):
         def __init__(self):
