@@ -3,7 +3,8 @@
 - :func:`read_camera_file`: any supported file, recognised by its content (DSO ``camera.txt``, EuRoC ``sensor.yaml``,
   KITTI ``calib.txt``, Replica ``cam_params.json``, plain intrinsics); the dataset formats' readers live beside their
   dataset readers (:func:`mgso.io.euroc.read_euroc_sensor_yaml`, :func:`mgso.io.kitti.read_kitti_calib`,
-  :func:`mgso.io.replica.read_replica_cam_params`, :func:`mgso.io.tum.tum_rgbd_default`).
+  :func:`mgso.io.replica.read_replica_cam_params`, :func:`mgso.io.tum.tum_rgbd_default`), which register them
+  (:func:`register_calibration_format`): this module imports no dataset reader.
 - :func:`read_dso_camera_txt`, :func:`read_plain_intrinsics`: the generic formats.
 - :func:`load_calibration`: a file (and photometric files) straight to a :class:`~mgso.camera.Calibration`.
 
@@ -14,13 +15,15 @@ imports :mod:`mgso.io`). Errors are :class:`~mgso.camera.CalibrationError` namin
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from ..camera import (RECTIFY_MODES, Calibration, CalibrationError, CameraModel, CameraSpec, EquidistantCamera,
                       FOVCamera, OutputSpec, PhotometricCalibration, PinholeCamera, RadTanCamera)
 
 __all__ = ["read_camera_file", "read_dso_camera_txt", "read_plain_intrinsics", "load_calibration", "numbers",
-           "abs_intrinsics"]
+           "abs_intrinsics", "CalibrationFormat", "register_calibration_format"]
 
 
 def numbers(line: str) -> list[float] | None:
@@ -166,29 +169,43 @@ def read_plain_intrinsics(path: str | Path, image_size: tuple[int, int] | None) 
 
 
 
+@dataclass(frozen=True)
+class CalibrationFormat:
+    """A dataset's own calibration file format, which :func:`read_camera_file` recognises by its content:
+    ``recognises(path, text, lines)`` (``lines``: the non-empty lines that are not ``#`` comments) and
+    ``read(path, image_size)`` to a :class:`~mgso.camera.CameraSpec`. The dataset readers register theirs
+    (:func:`register_calibration_format`) beside their own code, so this module imports none of them."""
+
+    name: str
+    recognises: Callable[[Path, str, list[str]], bool]
+    read: Callable[[Path, "tuple[int, int] | None"], CameraSpec]
+
+
+_FORMATS: list[CalibrationFormat] = []
+
+
+def register_calibration_format(fmt: CalibrationFormat) -> CalibrationFormat:
+    """Add a dataset's calibration format to those :func:`read_camera_file` tries (before DSO's ``camera.txt`` and
+    plain intrinsics); a name registered again replaces the earlier one."""
+    _FORMATS[:] = [f for f in _FORMATS if f.name != fmt.name] + [fmt]
+    return fmt
+
+
 def read_camera_file(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraSpec:
-    """Read any supported calibration file, recognised by its content: DSO ``camera.txt``, EuRoC ``sensor.yaml``,
-    KITTI ``calib.txt`` (``P0:``), Replica ``cam_params.json``, or a plain ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` file.
-    ``image_size`` ``(width, height)`` is needed by formats that hold no size (KITTI, plain)."""
+    """Read any supported calibration file, recognised by its content: the dataset formats registered by their
+    readers (EuRoC ``sensor.yaml``, KITTI ``calib.txt`` (``P0:``), Replica ``cam_params.json``), DSO
+    ``camera.txt``, or a plain ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` file. ``image_size`` ``(width, height)`` is
+    needed by formats that hold no size (KITTI, plain)."""
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file not found")
-    # the dataset readers' own calibration formats live beside them (imported here: they import this module)
-    from .euroc import read_euroc_sensor_yaml
-    from .kitti import read_kitti_calib
-    from .replica import read_replica_cam_params
-
-    if path.suffix.lower() == ".json":
-        return read_replica_cam_params(path)[0]
     text = path.read_text(encoding="utf-8", errors="replace")
-    if path.suffix.lower() in (".yaml", ".yml") or text.lstrip().startswith("%YAML") or re.search(
-            r"^\s*intrinsics\s*:", text, flags=re.MULTILINE):
-        return read_euroc_sensor_yaml(path)[0]
     lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    for fmt in _FORMATS:
+        if fmt.recognises(path, text, lines):
+            return fmt.read(path, image_size)
     if not lines:
         raise CalibrationError(f"{path}: empty calibration file")
-    if re.match(r"^P\d\s*:", lines[0]):
-        return read_kitti_calib(path, image_size, 0)[0]
     if _is_dso_camera_txt(lines):
         return read_dso_camera_txt(path)
     return read_plain_intrinsics(path, image_size)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 from ..config import InputConfig
@@ -10,7 +9,7 @@ from .common import CalibArg
 from .errors import DatasetError
 from .euroc import EurocSequence, euroc_root
 from .folder import ImageFolderSequence, VideoSequence
-from .images import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS
+from .images import VIDEO_EXTENSIONS
 from .kitti import KittiSequence
 from .live import LiveSource, is_live_source
 from .replica import ReplicaSequence
@@ -20,29 +19,17 @@ from .tum import TumMonoSequence, TumRgbdSequence
 
 __all__ = ["open_sequence", "detect_layout", "LAYOUTS"]
 
-LAYOUTS: dict[str, type[Sequence]] = {
-    "euroc": EurocSequence,
-    "tum_rgbd": TumRgbdSequence,
-    "tum_mono": TumMonoSequence,
-    "kitti": KittiSequence,
-    "replica": ReplicaSequence,
-    "7scenes": SevenScenesSequence,
-    "images": ImageFolderSequence,
-    "video": VideoSequence,
-    "live": LiveSource,       # camera:N, rtsp:// http:// udp:// ... (docs/live.md); not a Sequence: no length
-}
+#: The layouts in the order the detection asks them (the first that recognises a path wins: EuRoC's ``mav0`` folder
+#: before an image folder, a TUM RGB-D folder's ``rgb.txt`` before its images). A new layout is a
+#: :class:`~mgso.io.sequence.Sequence` with ``layout``, ``looked_for`` and ``recognises`` added here.
+_DETECTED: tuple[type[Sequence], ...] = (EurocSequence, TumRgbdSequence, TumMonoSequence, KittiSequence,
+                                         ReplicaSequence, SevenScenesSequence, ImageFolderSequence, VideoSequence)
 
-_LOOKED_FOR = (
-    "EuRoC: mav0/cam0/data.csv",
-    "TUM RGB-D: rgb.txt",
-    "TUM monoVO: times.txt with images/ or images.zip",
-    "KITTI: image_0/ or image_2/ (with calib.txt, times.txt)",
-    "Replica (NICE-SLAM): results/frame*.jpg",
-    "7-Scenes: frame-XXXXXX.color.png/.jpg",
-    "image folder: image files (" + " ".join(IMAGE_EXTENSIONS) + ")",
-    "video file: " + " ".join(VIDEO_EXTENSIONS),
-    "live camera or stream: camera:N, rtsp://..., http://..., udp://... (with --calib)",
-)
+LAYOUTS: dict[str, type] = {**{cls.layout: cls for cls in _DETECTED},
+                            "live": LiveSource}   # camera:N, rtsp:// http:// udp:// ... (docs/live.md): no length
+
+_LOOKED_FOR = tuple(cls.looked_for for cls in _DETECTED) + (
+    "live camera or stream: camera:N, rtsp://..., http://..., udp://... (with --calib)",)
 
 
 def detect_layout(path: str | Path) -> str:
@@ -52,27 +39,12 @@ def detect_layout(path: str | Path) -> str:
     path = Path(path).expanduser()
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
-    if path.is_file():
-        if path.suffix.lower() in VIDEO_EXTENSIONS:
-            return "video"
+    if path.is_file() and not VideoSequence.recognises(path):
         raise DatasetError(f"{path}: a file that is not a video ({' '.join(VIDEO_EXTENSIONS)}); give a dataset "
                            "folder or a video file")
-    if euroc_root(path) is not None:
-        return "euroc"
-    if (path / "rgb.txt").is_file():
-        return "tum_rgbd"
-    if (path / "times.txt").is_file() and ((path / "images").is_dir() or (path / "images.zip").is_file()):
-        return "tum_mono"
-    if any((path / f"image_{n}").is_dir() for n in range(4)):
-        return "kitti"
-    if (path / "results").is_dir() and any(
-            re.fullmatch(r"frame.*\.(jpg|jpeg|png)", p.name) for p in (path / "results").iterdir()):
-        return "replica"
-    names = [p.name for p in path.iterdir() if p.is_file()]
-    if any(re.fullmatch(r"frame-\d+\.color\.(png|jpg|jpeg)", n, re.IGNORECASE) for n in names):
-        return "7scenes"
-    if any(Path(n).suffix.lower() in IMAGE_EXTENSIONS for n in names):
-        return "images"
+    for cls in _DETECTED:
+        if cls.recognises(path):
+            return cls.layout
     raise DatasetError(f"{path}: no known dataset layout here. Looked for: " + "; ".join(_LOOKED_FOR))
 
 

@@ -19,6 +19,7 @@ from ..camera import (CalibrationError, CameraModel, CameraSpec, EquidistantCame
                       PinholeCamera, RadTanCamera)
 from ..config import InputConfig
 from ..geometry import make_pose, quat_wxyz_to_matrix
+from .calibration import CalibrationFormat, register_calibration_format
 from .common import CalibArg, find_photometric, load_groundtruth, make_calibration, resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
 from .images import check_increasing, read_first_image, read_table
@@ -164,6 +165,12 @@ class EurocSequence(Sequence):
     """EuRoC MAV sequence (``path``: the folder holding ``mav0``, or ``mav0`` itself); camera from
     ``InputConfig.camera`` (default ``cam0``)."""
 
+    looked_for = "EuRoC: mav0/cam0/data.csv"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and euroc_root(path) is not None
+
     layout = "euroc"
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
@@ -220,3 +227,10 @@ class EurocSequence(Sequence):
 
     def _source(self, k: int) -> str:
         return str(self._files[k])
+
+
+register_calibration_format(CalibrationFormat(
+    "EuRoC sensor.yaml",
+    lambda path, text, lines: (path.suffix.lower() in (".yaml", ".yml") or text.lstrip().startswith("%YAML")
+                               or re.search(r"^\s*intrinsics\s*:", text, flags=re.MULTILINE) is not None),
+    lambda path, image_size: read_euroc_sensor_yaml(path)[0]))

@@ -24,7 +24,8 @@ from ..config import InputConfig
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError
-from .images import check_increasing, list_images, parse_float, read_first_image, read_table
+from .images import (IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, check_increasing, list_images, parse_float,
+                     read_first_image, read_table)
 from .sequence import Sequence
 
 __all__ = ["ImageFolderSequence", "VideoSequence", "CALIBRATION_NAMES"]
@@ -57,6 +58,11 @@ class ImageFolderSequence(Sequence):
     """Sorted image files of one folder."""
 
     layout = "images"
+    looked_for = "image folder: image files (" + " ".join(IMAGE_EXTENSIONS) + ")"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and any(p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS for p in path.iterdir())
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):
@@ -105,6 +111,11 @@ class VideoSequence(Sequence):
     and skips forward (exact, never an approximate seek)."""
 
     layout = "video"
+    looked_for = "video file: " + " ".join(VIDEO_EXTENSIONS)
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_file() and path.suffix.lower() in VIDEO_EXTENSIONS
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):

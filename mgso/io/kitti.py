@@ -10,13 +10,14 @@ baseline in ``P2``. Images are 1241x376 (or near): any size is accepted.
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import CalibrationError, CameraSpec, OutputSpec, PinholeCamera
 from ..config import InputConfig
-from .calibration import numbers
+from .calibration import CalibrationFormat, numbers, register_calibration_format
 from .common import HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration, \
     resolve_camera_spec
 from .errors import DatasetError, as_dataset_errors
@@ -75,6 +76,11 @@ class KittiSequence(Sequence):
     """A KITTI odometry sequence folder (``dataset/sequences/NN`` or an excerpt with the same files)."""
 
     layout = "kitti"
+    looked_for = "KITTI: image_0/ or image_2/ (with calib.txt, times.txt)"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and any((path / f"image_{n}").is_dir() for n in range(4))
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):
@@ -160,3 +166,8 @@ class KittiSequence(Sequence):
 
     def _source(self, k: int) -> str:
         return str(self._files[k])
+
+
+register_calibration_format(CalibrationFormat(
+    "KITTI calib.txt", lambda path, text, lines: bool(lines) and re.match(r"^P\d\s*:", lines[0]) is not None,
+    lambda path, image_size: read_kitti_calib(path, image_size, 0)[0]))

@@ -10,12 +10,14 @@ cy = 339.5; configs/Replica/replica.yaml of github cvg/nice-slam). No timestamps
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import CalibrationError, CameraSpec, OutputSpec, PinholeCamera
 from ..config import InputConfig
+from .calibration import CalibrationFormat, register_calibration_format
 from .common import (HOW_TO_CALIBRATE, CalibArg, find_photometric, load_groundtruth, make_calibration,
                      resolve_camera_spec)
 from .errors import DatasetError, as_dataset_errors
@@ -84,6 +86,12 @@ class ReplicaSequence(Sequence):
     """A NICE-SLAM Replica scene folder (``results/`` and ``traj.txt``)."""
 
     layout = "replica"
+    looked_for = "Replica (NICE-SLAM): results/frame*.jpg"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return (path / "results").is_dir() and any(
+            re.fullmatch(r"frame.*\.(jpg|jpeg|png)", p.name) for p in (path / "results").iterdir())
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):
@@ -146,3 +154,8 @@ class ReplicaSequence(Sequence):
         if d.ndim != 2:
             raise DatasetError(f"{f}: depth must be a single-channel image")
         return d.astype(np.float32) / np.float32(self.depth_scale)
+
+
+register_calibration_format(CalibrationFormat(
+    "Replica cam_params.json", lambda path, text, lines: path.suffix.lower() == ".json",
+    lambda path, image_size: read_replica_cam_params(path)[0]))

@@ -112,6 +112,14 @@ class Sequence(abc.ABC):
     """
 
     layout: ClassVar[str] = "abstract"
+    #: what :func:`mgso.io.detect.detect_layout` looks for (said when a folder matches no layout)
+    looked_for: ClassVar[str] = ""
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        """Whether ``path`` (an existing file or folder) holds this layout; the detection asks the layouts in
+        :data:`mgso.io.detect.LAYOUTS`' order and takes the first that says yes."""
+        return False
 
     def __init__(self, path: Path, *, calibration: Calibration, timestamps: np.ndarray,
                  config: InputConfig | None = None, exposures_ms: np.ndarray | None = None,

@@ -66,6 +66,11 @@ class SevenScenesSequence(Sequence):
     """7-Scenes frames in one folder."""
 
     layout = "7scenes"
+    looked_for = "7-Scenes: frame-XXXXXX.color.png/.jpg"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and any(p.is_file() and _COLOR.fullmatch(p.name) for p in path.iterdir())
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):

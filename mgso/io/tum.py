@@ -85,6 +85,11 @@ class TumRgbdSequence(Sequence):
     """TUM RGB-D sequence folder (also what the synthetic scene generator writes, with its own camera.txt)."""
 
     layout = "tum_rgbd"
+    looked_for = "TUM RGB-D: rgb.txt"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return (path / "rgb.txt").is_file()
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):
@@ -188,6 +193,11 @@ class TumMonoSequence(Sequence):
     """TUM monoVO sequence folder (DSO's ``dso_dataset files=... calib=... gamma=... vignette=...``)."""
 
     layout = "tum_mono"
+    looked_for = "TUM monoVO: times.txt with images/ or images.zip"
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return (path / "times.txt").is_file() and ((path / "images").is_dir() or (path / "images.zip").is_file())
 
     def __init__(self, path: str | Path, calib: CalibArg = None, config: InputConfig | None = None,
                  groundtruth: str | Path | None = None):

@@ -295,3 +295,47 @@ def test_calibration_of_another_size_is_refused_when_opening(fakes, tmp_path):
     d = fakes.image_folder(n=2, calib=None)
     with pytest.raises(DatasetError, match=r"cam80\.txt: the calibration is for 80x60 images but .*\.png is 40x30"):
         open_sequence(d, calib=other)
+
+
+def test_each_layout_carries_its_detection_and_what_it_looks_for(tmp_path):
+    """Issue 44: a layout is one class (``layout``, ``looked_for``, ``recognises``), not three parallel lists; the
+    detection's message is made of the classes' texts, and each class recognises only its own folder."""
+    from mgso.io import LAYOUTS, detect_layout
+    from mgso.io.detect import _DETECTED, _LOOKED_FOR
+
+    assert [c.layout for c in _DETECTED] == [k for k in LAYOUTS if k != "live"]
+    assert all(c.looked_for and c.looked_for in _LOOKED_FOR for c in _DETECTED)
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    imwrite(imgs / "0001.png", textured(0))
+    (tmp_path / "tum").mkdir()
+    (tmp_path / "tum" / "rgb.txt").write_text("# none\n")
+    imwrite(tmp_path / "tum" / "0001.png", textured(0))            # a TUM folder holds images too: TUM first
+    assert [c.layout for c in _DETECTED if c.recognises(imgs)] == ["images"]
+    assert [c.layout for c in _DETECTED if c.recognises(tmp_path / "tum")] == ["tum_rgbd", "images"]
+    assert detect_layout(tmp_path / "tum") == "tum_rgbd" and detect_layout(imgs) == "images"
+
+
+def test_dataset_calibration_formats_are_registered_by_their_readers(tmp_path):
+    """read_camera_file imports no dataset reader (the io circle of issue 44): EuRoC, KITTI and Replica register
+    their formats; a format registered by a new reader is recognised the same way, and replaced by name."""
+    from mgso.camera import CameraSpec, OutputSpec, PinholeCamera
+    from mgso.io import calibration as cal
+
+    assert {"EuRoC sensor.yaml", "KITTI calib.txt", "Replica cam_params.json"} <= {f.name for f in cal._FORMATS}
+    (tmp_path / "calib.txt").write_text("P0: 500 0 320 0 0 500 240 0 0 0 1 0\n")
+    assert cal.read_camera_file(tmp_path / "calib.txt", (640, 480)).model.fx == 500
+    (tmp_path / "cam.toy").write_text("TOY 250\n")
+    spec = CameraSpec(PinholeCamera(250, 250, 159.5, 119.5, 320, 240), OutputSpec(mode="none"), "toy")
+    before = list(cal._FORMATS)
+    try:
+        cal.register_calibration_format(cal.CalibrationFormat(
+            "toy", lambda p, text, lines: bool(lines) and lines[0].startswith("TOY"), lambda p, size: spec))
+        assert cal.read_camera_file(tmp_path / "cam.toy") is spec
+        n = len(cal._FORMATS)
+        cal.register_calibration_format(cal.CalibrationFormat("toy", lambda p, t, ln: False, lambda p, s: spec))
+        assert len(cal._FORMATS) == n
+        with pytest.raises(Exception, match="cam.toy"):           # no longer recognised: the plain reader's error
+            cal.read_camera_file(tmp_path / "cam.toy")
+    finally:
+        cal._FORMATS[:] = before
