@@ -126,6 +126,15 @@ def psnr(rendered, reference, *, data_range: float = 1.0, mask=None) -> float:
     return float(10.0 * np.log10(data_range * data_range / mse))
 
 
+def _blur(x: np.ndarray, g: np.ndarray, rows: slice) -> np.ndarray:
+    """``rows`` of the 11x11 Gaussian blur of ``x`` ``[h, w, C]``: zero padding ('constant', 0) ==
+    F.conv2d(x, outer(g, g), padding=5) at the array's edges; OpenCV's separable filter in float64 (20-40x faster than
+    scipy.ndimage, the same sums to round-off), channel by channel beyond OpenCV's 4."""
+    if x.shape[2] > 4:
+        return np.stack([_blur(x[..., c:c + 1], g, rows)[..., 0] for c in range(x.shape[2])], axis=-1)
+    return cv2.sepFilter2D(x, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT).reshape(x.shape)[rows]
+
+
 def _ssim_strips(rendered, reference, border: str, data_range: float, what: str):
     """The SSIM map a strip of rows at a time (``[rows, W, C]``, or the ``valid`` crop of them), top to bottom.
 
@@ -149,21 +158,11 @@ def _ssim_strips(rendered, reference, border: str, data_range: float, what: str)
     for y0 in range(lo, hi, _STRIP_ROWS):
         y1 = min(y0 + _STRIP_ROWS, hi)
         s0, s1 = max(y0 - r, 0), min(y1 + r, H)
-        top = y0 - s0
-
-        def blur(x):
-            # zero padding ('constant', 0) == F.conv2d(x, outer(g, g), padding=5) at the image's edges; OpenCV's
-            # separable filter in float64 (20-40x faster than scipy.ndimage, the same sums to round-off), channel
-            # by channel beyond OpenCV's 4
-            if x.shape[2] > 4:
-                return np.stack([blur(x[..., c:c + 1])[..., 0] for c in range(x.shape[2])], axis=-1)
-            out = cv2.sepFilter2D(x, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT).reshape(x.shape)
-            return out[top:top + y1 - y0]
-
+        rows = slice(y0 - s0, y1 - s0)        # the strip's own rows among the halo's
         A = a[s0:s1].astype(np.float64)
         B = b[s0:s1].astype(np.float64)
-        mu1, mu2 = blur(A), blur(B)
-        s11, s22, s12 = blur(A * A), blur(B * B), blur(A * B)
+        mu1, mu2 = _blur(A, g, rows), _blur(B, g, rows)
+        s11, s22, s12 = _blur(A * A, g, rows), _blur(B * B, g, rows), _blur(A * B, g, rows)
         mu12 = mu1 * mu2
         mu1 *= mu1
         mu2 *= mu2

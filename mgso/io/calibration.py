@@ -14,7 +14,6 @@ imports :mod:`mgso.io`). Errors are :class:`~mgso.camera.CalibrationError` namin
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable

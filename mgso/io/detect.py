@@ -7,7 +7,7 @@ from pathlib import Path
 from ..config import InputConfig
 from .common import CalibArg
 from .errors import DatasetError
-from .euroc import EurocSequence, euroc_root
+from .euroc import EurocSequence
 from .folder import ImageFolderSequence, VideoSequence
 from .images import VIDEO_EXTENSIONS
 from .kitti import KittiSequence
