@@ -47,9 +47,10 @@ def room(tmp_path_factory):
 
 class MjpegServer:
     """Serves ``frames`` as a multipart JPEG stream at ``fps``: ``loop`` plays them forwards and backwards without
-    end, else once, then holds the connection open without sending (a stalled stream)."""
+    end, else ``passes`` times (forwards, backwards, ...), then holds the connection open without sending (a stalled
+    stream)."""
 
-    def __init__(self, frames, fps: float, loop: bool = False, stall_s: float = 120.0):
+    def __init__(self, frames, fps: float, loop: bool = False, stall_s: float = 120.0, passes: int = 1):
         jpegs = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for f in frames]
         order = list(range(len(jpegs)))
         stop = self._stop = threading.Event()
@@ -61,6 +62,7 @@ class MjpegServer:
                 self.end_headers()
                 t0, n = time.monotonic(), 0
                 seq = order
+                left = passes
                 while not stop.is_set():
                     for i in seq:
                         wait = t0 + n / fps - time.monotonic()
@@ -74,10 +76,11 @@ class MjpegServer:
                         except OSError:
                             return
                         n += 1
-                    if not loop:
+                    left -= 1
+                    if not loop and left <= 0:
                         stop.wait(stall_s)
                         return
-                    seq = seq[::-1]        # back and forth: the camera sways without a jump
+                    seq = seq[::-1][1:] if not loop else seq[::-1]   # back and forth: the camera sways, no jump
 
             def log_message(self, *args):
                 pass
@@ -222,11 +225,18 @@ def test_ctrl_c_ends_a_live_stream_and_a_second_one_cuts_the_refinement(room, tm
 @pytest.mark.slow
 @pytest.mark.parametrize("bounded", [False, True])
 def test_a_stream_that_stops_sending_ends_the_run_after_the_timeout(room, tmp_path, bounded):
-    """The server sends the 40 frames, then nothing (the connection stays open: a network gone quiet). The run ends
-    after input.live_timeout_s as at the end of the input: exit 0, every output, a warning. Negative control
-    (bounded): --max-frames 25 ends it by the limit, before the stall, without the warning."""
+    """The server sends the 40 frames forwards and back (79), then nothing (the connection stays open: a network gone
+    quiet). The run ends after input.live_timeout_s as at the end of the input: exit 0, every output, a warning.
+    Negative control (bounded): --max-frames 25 ends it by the limit, before the stall, without the warning.
+
+    Two passes, not one, and exit 0 only (the test used to accept exit 1, "no frame got a pose", seen once on a
+    loaded machine): the stream is opened (and probed) before the mapper's process starts, and what the server sends
+    meanwhile waits in the socket, to be read in a burst of which the capture keeps the newest frame; a start that
+    took most of a 4 s stream would leave the initialiser too few frames, 7.9 s leave it a steady stream after any
+    start. (With three busy loops beside it on the 2 cores, one pass also ended with exit 0: the failure was not
+    reproduced here.)"""
     frames, calib = room
-    server = MjpegServer(frames, fps=10.0, stall_s=120.0)
+    server = MjpegServer(frames, fps=10.0, stall_s=120.0, passes=2)
     out = tmp_path / "run"
     limit = ["--max-frames", "25"] if bounded else []
     proc = _spawn(["run", server.url, "--calib", str(calib), "--out", str(out), *SMALL_MAP,
@@ -235,9 +245,7 @@ def test_a_stream_that_stops_sending_ends_the_run_after_the_timeout(room, tmp_pa
         so, err = _finish(proc)
     finally:
         server.close()
-    # a run that ended as at the end of the input: 0, or 1 when no frame got a pose (on a loaded machine the odometry
-    # may drop the frames the initialiser needed: said on stderr, the outputs written all the same)
-    assert proc.returncode == 0 or (proc.returncode == 1 and "no frame got a pose" in err), err[-3000:]
+    assert proc.returncode == 0, err[-3000:]        # a run that ended as at the end of the input
     assert "Traceback" not in err
     metrics = _check_outputs(out)
     assert metrics["interrupted"] is False
@@ -247,7 +255,7 @@ def test_a_stream_that_stops_sending_ends_the_run_after_the_timeout(room, tmp_pa
     else:
         assert "no frame for" in err and "input.live_timeout_s" in err
         assert "input ended by no frame for 3 s" in so
-        assert metrics["frames"]["read"] == 39                        # 40 sent, less the probe at open
+        assert metrics["frames"]["read"] == 78                        # 79 sent, less the probe at open
 
 
 # ------------------------------------------------------------------------------------------------ errors
