@@ -274,6 +274,46 @@ class PhotometricResult:
     tracker_rmse: float = float("nan")  # the tracker's own level-0 RMSE (at its possibly raised cutoff)
 
 
+def _reference(feats: KeyframeFeatures, geom: PyramidGeometry, tracking: TrackingConfig, device: str,
+               idepth_scale: float = 1.0):
+    """The tracking reference of a keyframe: its gray pyramid and its DSO points (inverse depths times
+    ``idepth_scale``)."""
+    from mgso.tracking.coarse_tracker import reference_from_points
+
+    uv = feats.points_uv - np.array([geom.offset_x, geom.offset_y], dtype=np.float64)
+    return reference_from_points(geom, _pyramid(geom, feats.gray, device), uv, feats.points_idepth * idepth_scale,
+                                 None, tracking, keyframe_id=feats.keyframe_id, device=device)
+
+
+def _track_and_score(ref, geom: PyramidGeometry, new_gray: np.ndarray, ref_to_new: np.ndarray,
+                     tracking: TrackingConfig, device: str):
+    """Track ``new_gray`` against ``ref`` (which has points at level 0) from ``ref_to_new``, coarse to fine (pose
+    and affine brightness). Returns ``(converged, finite, T, rmse, inlier_fraction, tracker_rmse)``: ``T`` the
+    tracked ``ref_to_new`` (the start when the result is not finite), the level-0 RMSE and the fraction of the
+    reference's level-0 points within DSO's own cutoff (NaN and 0 when not finite)."""
+    from mgso.tracking.coarse_tracker import CoarseTracker
+
+    new_pyr = _pyramid(geom, new_gray, device)
+    tracker = CoarseTracker(geom, tracking, device=device)
+    tracker.set_reference(ref)
+    res = tracker.track_levels(new_pyr, 0.0, ref_to_new, (0.0, 0.0), np.full(geom.levels, np.nan))
+    finite = bool(np.all(np.isfinite(res.ref_to_new)) and np.all(np.isfinite(res.affine)))
+    rmse, inl = float("nan"), 0.0
+    if finite:
+        # the verdict at DSO's own cutoff: the tracker raises its cutoff (x2, x4, ...) while most residuals
+        # saturate, and within a raised cutoff a wrong image's residuals would count as inliers
+        L = ref.levels[0]
+        pair = make_frame_pair(res.ref_to_new, ref.affine[0], ref.affine[1], res.affine[0], res.affine[1],
+                               ref.exposure, 0.0)
+        st = track_system(L.uv, L.idepth, L.color, pair, tracker.cams[0], new_pyr.dI[0], tracker.workspaces[0],
+                          cutoff_th=tracking.coarse_cutoff_th, huber_th=tracking.huber_th, flow_stride=0)
+        if st.num_terms:
+            rmse = float(np.sqrt(st.energy / st.num_terms))
+        inl = st.num_inliers / int(ref.num_points_l0)
+    T = res.ref_to_new if finite else ref_to_new
+    return bool(res.ok), finite, T, rmse, float(inl), float(res.rmse[0])
+
+
 def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S: np.ndarray,
                       tracking: TrackingConfig | None = None, device: str | None = None,
                       depth_tolerance: float | None = None) -> PhotometricResult:
@@ -281,8 +321,6 @@ def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S:
     ``S``) from the rigid part of ``S``, then compare the current keyframe's points with the candidate's depth map
     under the refined motion (:func:`depth_consistency`; see the module text). Both keyframes must have the same
     camera."""
-    from mgso.tracking.coarse_tracker import CoarseTracker, reference_from_points
-
     tracking = tracking or TrackingConfig()
     device = runtime.device_or_cpu(device)
     s = float(np.cbrt(np.linalg.det(S[:3, :3])))
@@ -292,34 +330,16 @@ def photometric_check(current: KeyframeFeatures, candidate: KeyframeFeatures, S:
     cur_to_ref = np.eye(4)
     cur_to_ref[:3, :3], cur_to_ref[:3, 3] = R, t / s
     geom = _geometry(candidate.camera, tracking)
-    ref_pyr = _pyramid(geom, candidate.gray, device)
-    cur_pyr = _pyramid(geom, current.gray, device)
-    uv = candidate.points_uv - np.array([geom.offset_x, geom.offset_y], dtype=np.float64)
-    ref = reference_from_points(geom, ref_pyr, uv, candidate.points_idepth * s, None, tracking,
-                                keyframe_id=candidate.keyframe_id, device=device)
+    ref = _reference(candidate, geom, tracking, device, idepth_scale=s)
     n0 = int(ref.num_points_l0)
     if n0 == 0:
         return PhotometricResult(False, S, float("nan"), 0.0, 0)
-    tracker = CoarseTracker(geom, tracking, device=device)
-    tracker.set_reference(ref)
-    res = tracker.track_levels(cur_pyr, 0.0, se3_inverse(cur_to_ref), (0.0, 0.0), np.full(geom.levels, np.nan))
-    finite = bool(np.all(np.isfinite(res.ref_to_new)) and np.all(np.isfinite(res.affine)))
-    T = se3_inverse(res.ref_to_new) if finite else cur_to_ref
+    ok, finite, ref_to_new, rmse, inl, tracker_rmse = _track_and_score(ref, geom, current.gray,
+                                                                        se3_inverse(cur_to_ref), tracking, device)
+    T = se3_inverse(ref_to_new) if finite else cur_to_ref
     rel = sim3_from_parts(T[:3, :3], s * T[:3, 3], s)
-    rmse, inl = float("nan"), 0.0
-    if finite:
-        # the verdict at DSO's own cutoff: the tracker raises its cutoff (x2, x4, ...) while most residuals
-        # saturate, and within a raised cutoff a wrong image's residuals would count as inliers
-        L = ref.levels[0]
-        pair = make_frame_pair(res.ref_to_new, ref.affine[0], ref.affine[1], res.affine[0], res.affine[1],
-                               ref.exposure, 0.0)
-        st = track_system(L.uv, L.idepth, L.color, pair, tracker.cams[0], cur_pyr.dI[0], tracker.workspaces[0],
-                          cutoff_th=tracking.coarse_cutoff_th, huber_th=tracking.huber_th, flow_stride=0)
-        if st.num_terms:
-            rmse = float(np.sqrt(st.energy / st.num_terms))
-        inl = st.num_inliers / n0
     n_cmp, frac = depth_consistency(current, T, ref.idepth_maps[0], geom, depth_tolerance)
-    return PhotometricResult(bool(res.ok), rel, rmse, float(inl), n0, n_cmp, frac, float(res.rmse[0]))
+    return PhotometricResult(ok, rel, rmse, inl, n0, n_cmp, frac, tracker_rmse)
 
 
 def depth_consistency(current: KeyframeFeatures, cur_to_ref: np.ndarray, idepth_map: np.ndarray,
@@ -403,40 +423,19 @@ def photometric_check_from_current(current: KeyframeFeatures, candidate: Keyfram
     points, their inverse depths times ``scale`` (the candidate's coordinates divided by the loop's scale are at
     the current keyframe's), are compared with the current keyframe's depth map. ``relative`` is the Sim(3)
     ``X_cand = S X_cur`` of the refined motion and ``scale``."""
-    from mgso.tracking.coarse_tracker import CoarseTracker, reference_from_points
-
     tracking = tracking or TrackingConfig()
     device = runtime.device_or_cpu(device)
     s = float(scale)
     geom = _geometry(current.camera, tracking)
-    ref_pyr = _pyramid(geom, current.gray, device)
-    new_pyr = _pyramid(geom, candidate.gray, device)
-    uv = current.points_uv - np.array([geom.offset_x, geom.offset_y], dtype=np.float64)
-    ref = reference_from_points(geom, ref_pyr, uv, current.points_idepth, None, tracking,
-                                keyframe_id=current.keyframe_id, device=device)
+    ref = _reference(current, geom, tracking, device)
     n0 = int(ref.num_points_l0)
-    rel0 = sim3_from_parts(T[:3, :3], s * T[:3, 3], s)
     if n0 == 0:
-        return PhotometricResult(False, rel0, float("nan"), 0.0, 0)
-    tracker = CoarseTracker(geom, tracking, device=device)
-    tracker.set_reference(ref)
-    res = tracker.track_levels(new_pyr, 0.0, T, (0.0, 0.0), np.full(geom.levels, np.nan))
-    finite = bool(np.all(np.isfinite(res.ref_to_new)) and np.all(np.isfinite(res.affine)))
-    Tf = res.ref_to_new if finite else T
+        return PhotometricResult(False, sim3_from_parts(T[:3, :3], s * T[:3, 3], s), float("nan"), 0.0, 0)
+    ok, finite, Tf, rmse, inl, tracker_rmse = _track_and_score(ref, geom, candidate.gray, T, tracking, device)
     rel = sim3_from_parts(Tf[:3, :3], s * Tf[:3, 3], s)
-    rmse, inl = float("nan"), 0.0
-    if finite:
-        L = ref.levels[0]
-        pair = make_frame_pair(res.ref_to_new, ref.affine[0], ref.affine[1], res.affine[0], res.affine[1],
-                               ref.exposure, 0.0)
-        st = track_system(L.uv, L.idepth, L.color, pair, tracker.cams[0], new_pyr.dI[0], tracker.workspaces[0],
-                          cutoff_th=tracking.coarse_cutoff_th, huber_th=tracking.huber_th, flow_stride=0)
-        if st.num_terms:
-            rmse = float(np.sqrt(st.energy / st.num_terms))
-        inl = st.num_inliers / n0
     n_cmp, frac = depth_consistency(candidate, se3_inverse(Tf), ref.idepth_maps[0], geom, depth_tolerance,
                                     idepth_scale=s)
-    return PhotometricResult(bool(res.ok), rel, rmse, float(inl), n0, n_cmp, frac, float(res.rmse[0]))
+    return PhotometricResult(ok, rel, rmse, inl, n0, n_cmp, frac, tracker_rmse)
 
 
 # ---------------------------------------------------------------------------------------------------- verify
@@ -497,22 +496,24 @@ def verify(current: KeyframeFeatures, candidate: KeyframeFeatures, settings: Loo
     if n_in < cfg.min_inliers:
         return reject("too few inliers", **common)
     ph = photometric_check(current, candidate, S, tracking, device, depth_tolerance=tol)
-    common.update(relative=S, rmse=ph.rmse, inlier_fraction=ph.inlier_fraction, depth_compared=ph.depth_compared,
+    common["relative"] = S
+    return _verdict(ph, common, cfg, min_compared, min_consistent, reject)
+
+
+def _verdict(ph: PhotometricResult, common: dict, cfg: LoopConfig, min_compared: int, min_consistent: float,
+             reject) -> Verification:
+    """Steps 3 and 4's verdict on a candidate whose geometry passed (``common``: its figures so far)."""
+    common = dict(common, rmse=ph.rmse, inlier_fraction=ph.inlier_fraction, depth_compared=ph.depth_compared,
                   depth_consistent=ph.depth_consistent)
-    if ph.num_points == 0:
-        return reject("photometric no points", **common)
-    if not ph.ok or not np.isfinite(ph.rmse):
-        return reject("photometric tracking failed", **common)
-    if ph.rmse > cfg.max_photometric_rmse:
-        return reject("photometric rmse", **common)
-    if ph.inlier_fraction < cfg.min_photometric_inliers:
-        return reject("photometric inliers", **common)
-    if ph.depth_compared < min_compared:
-        return reject("depth unverified", **common)
-    if ph.depth_consistent < min_consistent:
-        return reject("depth inconsistent", **common)
-    common["relative"] = ph.relative
-    return Verification(True, "accepted", **common)
+    for failed, reason in ((ph.num_points == 0, "photometric no points"),
+                           (not ph.ok or not np.isfinite(ph.rmse), "photometric tracking failed"),
+                           (ph.rmse > cfg.max_photometric_rmse, "photometric rmse"),
+                           (ph.inlier_fraction < cfg.min_photometric_inliers, "photometric inliers"),
+                           (ph.depth_compared < min_compared, "depth unverified"),
+                           (ph.depth_consistent < min_consistent, "depth inconsistent")):
+        if failed:
+            return reject(reason, **common)
+    return Verification(True, "accepted", **dict(common, relative=ph.relative))
 
 
 def _verify_from_current(current, candidate, cfg, pairs, hc, hk, device, tracking, tol, min_consistent,
@@ -542,20 +543,5 @@ def _verify_from_current(current, candidate, cfg, pairs, hc, hk, device, trackin
     scale = float(np.median(z_cand[ok] / z_pred[ok]))
     common["scale"] = scale
     ph = photometric_check_from_current(current, candidate, T, scale, tracking, device, depth_tolerance=tol)
-    common.update(relative=sim3_from_parts(T[:3, :3], scale * T[:3, 3], scale), rmse=ph.rmse,
-                  inlier_fraction=ph.inlier_fraction, depth_compared=ph.depth_compared,
-                  depth_consistent=ph.depth_consistent)
-    if ph.num_points == 0:
-        return reject("photometric no points", **common)
-    if not ph.ok or not np.isfinite(ph.rmse):
-        return reject("photometric tracking failed", **common)
-    if ph.rmse > cfg.max_photometric_rmse:
-        return reject("photometric rmse", **common)
-    if ph.inlier_fraction < cfg.min_photometric_inliers:
-        return reject("photometric inliers", **common)
-    if ph.depth_compared < min_compared:
-        return reject("depth unverified", **common)
-    if ph.depth_consistent < min_consistent:
-        return reject("depth inconsistent", **common)
-    common["relative"] = ph.relative
-    return Verification(True, "accepted", **common)
+    common["relative"] = sim3_from_parts(T[:3, :3], scale * T[:3, 3], scale)
+    return _verdict(ph, common, cfg, min_compared, min_consistent, reject)
