@@ -228,11 +228,13 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     pair_grads[:n_pairs].zero_()
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import BWD_ACC_ROWS, rasterize_backward_tile, rasterize_backward_tile_noabs
+        from .raster_tile import (BWD_ACC_ROWS, native_flag, rasterize_backward_tile, rasterize_backward_tile_noabs,
+                                  status_buffer)
 
         launch_split(rasterize_backward_tile if absgrad else rasterize_backward_tile_noabs, dim,
                      [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
-                      v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads], device,
+                      v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads, native_flag(),
+                      status_buffer(dim, device)], device,
                      threads=threads, min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_backward, dim,

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from . import raster_tile_cpp
 from .camera import TILE_SIZE, Camera
 from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec12, vec16, vec16i
 
@@ -48,7 +49,7 @@ wp.set_module_options({
     "cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -mllvm -slp-schedule-budget=1000000",
 })
 
-__all__ = ["TILE_PIXELS", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
+__all__ = ["TILE_PIXELS", "use_native", "native_flag", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
            "rasterize_backward_tile", "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE  # ``pixels_per_thread`` value that selects these kernels
@@ -62,6 +63,31 @@ LOG2E = wp.constant(1.4426950408889634)
 LN2_HI = wp.constant(0.693359375)  # ln 2 split in two (Cody-Waite): n * LN2_HI is exact for |n| < 2^9
 LN2_LO = wp.constant(-2.12194440e-4)
 BWD_ACC_ROWS = 10  # running-sum rows of the backward (see rasterize_backward_tile)
+
+_native = {"on": True}
+_status: dict = {}
+
+
+def use_native(on: bool) -> bool:
+    """Whether the tile kernels run their C++ snippets where they apply (the CPU; the default) or their own Warp
+    code (the same results bit for bit; for tests and profiles). Returns the previous setting."""
+    before = _native["on"]
+    _native["on"] = bool(on)
+    return before
+
+
+def native_flag() -> int:
+    """The kernels' ``native`` argument: 1 when :func:`use_native` is on."""
+    return int(_native["on"])
+
+
+def status_buffer(dim: int, device) -> wp.array:
+    """The int32 array of ``dim`` flags a tile kernel writes (1 where its C++ snippet did the tile), one per
+    (device, size), reused from launch to launch; read it after a launch to see which code ran."""
+    key = (str(device), int(dim))
+    if key not in _status:
+        _status[key] = wp.zeros(int(dim), dtype=wp.int32, device=device)
+    return _status[key]
 
 
 @wp.func_native("""
@@ -145,6 +171,20 @@ def lane_sum(v: vec16) -> float:
     return (q[0] + q[2]) + (q[1] + q[3])
 
 
+_CONSTS = {"ALPHA_MAX": 0.99, "ALPHA_MIN": 1.0 / 255.0, "T_MIN": 1.0e-4, "LOG2E": 1.4426950408889634,
+           "LN2_HI": 0.693359375, "LN2_LO": -2.12194440e-4}
+
+
+@wp.func_native(raster_tile_cpp.fill(raster_tile_cpp.FORWARD, _CONSTS))
+def forward_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
+                     splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4), background: wp.vec3,
+                     rgb: wp.array3d(dtype=float), depth: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float),
+                     T_final: wp.array2d(dtype=float), n_contrib: wp.array2d(dtype=wp.int32)) -> int:
+    """:func:`rasterize_forward_tile`'s work for one tile in C++ (:mod:`~mgso_kernels.splat.raster_tile_cpp`): the
+    same outputs bit for bit. Returns 1, or 0 (nothing written) where it does not apply."""
+    ...
+
+
 @wp.kernel
 def rasterize_forward_tile(
     offset: int,
@@ -158,13 +198,22 @@ def rasterize_forward_tile(
     alpha: wp.array2d(dtype=float),  # [H, W] out, 1 - T_final
     T_final: wp.array2d(dtype=float),  # [H, W] out
     n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] out, 1 + tile-list position of the last accumulated Gaussian
+    native: int,  # 1: the C++ snippet where it applies (the CPU); 0: this kernel's own code
+    status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the snippet did the tile
 ):
-    tl = tile_of(offset + wp.tid(), cam)
+    i = offset + wp.tid()
+    tl = tile_of(i, cam)
     tile = tl[0]
     x0 = tl[1]
     y0 = tl[2]
     nx = tl[3] % 32
     ny = tl[3] // 32
+    if native != 0:
+        if forward_tile_cpp(tile, x0, y0, nx, ny, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
+                            n_contrib) != 0:
+            status[i] = 1
+            return
+    status[i] = 0
     start = ranges[tile, 0]
     end = ranges[tile, 1]
     # the tile's state as half rows: row r's pixels 0-7 at 2r, 8-15 at 2r + 1; a Gaussian's span inside a row is
@@ -274,6 +323,14 @@ def _alpha_tile_kernel(with_depth: bool):
     map; docs/seeding.md).
     """
 
+    @wp.func_native(raster_tile_cpp.fill(raster_tile_cpp.ALPHA, dict(_CONSTS, DEPTH=int(with_depth))))
+    def alpha_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
+                       splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4), t_stop: float,
+                       alpha: wp.array2d(dtype=float), depth: wp.array2d(dtype=float)) -> int:
+        """:func:`rasterize_alpha_tile`'s work for one tile in C++: the same alpha (and depth) bit for bit. Returns 1,
+        or 0 (nothing written) where it does not apply."""
+        ...
+
     @wp.kernel
     def rasterize_alpha_tile(
         offset: int,
@@ -284,13 +341,21 @@ def _alpha_tile_kernel(with_depth: bool):
         t_stop: float,  # the coverage stop (see above); <= T_MIN: the full render's rule only
         alpha: wp.array2d(dtype=float),  # [H, W] out, accumulated alpha = 1 - T_final
         depth: wp.array2d(dtype=float),  # [H, W] out with depth, sum w z (unnormalised); else not written
+        native: int,  # 1: the C++ snippet where it applies (the CPU); 0: this kernel's own code
+        status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the snippet did the tile
     ):
-        tl = tile_of(offset + wp.tid(), cam)
+        it = offset + wp.tid()
+        tl = tile_of(it, cam)
         tile = tl[0]
         x0 = tl[1]
         y0 = tl[2]
         nx = tl[3] % 32
         ny = tl[3] // 32
+        if native != 0:
+            if alpha_tile_cpp(tile, x0, y0, nx, ny, ranges, splats, splat_rgbz, t_stop, alpha, depth) != 0:
+                status[it] = 1
+                return
+        status[it] = 0
         T = mat16(1.0)
         D = mat16(0.0)
         row_done = vec16i(0)
@@ -363,8 +428,28 @@ rasterize_alpha_tile = _alpha_tile_kernel(False)
 rasterize_alpha_depth_tile = _alpha_tile_kernel(True)   # the coverage alpha and the accumulated depth
 
 
+def _backward_tile_cpp(with_absgrad: bool):
+    @wp.func_native(raster_tile_cpp.fill(raster_tile_cpp.BACKWARD, dict(_CONSTS, ABSGRAD=int(with_absgrad))))
+    def backward_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
+                          splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4),
+                          slots: wp.array(dtype=wp.int32), background: wp.vec3, T_final: wp.array2d(dtype=float),
+                          n_contrib: wp.array2d(dtype=wp.int32), v_rgb: wp.array3d(dtype=float),
+                          v_depth: wp.array2d(dtype=float), v_alpha: wp.array2d(dtype=float), use_depth: int,
+                          use_alpha: int, pair_grads: wp.array(dtype=vec12)) -> int:
+        """:func:`rasterize_backward_tile`'s work for one tile in C++: the same sums bit for bit. Returns 1, or 0
+        (nothing written) where it does not apply."""
+        ...
+
+    return backward_tile_cpp
+
+
+_backward_tile_cpp_abs = _backward_tile_cpp(True)
+_backward_tile_cpp_noabs = _backward_tile_cpp(False)
+
+
 def _backward_tile_kernel(with_absgrad: bool):
     """The backward tile kernel, with or without the AbsGS sums (``wp.static``: two compiled variants)."""
+    backward_tile_cpp = _backward_tile_cpp_abs if with_absgrad else _backward_tile_cpp_noabs
 
     @wp.kernel
     def rasterize_backward_tile(
@@ -384,13 +469,22 @@ def _backward_tile_kernel(with_absgrad: bool):
         use_alpha: int,  # 0: v_alpha ignored
         acc_rows: int,  # BWD_ACC_ROWS, passed at run time so that the running sums stay in (L1) memory
         pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
+        native: int,  # 1: the C++ snippet where it applies (the CPU); 0: this kernel's own code
+        status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the snippet did the tile
     ):
-        tl = tile_of(offset + wp.tid(), cam)
+        it = offset + wp.tid()
+        tl = tile_of(it, cam)
         tile = tl[0]
         x0 = tl[1]
         y0 = tl[2]
         nx = tl[3] % 32
         ny = tl[3] // 32
+        if native != 0:
+            if backward_tile_cpp(tile, x0, y0, nx, ny, ranges, splats, splat_rgbz, slots, background, T_final,
+                                 n_contrib, v_rgb, v_depth, v_alpha, use_depth, use_alpha, pair_grads) != 0:
+                status[it] = 1
+                return
+        status[it] = 0
         start = ranges[tile, 0]
         # per pixel: T (rebuilt back to front from T_final), S (sum over the Gaussians behind of w g, plus the
         # background's and alpha's share), upstream gradients, n_contrib

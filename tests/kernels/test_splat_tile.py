@@ -151,3 +151,61 @@ def test_colour_and_opacity_gradients_match_finite_differences_of_warp(wp_device
             fd[idx] = (loss(hi) - loss(lo)) / (2 * eps)
         assert np.abs(fd).max() > 0.1, name
         np.testing.assert_allclose(grads[name], fd, rtol=0, atol=tol * np.abs(fd).max(), err_msg=name)
+
+
+def _render_both_ways(device, scene, cam, ups, absgrad):
+    """Forward and backward of the tile kernels with their C++ snippets and with their own Warp code, and the status
+    flags each path left (1 where the snippet did a tile)."""
+    res = {}
+    for native in (True, False):
+        before = raster_tile.use_native(native)
+        try:
+            rast = Rasterizer(device)
+            out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+            r = {k: getattr(out, k).numpy().copy() for k in ("rgb", "depth", "alpha", "T_final", "n_contrib")}
+            dim = cam.tiles_x * cam.tiles_y
+            r["status_forward"] = raster_tile.status_buffer(dim, device).numpy().copy()
+            for t_stop in (0.0, 0.01):   # the coverage kernel, with and without the depth (the seeding's)
+                a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, t_stop=t_stop)
+                r[f"coverage_{t_stop}"] = a.alpha.numpy().copy()
+                r[f"status_coverage_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
+                a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, with_depth=True, t_stop=t_stop)
+                r[f"coverage_depth_{t_stop}"] = np.stack([a.alpha.numpy(), a.depth.numpy()])
+                r[f"status_coverage_depth_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
+            out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+            g = rast.backward(out, *ups, absgrad=absgrad)
+            r["status_backward"] = raster_tile.status_buffer(dim, device).numpy().copy()
+            for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
+                         "absgrad"):
+                r[name] = getattr(g, name).numpy().copy()
+        finally:
+            raster_tile.use_native(before)
+        res[native] = r
+    return res[True], res[False]
+
+
+@pytest.mark.parametrize("size,n,absgrad", [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True)])
+def test_cpp_tile_blend_equals_the_warp_kernels_bit_for_bit(wp_device, size, n, absgrad):
+    # The C++ snippets (raster_tile_cpp) do the Warp kernels' float operations in another order of work: the same
+    # images, coverage (with and without depth, with and without the coverage stop) and gradients bit for bit, on tiles cut by the image border, with the twin's hard cases (behind the
+    # camera, off-screen, thin, large, on tile borders, below 1/255) and a dense scene where pixels stop early.
+    # On the CPU the snippets must have done every tile (status 1; 0 would mean a silent fallback), and switched off
+    # (the control) none; on CUDA they decline (status 0) and the Warp code runs.
+    rng, scene, cam = _scene(11, n, *size)
+    w, h = size
+    ups = [rng.normal(size=s).astype(np.float32) for s in ((h, w, 3), (h, w), (h, w))]
+    cpp, warp_code = _render_both_ways(wp_device, scene, cam, ups, absgrad)
+    cpu = wp.get_device(wp_device).is_cpu
+    for key in [k for k in cpp if k.startswith("status")]:
+        assert (cpp[key] == (1 if cpu else 0)).all(), key
+        assert not warp_code[key].any(), key
+    assert (cpp["alpha"] > 0.999).mean() > 0.1 and (cpp["n_contrib"] > 0).mean() > 0.5
+    for key, value in cpp.items():
+        if key.startswith("status"):
+            continue
+        if key != "absgrad" or absgrad:
+            assert np.abs(value).max() > 0, key
+        if cpu:
+            assert np.array_equal(value.view(np.uint8), warp_code[key].view(np.uint8)), key
+        else:  # the same Warp code twice; its float atomics add in a varying order
+            np.testing.assert_allclose(value, warp_code[key], rtol=1e-4, atol=1e-6 * np.abs(value).max(), err_msg=key)

@@ -1,0 +1,434 @@
+"""The CPU's tile blends as plain C++ (the text of Warp native snippets used by :mod:`~mgso_kernels.splat.raster_tile`).
+
+:mod:`~mgso_kernels.splat.raster_tile`'s kernels, a thread per 16x16 tile, do per Gaussian of the tile's list and per
+tile row it reaches: the row's span (a ``sqrt``), a branch on the span, then 16 (or 8) lanes of blending on a copy of
+the row's state that is written back. Measured on a Zen 3 core (docs/rasteriser.md) that costs about 200 cycles a
+row visit, four to five times the lanes' arithmetic: the lanes wait on the span and on the branches around them, one
+row after the other. These snippets compute the same thing in the same float operations in another order of work:
+
+- **Per Gaussian, the lane constants once**: ``dx = x0 + k - mean_x`` and ``-0.5 a dx^2`` for the 16 columns (the
+  same products, in the same order, as :func:`~mgso_kernels.splat.raster_tile.lane_power` makes per row).
+- **Spans first, then the blend**: the rows the Gaussian reaches are turned into a compact list of the half rows
+  (8 pixels, one AVX2 vector) that have a live pixel inside its ellipse, without a branch per half; then the list is
+  blended, each entry in place on the tile's state, with no branch inside an entry. Entries are independent (a pixel
+  belongs to one), so the core overlaps them.
+- The backward keeps the Warp kernel's 16-lane rows and running sums (see its snippet).
+
+Every value is the Warp kernel's bit for bit (``fp contract(off)`` as Warp's CPU code; tested on the profile's scene
+and on edge cases), so :mod:`mgso_kernels.reference.splat` stays the twin. Each snippet returns 1, or 0 where it
+does not apply (CUDA, or arrays that are not contiguous) and the Warp code after it runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill"]
+
+
+def _f32(x: float) -> str:
+    """A C float literal of float32(x) (enough digits that the compiler's rounding gives that float)."""
+    return repr(float(np.float32(x))) + "f"
+
+
+# shared by the snippets: the blend's constants and exp_lane's polynomial (raster_tile.exp_lane, the same operations)
+_PRELUDE = r"""
+const float AMAX = @ALPHA_MAX@, AMIN = @ALPHA_MIN@, TMIN = @T_MIN@;
+const float LOG2E_ = @LOG2E@, LN2HI = @LN2_HI@, LN2LO = @LN2_LO@;
+typedef float v8f __attribute__((ext_vector_type(8)));
+typedef int v8i __attribute__((ext_vector_type(8)));
+const v8i LANE = {0, 1, 2, 3, 4, 5, 6, 7};
+const v8i BIT = {1, 2, 4, 8, 16, 32, 64, 128};
+// 8 ints from anywhere (a v8i pointer must be 32-byte aligned)
+auto ldi = [](const int* p) -> v8i { v8i v; __builtin_memcpy(&v, p, sizeof v); return v; };
+// a ? b : c per lane, bit for bit (a: a comparison's all-ones / zero lanes)
+auto sel = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
+// wp::min(k, v) and wp::max(v, k) as Warp's CPU code has them (C fmin / fmax: a NaN v gives k)
+auto vmin = [&](float k, v8f v) -> v8f { return sel((v8f)k <= v, (v8f)k, sel(v == v, v, (v8f)k)); };
+auto vexp = [&](v8f x) -> v8f {
+    x = sel(x >= -87.0f, x, (v8f)-87.0f);
+    const v8f nf = __builtin_elementwise_floor(x * LOG2E_ + 0.5f);
+    const v8f f = x - nf * LN2HI - nf * LN2LO;
+    const v8f p = 1.0f + f * (1.0f + f * (0.5f + f * (0.16666667f + f * (0.041666668f + f * (0.008333334f + f * (
+        0.0013888889f + f * 0.0001984127f))))));
+    return p * (v8f)((__builtin_convertvector(nf, v8i) + 127) << 23);
+};
+auto exp_l = [&](float x) -> float {
+    x = wp::max(x, -87.0f);
+    const float nf = wp::floor(x * LOG2E_ + 0.5f);
+    const float f = x - nf * LN2HI - nf * LN2LO;
+    const float p = 1.0f + f * (1.0f + f * (0.5f + f * (0.16666667f + f * (0.041666668f + f * (0.008333334f + f * (
+        0.0013888889f + f * 0.0001984127f))))));
+    return p * __builtin_bit_cast(float, ((int)nf + 127) << 23);
+};
+if (splats.strides[0] != 32 || splat_rgbz.strides[0] != 16) return 0;
+const float* sp = (const float*)splats.data;
+const float* cp = (const float*)splat_rgbz.data;
+const float fy0 = (float)y0, fx0 = (float)x0;
+// per row lo..hi of the tile (8 rows a vector): mrow[r - lo] = the span of the row inside the cut-off ellipse as a
+// bit mask (raster_tile.row_span_mask's operations), less the bits of done[r], and 0 where rmax[r] <= i; dy, -0.5 c
+// dy^2 and b dy of the row in dyr, cyyr, bdyr. done and rmax hold 32 rows (16 and a vector's overhang).
+alignas(32) int mrow[16];
+alignas(32) float dyr[16], cyyr[16], bdyr[16];
+auto row_spans = [&](int lo, int hi, float mx, float my, float a, float b, float c, float r2, float det, float inv_a,
+                     const int* done, const int* rmax, int i) {
+    const int nr = hi - lo + 1;
+    const float ar2 = a * r2, hc_ = -0.5f * c;
+    for (int r8 = 0; r8 < nr; r8 += 8) {
+        const v8i rr = (v8i)(lo + r8) + LANE;
+        const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - my;
+        const v8f disc = ar2 - det * dy * dy;
+        const v8f half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (v8f)0.0f, disc)) * inv_a;
+        const v8f xc = mx - b * dy * inv_a;
+        const v8i lm = __builtin_elementwise_max(
+            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), v8i) - x0, (v8i)0);
+        const v8i h = __builtin_elementwise_min(
+            __builtin_convertvector(__builtin_elementwise_floor(xc + half), v8i) - x0, (v8i)(nx - 1));
+        const v8i live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo + r8) > i);
+        // shift counts kept in [0, 16] where the row is not live (a vector shift by 32 or more is undefined)
+        const v8i l = __builtin_elementwise_min(lm, (v8i)15);
+        const v8i len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (v8i)0), (v8i)16);
+        const v8i span = (((v8i)1 << len) - 1) << l;
+        *(v8i*)(mrow + r8) = span & ~ldi(done + lo + r8) & live;
+        *(v8f*)(dyr + r8) = dy;
+        *(v8f*)(cyyr + r8) = hc_ * dy * dy;
+        *(v8f*)(bdyr + r8) = b * dy;
+    }
+};
+"""
+
+FORWARD = r"""
+const int start = wp::index(ranges, tile, 0);
+const int end = wp::index(ranges, tile, 1);
+// the tile's state as 32 half rows of 8 pixels: row r's pixels 0-7 at 2r, 8-15 at 2r + 1
+alignas(64) float T[32][8], CR[32][8], CG[32][8], CB[32][8], DD[32][8], LL[32][8];
+for (int q = 0; q < 32; ++q)
+    for (int k = 0; k < 8; ++k) {
+        T[q][k] = 1.0f; CR[q][k] = 0.0f; CG[q][k] = 0.0f; CB[q][k] = 0.0f; DD[q][k] = 0.0f; LL[q][k] = 0.0f;
+    }
+alignas(32) int row_done[32];   // 16 rows and a vector's overhang
+for (int r = 0; r < 32; ++r) row_done[r] = 0;
+alignas(32) int no_max[32];
+for (int r = 0; r < 32; ++r) no_max[r] = 2147483647;
+const int full = (1 << nx) - 1;
+int rows_left = ny;
+alignas(64) float dxl[16], pa[16];
+int hq[32], hm[32];
+float hc[32], hb[32];
+for (int j = start; j < end; ++j) {
+    const float* s = sp + 8L * j;
+    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
+    const float det = a * c - b * b;
+    const float inv_a = 1.0f / a;
+    const float ry = wp::sqrt(a * r2 / det);
+    const int lo0 = (int)wp::ceil(my - ry - fy0);
+    const int hi0 = (int)wp::floor(my + ry - fy0);
+    const int lo = lo0 > 0 ? lo0 : 0;
+    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
+    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, row_done, no_max, 0);
+    // the half rows with a live pixel, listed
+    int n = 0;
+    for (int i = 0; i < hi - lo + 1; ++i) {
+        const int m = mrow[i], q = 2 * (lo + i);
+        const float cyy = cyyr[i], bdy = bdyr[i];
+        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; n += (m & 255) != 0;
+        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; n += (m >> 8) != 0;
+    }
+    if (n == 0) continue;
+    const float dx0 = fx0 - mx;
+    const float ha = -0.5f * a;
+    for (int k = 0; k < 16; ++k) {
+        const float dx = dx0 + (float)k;
+        dxl[k] = dx;
+        pa[k] = ha * dx * dx;
+    }
+    const float* col = cp + 4L * j;
+    const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
+    const float pos = (float)(j - start + 1);
+    const v8f vc0 = c0, vc1 = c1, vc2 = c2, vc3 = c3, vop = op, vpos = pos;
+    auto blend = [&](int e) {
+        const int q = hq[e], off = 8 * (q & 1);
+        const v8f dx = *(const v8f*)(dxl + off);
+        const v8f pw = *(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)hb[e] * dx;
+        const v8f al = vmin(AMAX, vop * vexp(pw));
+        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
+        const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
+        const v8f Tk = *(v8f*)T[q];
+        const v8f Tn = Tk * (1.0f - al);
+        const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
+        const v8f acc = ok - stop;
+        const v8f w = acc * al * Tk;
+        *(v8f*)CR[q] = *(v8f*)CR[q] + w * vc0;
+        *(v8f*)CG[q] = *(v8f*)CG[q] + w * vc1;
+        *(v8f*)CB[q] = *(v8f*)CB[q] + w * vc2;
+        *(v8f*)DD[q] = *(v8f*)DD[q] + w * vc3;
+        // T = took ? Tn : Tk and L = took ? pos : L without a select on what was loaded from the same place
+        // (LLVM makes that a masked store, which Zen 3 runs slowly and cannot forward to the next Gaussian's load):
+        // Tk * 1 is Tk, and L only grows along the list
+        const v8i took = acc > 0.0f;
+        *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);
+        *(v8f*)LL[q] = __builtin_elementwise_max(*(v8f*)LL[q], sel(took, vpos, (v8f)0.0f));
+        const int nh = __builtin_reduce_or((stop > 0.0f) & BIT);
+        if (nh != 0) {
+            const int r = q >> 1;
+            const int old = row_done[r];
+            const int now = old | (nh << off);
+            row_done[r] = now;
+            if (now == full && old != full) --rows_left;
+        }
+    };
+    int e = 0;
+    for (; e + 1 < n; e += 2) {
+        blend(e);
+        blend(e + 1);
+    }
+    if (e < n) blend(e);
+    if (rows_left == 0) break;
+}
+for (int r = 0; r < ny; ++r) {
+    const int y = y0 + r;
+    for (int k = 0; k < nx; ++k) {
+        const int x = x0 + k, q = 2 * r + (k >> 3), kk = k & 7;
+        const float Tk = T[q][kk];
+        wp::index(rgb, y, x, 0) = CR[q][kk] + Tk * background[0];
+        wp::index(rgb, y, x, 1) = CG[q][kk] + Tk * background[1];
+        wp::index(rgb, y, x, 2) = CB[q][kk] + Tk * background[2];
+        wp::index(depth, y, x) = DD[q][kk];
+        wp::index(alpha, y, x) = 1.0f - Tk;
+        wp::index(T_final, y, x) = Tk;
+        wp::index(n_contrib, y, x) = (int)LL[q][kk];
+    }
+}
+return 1;
+"""
+
+ALPHA = r"""
+const int start = wp::index(ranges, tile, 0);
+const int end = wp::index(ranges, tile, 1);
+alignas(64) float T[32][8], DD[32][8];
+for (int q = 0; q < 32; ++q)
+    for (int k = 0; k < 8; ++k) { T[q][k] = 1.0f; DD[q][k] = 0.0f; }
+alignas(32) int row_done[32];
+alignas(32) int no_max[32];
+for (int r = 0; r < 32; ++r) { row_done[r] = 0; no_max[r] = 2147483647; }
+const int full = (1 << nx) - 1;
+int rows_left = ny;
+alignas(64) float dxl[16], pa[16];
+int hq[32], hm[32];
+float hc[32], hb[32];
+const v8f vts = t_stop;
+for (int j = start; j < end; ++j) {
+    const float* s = sp + 8L * j;
+    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
+    const float det = a * c - b * b;
+    const float inv_a = 1.0f / a;
+    const float ry = wp::sqrt(a * r2 / det);
+    const int lo0 = (int)wp::ceil(my - ry - fy0);
+    const int hi0 = (int)wp::floor(my + ry - fy0);
+    const int lo = lo0 > 0 ? lo0 : 0;
+    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
+    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, row_done, no_max, 0);
+    int n = 0;
+    for (int i = 0; i < hi - lo + 1; ++i) {
+        const int m = mrow[i], q = 2 * (lo + i);
+        const float cyy = cyyr[i], bdy = bdyr[i];
+        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; n += (m & 255) != 0;
+        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; n += (m >> 8) != 0;
+    }
+    if (n == 0) continue;
+    const float dx0 = fx0 - mx;
+    const float ha = -0.5f * a;
+    for (int k = 0; k < 16; ++k) {
+        const float dx = dx0 + (float)k;
+        dxl[k] = dx;
+        pa[k] = ha * dx * dx;
+    }
+    const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = op;
+    for (int e = 0; e < n; ++e) {
+        const int q = hq[e], off = 8 * (q & 1);
+        const v8f dx = *(const v8f*)(dxl + off);
+        const v8f al = vmin(AMAX, vop * vexp(*(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)hb[e] * dx));
+        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
+        const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
+        const v8f Tk = *(v8f*)T[q];
+        const v8f Tn = Tk * (1.0f - al);
+        const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
+        const v8f acc = ok - stop;
+        if (@DEPTH@) *(v8f*)DD[q] = *(v8f*)DD[q] + acc * al * Tk * vz;
+        const v8i took = acc > 0.0f;
+        *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);   // took ? Tn : Tk (see the forward)
+        const v8f covered = sel(Tn < vts, acc, (v8f)0.0f);
+        const int nh = __builtin_reduce_or((stop + covered > 0.0f) & BIT);
+        if (nh != 0) {
+            const int r = q >> 1;
+            const int old = row_done[r];
+            const int now = old | (nh << off);
+            row_done[r] = now;
+            if (now == full && old != full) --rows_left;
+        }
+    }
+    if (rows_left == 0) break;
+}
+for (int r = 0; r < ny; ++r)
+    for (int k = 0; k < nx; ++k) {
+        const int q = 2 * r + (k >> 3), kk = k & 7;
+        wp::index(alpha, y0 + r, x0 + k) = 1.0f - T[q][kk];
+        if (@DEPTH@) wp::index(depth, y0 + r, x0 + k) = DD[q][kk];
+    }
+return 1;
+"""
+
+BACKWARD = r"""
+const int start = wp::index(ranges, tile, 0);
+// per pixel, half rows as in the forward: T (rebuilt back to front from T_final), S (what lies behind), the upstream
+// gradients, n_contrib; lanes outside the image stay 0 (n_contrib 0: never blended)
+alignas(64) float T[32][8], S[32][8], GR[32][8], GG[32][8], GB[32][8], VD[32][8], NC[32][8];
+for (int q = 0; q < 32; ++q)
+    for (int k = 0; k < 8; ++k) {
+        T[q][k] = 0.0f; S[q][k] = 0.0f; GR[q][k] = 0.0f; GG[q][k] = 0.0f; GB[q][k] = 0.0f; VD[q][k] = 0.0f;
+        NC[q][k] = 0.0f;
+    }
+alignas(32) int row_max[32];
+alignas(32) int none[32];
+for (int r = 0; r < 32; ++r) { row_max[r] = 0; none[r] = 0; }
+int n_max = 0;
+for (int r = 0; r < ny; ++r) {
+    const int y = y0 + r;
+    int rm = 0;
+    for (int k = 0; k < nx; ++k) {
+        const int x = x0 + k, q = 2 * r + (k >> 3), kk = k & 7;
+        const float Tf = wp::index(T_final, y, x);
+        T[q][kk] = Tf;
+        const float gr = wp::index(v_rgb, y, x, 0), gg = wp::index(v_rgb, y, x, 1), gb = wp::index(v_rgb, y, x, 2);
+        GR[q][kk] = gr; GG[q][kk] = gg; GB[q][kk] = gb;
+        float vA = 0.0f;
+        if (use_depth != 0) VD[q][kk] = wp::index(v_depth, y, x);
+        if (use_alpha != 0) vA = wp::index(v_alpha, y, x);
+        S[q][kk] = Tf * (background[0] * gr + background[1] * gg + background[2] * gb - vA);
+        const int nc = wp::index(n_contrib, y, x);
+        NC[q][kk] = (float)nc;
+        rm = rm > nc ? rm : nc;
+    }
+    row_max[r] = rm;
+    n_max = n_max > rm ? n_max : rm;
+}
+if (slots.strides[0] != 4 || pair_grads.strides[0] != 48) return 0;
+const int* slot_p = (const int*)slots.data;
+float* grads = (float*)pair_grads.data;
+// one Gaussian's running sums over the tile, per lane (0-7 the left half, 8-15 the right): 0 v_pow, 1 dy v_pow,
+// 2 dy^2 v_pow, 3 v_alpha_raw E, 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums
+alignas(64) float ACC[10][16];
+alignas(64) float dxl[16], pa[16];
+int hq[32], hm[32];
+float hc[32], hb[32], hd[32];
+for (int jj = 0; jj < n_max; ++jj) {
+    const int i = n_max - 1 - jj;
+    const float fi = (float)i;
+    const int j = start + i;
+    const float* s = sp + 8L * j;
+    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
+    const float det = a * c - b * b;
+    const float inv_a = 1.0f / a;
+    const float ry = wp::sqrt(a * r2 / det);
+    const int lo0 = (int)wp::ceil(my - ry - fy0);
+    const int hi0 = (int)wp::floor(my + ry - fy0);
+    const int lo = lo0 > 0 ? lo0 : 0;
+    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
+    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, none, row_max, i);
+    int n = 0;
+    for (int t = 0; t < hi - lo + 1; ++t) {
+        const int m = mrow[t], q = 2 * (lo + t);
+        const float cyy = cyyr[t], bdy = bdyr[t], dy = dyr[t];
+        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m & 255) != 0;
+        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m >> 8) != 0;
+    }
+    if (n == 0) continue;
+    const float dx0 = fx0 - mx;
+    const float ha = -0.5f * a;
+    for (int k = 0; k < 16; ++k) {
+        const float dx = dx0 + (float)k;
+        dxl[k] = dx;
+        pa[k] = ha * dx * dx;
+    }
+    for (int t = 0; t < 10; ++t)
+        for (int k = 0; k < 16; ++k) ACC[t][k] = 0.0f;
+    const float* col = cp + 4L * j;
+    const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
+    const v8f vop = op;
+    for (int e = 0; e < n; ++e) {
+        const int q = hq[e], off = 8 * (q & 1);
+        const float dy = hd[e], bdy = hb[e];
+        const v8f dx = *(const v8f*)(dxl + off);
+        const v8f ev = vexp(*(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)bdy * dx);
+        const v8f raw = vop * ev;
+        const v8f al = vmin(AMAX, raw);
+        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
+        const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= AMIN, bit, (v8f)0.0f), (v8f)0.0f);
+        const v8f inv = 1.0f / (1.0f - al);
+        const v8f Tq = *(const v8f*)T[q];
+        const v8f Sq = *(const v8f*)S[q];
+        const v8f gR = *(const v8f*)GR[q], gG = *(const v8f*)GG[q], gB = *(const v8f*)GB[q];
+        const v8f vD = *(const v8f*)VD[q];
+        const v8f Tk = Tq * inv;
+        const v8f w = al * Tk;
+        const v8f gi = c0 * gR + c1 * gG + c2 * gB + c3 * vD;
+        const v8f v_al = Tk * gi - Sq * inv;
+        const v8i okb = ok > 0.0f;
+        // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
+        // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
+        *(v8f*)T[q] = Tq * sel(okb, inv, (v8f)1.0f);
+        *(v8f*)S[q] = Sq + sel(okb, w * gi, (v8f)-0.0f);
+        const v8f v_raw = sel(raw <= AMAX, v_al, (v8f)0.0f) * ok;
+        const v8f v_pow = v_raw * raw;
+        const v8f wk = w * ok;
+        float* A = &ACC[0][off];
+        *(v8f*)(A + 0 * 16) = *(v8f*)(A + 0 * 16) + v_pow;
+        *(v8f*)(A + 1 * 16) = *(v8f*)(A + 1 * 16) + dy * v_pow;
+        *(v8f*)(A + 2 * 16) = *(v8f*)(A + 2 * 16) + dy * dy * v_pow;
+        *(v8f*)(A + 3 * 16) = *(v8f*)(A + 3 * 16) + v_raw * ev;
+        *(v8f*)(A + 4 * 16) = *(v8f*)(A + 4 * 16) + wk * gR;
+        *(v8f*)(A + 5 * 16) = *(v8f*)(A + 5 * 16) + wk * gG;
+        *(v8f*)(A + 6 * 16) = *(v8f*)(A + 6 * 16) + wk * gB;
+        *(v8f*)(A + 7 * 16) = *(v8f*)(A + 7 * 16) + wk * vD;
+        if (@ABSGRAD@) {
+            const v8f mp = __builtin_elementwise_abs(v_pow);
+            *(v8f*)(A + 8 * 16) = *(v8f*)(A + 8 * 16) + __builtin_elementwise_abs(a * dx + bdy) * mp;
+            *(v8f*)(A + 9 * 16) = *(v8f*)(A + 9 * 16) + __builtin_elementwise_abs(b * dx + c * dy) * mp;
+        }
+    }
+    // sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow (dx is the lane's constant), each lane sum as raster_tile's
+    auto lane_sum = [](const float* v) -> float {
+        float h[8], q4[4];
+        for (int k = 0; k < 8; ++k) h[k] = v[k] + v[k + 8];
+        for (int k = 0; k < 4; ++k) q4[k] = h[k] + h[k + 4];
+        return (q4[0] + q4[2]) + (q4[1] + q4[3]);
+    };
+    alignas(64) float t1[16], t2[16], t3[16];
+    for (int k = 0; k < 16; ++k) {
+        t1[k] = dxl[k] * ACC[0][k];
+        t2[k] = dxl[k] * dxl[k] * ACC[0][k];
+        t3[k] = dxl[k] * ACC[1][k];
+    }
+    const float P1 = lane_sum(t1), P2 = lane_sum(t2), Q1 = lane_sum(ACC[1]), Q2 = lane_sum(t3), Q3 = lane_sum(ACC[2]);
+    float* g = grads + 12L * slot_p[j];
+    g[0] = g[0] + (a * P1 + b * Q1);
+    g[1] = g[1] + (b * P1 + c * Q1);
+    g[2] = g[2] + -0.5f * P2;
+    g[3] = g[3] + -Q2;
+    g[4] = g[4] + -0.5f * Q3;
+    for (int t = 3; t < 10; ++t) g[t + 2] = g[t + 2] + lane_sum(ACC[t]);
+}
+return 1;
+"""
+
+
+def fill(body: str, consts: dict[str, float | int]) -> str:
+    """The snippet: CPU only (clang), no contraction into FMAs (Warp's CPU code makes none), the prelude and
+    ``body`` with the constants filled in (a float as a float32 literal, an int as itself)."""
+    text = ("#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
+            + _PRELUDE + body + "\n}\n#else\nreturn 0;\n#endif\n")
+    for name, value in consts.items():
+        text = text.replace(f"@{name}@", str(value) if isinstance(value, int) else _f32(value))
+    if "@" in text:
+        raise ValueError("raster_tile_cpp: a value of the snippet is not filled in")
+    return text
