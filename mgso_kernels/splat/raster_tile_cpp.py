@@ -12,7 +12,10 @@ row after the other. These snippets compute the same thing in the same float ope
   (8 pixels, one AVX2 vector) that have a live pixel inside its ellipse, without a branch per half; then the list is
   blended, each entry in place on the tile's state, with no branch inside an entry. Entries are independent (a pixel
   belongs to one), so the core overlaps them.
-- The backward keeps the Warp kernel's 16-lane rows and running sums (see its snippet).
+- No select on a value just loaded from the same place (``T = Tk * (took ? 1 - alpha : 1)`` instead of
+  ``took ? Tn : Tk``): LLVM makes such a select a masked store, slow on Zen 3 and not forwarded to the next load.
+- The backward lists half rows the same way; its running sums stay per lane over the tile (lanes 0-7 the left half,
+  8-15 the right), reduced by the Warp kernel's tree.
 
 Every value is the Warp kernel's bit for bit (``fp contract(off)`` as Warp's CPU code; tested on the profile's scene
 and on edge cases), so :mod:`mgso_kernels.reference.splat` stays the twin. Each snippet returns 1, or 0 where it
