@@ -38,7 +38,7 @@ from typing import Mapping, Union
 import numpy as np
 
 from mgso.camera import PinholeCamera
-from mgso.geometry import check_sim3, orthonormalize, sim3_to_parts
+from mgso.geometry import check_sim3, orthonormalize, se3_inverse, sim3_to_parts
 
 __all__ = ["KeyframeMessage", "PoseUpdate", "PointsMessage", "LoopCorrection", "Stop", "MapperMessage",
            "PointKind", "map_exposure", "sim3_apply_to_pose", "check_points", "frozen_array"]
@@ -229,11 +229,7 @@ class KeyframeMessage:
 
     @property
     def world_to_cam(self) -> np.ndarray:
-        T = self.cam_to_world
-        out = np.eye(4)
-        out[:3, :3] = T[:3, :3].T
-        out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-        return out
+        return se3_inverse(self.cam_to_world)
 
     def map_exposure(self, reference_exposure_ms: float | None) -> tuple[float, float]:
         """This keyframe's exposure for the trainer (see :func:`map_exposure`)."""

@@ -40,6 +40,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from mgso.camera import PinholeCamera
 from mgso.config import SeedingConfig
+from mgso.geometry import se3_inverse
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap, rgb_to_sh_dc
 from mgso.messages import PointKind, check_points, frozen_array as _frozen_array
 
@@ -149,11 +150,7 @@ class KeyframeSeedInput:
 
     @property
     def world_to_cam(self) -> np.ndarray:
-        T = self.cam_to_world
-        out = np.eye(4)
-        out[:3, :3] = T[:3, :3].T
-        out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-        return out
+        return se3_inverse(self.cam_to_world)
 
 
 # ----------------------------------------------------------------------------------------------- helpers
