@@ -56,33 +56,44 @@ auto vexp = [&](v8f x) -> v8f {
         0.0013888889f + f * 0.0001984127f))))));
     return p * (v8f)((__builtin_convertvector(nf, v8i) + 127) << 23);
 };
-auto exp_l = [&](float x) -> float {
-    x = wp::max(x, -87.0f);
-    const float nf = wp::floor(x * LOG2E_ + 0.5f);
-    const float f = x - nf * LN2HI - nf * LN2LO;
-    const float p = 1.0f + f * (1.0f + f * (0.5f + f * (0.16666667f + f * (0.041666668f + f * (0.008333334f + f * (
-        0.0013888889f + f * 0.0001984127f))))));
-    return p * __builtin_bit_cast(float, ((int)nf + 127) << 23);
-};
 if (splats.strides[0] != 32 || splat_rgbz.strides[0] != 16) return 0;
 const float* sp = (const float*)splats.data;
 const float* cp = (const float*)splat_rgbz.data;
 const float fy0 = (float)y0, fx0 = (float)x0;
-// per row lo..hi of the tile (8 rows a vector): mrow[r - lo] = the span of the row inside the cut-off ellipse as a
-// bit mask (raster_tile.row_span_mask's operations), less the bits of done[r], and 0 where rmax[r] <= i; dy, -0.5 c
-// dy^2 and b dy of the row in dyr, cyyr, bdyr. done and rmax hold 32 rows (16 and a vector's overhang).
+// one Gaussian of the tile's list, and the rows [lo, hi] of the tile its cut-off ellipse reaches (tile_rows)
+struct Splat { float mx, my, a, b, c, op, r2, det, inv_a; int lo, hi; };
+auto load_splat = [&](int j) -> Splat {
+    const float* s = sp + 8L * j;
+    Splat g;
+    g.mx = s[0]; g.my = s[1]; g.a = s[2]; g.b = s[3]; g.c = s[4]; g.op = s[5]; g.r2 = s[7];
+    g.det = g.a * g.c - g.b * g.b;
+    g.inv_a = 1.0f / g.a;
+    const float ry = wp::sqrt(g.a * g.r2 / g.det);
+    const int lo0 = (int)wp::ceil(g.my - ry - fy0);
+    const int hi0 = (int)wp::floor(g.my + ry - fy0);
+    g.lo = lo0 > 0 ? lo0 : 0;
+    g.hi = hi0 < ny - 1 ? hi0 : ny - 1;
+    return g;
+};
+// list_halves(g, done, rmax, i): per row r in [lo, hi] (8 rows a vector) the span of the row inside the cut-off
+// ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none where rmax[r] <= i; then
+// the half rows (q = 2 r + 0 / 1) with a bit left, listed in hq / hm (their 8 bits) with the row's -0.5 c dy^2,
+// b dy and dy in hc, hb, hd. Returns their number. done and rmax hold 32 rows (16 and a vector's overhang).
+alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
+for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
 alignas(32) int mrow[16];
 alignas(32) float dyr[16], cyyr[16], bdyr[16];
-auto row_spans = [&](int lo, int hi, float mx, float my, float a, float b, float c, float r2, float det, float inv_a,
-                     const int* done, const int* rmax, int i) {
-    const int nr = hi - lo + 1;
-    const float ar2 = a * r2, hc_ = -0.5f * c;
+int hq[32], hm[32];
+float hc[32], hb[32], hd[32];
+auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) -> int {
+    const int lo = g.lo, hi = g.hi, nr = hi - lo + 1;
+    const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
     for (int r8 = 0; r8 < nr; r8 += 8) {
         const v8i rr = (v8i)(lo + r8) + LANE;
-        const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - my;
-        const v8f disc = ar2 - det * dy * dy;
-        const v8f half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (v8f)0.0f, disc)) * inv_a;
-        const v8f xc = mx - b * dy * inv_a;
+        const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - g.my;
+        const v8f disc = ar2 - g.det * dy * dy;
+        const v8f half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (v8f)0.0f, disc)) * g.inv_a;
+        const v8f xc = g.mx - g.b * dy * g.inv_a;
         const v8i lm = __builtin_elementwise_max(
             __builtin_convertvector(__builtin_elementwise_ceil(xc - half), v8i) - x0, (v8i)0);
         const v8i h = __builtin_elementwise_min(
@@ -95,7 +106,37 @@ auto row_spans = [&](int lo, int hi, float mx, float my, float a, float b, float
         *(v8i*)(mrow + r8) = span & ~ldi(done + lo + r8) & live;
         *(v8f*)(dyr + r8) = dy;
         *(v8f*)(cyyr + r8) = hc_ * dy * dy;
-        *(v8f*)(bdyr + r8) = b * dy;
+        *(v8f*)(bdyr + r8) = g.b * dy;
+    }
+    int n = 0;
+    for (int t = 0; t < nr; ++t) {
+        const int m = mrow[t], q = 2 * (lo + t);
+        const float cyy = cyyr[t], bdy = bdyr[t], dy = dyr[t];
+        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m & 255) != 0;
+        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m >> 8) != 0;
+    }
+    return n;
+};
+// per column k of the tile: dx = x0 + k - mean_x and -0.5 a dx^2 (lane_power's first product)
+alignas(64) float dxl[16], pa[16];
+auto lane_constants = [&](const Splat& g) {
+    const float dx0 = fx0 - g.mx;
+    const float ha = -0.5f * g.a;
+    for (int k = 0; k < 16; ++k) {
+        const float dx = dx0 + (float)k;
+        dxl[k] = dx;
+        pa[k] = ha * dx * dx;
+    }
+};
+// the forward and the coverage: the stopped pixels nh (8 bits) of half row q join row_done; a row that is full
+// now counts off rows_left
+auto mark_done = [](int* row_done, int full, int& rows_left, int q, int nh) {
+    if (nh != 0) {
+        const int r = q >> 1;
+        const int old = row_done[r];
+        const int now = old | (nh << (8 * (q & 1)));
+        row_done[r] = now;
+        if (now == full && old != full) --rows_left;
     }
 };
 """
@@ -111,45 +152,16 @@ for (int q = 0; q < 32; ++q)
     }
 alignas(32) int row_done[32];   // 16 rows and a vector's overhang
 for (int r = 0; r < 32; ++r) row_done[r] = 0;
-alignas(32) int no_max[32];
-for (int r = 0; r < 32; ++r) no_max[r] = 2147483647;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
-alignas(64) float dxl[16], pa[16];
-int hq[32], hm[32];
-float hc[32], hb[32];
 for (int j = start; j < end; ++j) {
-    const float* s = sp + 8L * j;
-    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
-    const float det = a * c - b * b;
-    const float inv_a = 1.0f / a;
-    const float ry = wp::sqrt(a * r2 / det);
-    const int lo0 = (int)wp::ceil(my - ry - fy0);
-    const int hi0 = (int)wp::floor(my + ry - fy0);
-    const int lo = lo0 > 0 ? lo0 : 0;
-    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
-    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, row_done, no_max, 0);
-    // the half rows with a live pixel, listed
-    int n = 0;
-    for (int i = 0; i < hi - lo + 1; ++i) {
-        const int m = mrow[i], q = 2 * (lo + i);
-        const float cyy = cyyr[i], bdy = bdyr[i];
-        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; n += (m & 255) != 0;
-        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; n += (m >> 8) != 0;
-    }
+    const Splat g = load_splat(j);
+    const int n = list_halves(g, row_done, all_rows, 0);
     if (n == 0) continue;
-    const float dx0 = fx0 - mx;
-    const float ha = -0.5f * a;
-    for (int k = 0; k < 16; ++k) {
-        const float dx = dx0 + (float)k;
-        dxl[k] = dx;
-        pa[k] = ha * dx * dx;
-    }
+    lane_constants(g);
     const float* col = cp + 4L * j;
-    const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
-    const float pos = (float)(j - start + 1);
-    const v8f vc0 = c0, vc1 = c1, vc2 = c2, vc3 = c3, vop = op, vpos = pos;
-    auto blend = [&](int e) {
+    const v8f vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
+    for (int e = 0; e < n; ++e) {
         const int q = hq[e], off = 8 * (q & 1);
         const v8f dx = *(const v8f*)(dxl + off);
         const v8f pw = *(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)hb[e] * dx;
@@ -172,20 +184,8 @@ for (int j = start; j < end; ++j) {
         *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);
         *(v8f*)LL[q] = __builtin_elementwise_max(*(v8f*)LL[q], sel(took, vpos, (v8f)0.0f));
         const int nh = __builtin_reduce_or((stop > 0.0f) & BIT);
-        if (nh != 0) {
-            const int r = q >> 1;
-            const int old = row_done[r];
-            const int now = old | (nh << off);
-            row_done[r] = now;
-            if (now == full && old != full) --rows_left;
-        }
-    };
-    int e = 0;
-    for (; e + 1 < n; e += 2) {
-        blend(e);
-        blend(e + 1);
+        mark_done(row_done, full, rows_left, q, nh);
     }
-    if (e < n) blend(e);
     if (rows_left == 0) break;
 }
 for (int r = 0; r < ny; ++r) {
@@ -211,42 +211,17 @@ const int end = wp::index(ranges, tile, 1);
 alignas(64) float T[32][8], DD[32][8];
 for (int q = 0; q < 32; ++q)
     for (int k = 0; k < 8; ++k) { T[q][k] = 1.0f; DD[q][k] = 0.0f; }
-alignas(32) int row_done[32];
-alignas(32) int no_max[32];
-for (int r = 0; r < 32; ++r) { row_done[r] = 0; no_max[r] = 2147483647; }
+alignas(32) int row_done[32];   // 16 rows and a vector's overhang
+for (int r = 0; r < 32; ++r) row_done[r] = 0;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
-alignas(64) float dxl[16], pa[16];
-int hq[32], hm[32];
-float hc[32], hb[32];
 const v8f vts = t_stop;
 for (int j = start; j < end; ++j) {
-    const float* s = sp + 8L * j;
-    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
-    const float det = a * c - b * b;
-    const float inv_a = 1.0f / a;
-    const float ry = wp::sqrt(a * r2 / det);
-    const int lo0 = (int)wp::ceil(my - ry - fy0);
-    const int hi0 = (int)wp::floor(my + ry - fy0);
-    const int lo = lo0 > 0 ? lo0 : 0;
-    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
-    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, row_done, no_max, 0);
-    int n = 0;
-    for (int i = 0; i < hi - lo + 1; ++i) {
-        const int m = mrow[i], q = 2 * (lo + i);
-        const float cyy = cyyr[i], bdy = bdyr[i];
-        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; n += (m & 255) != 0;
-        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; n += (m >> 8) != 0;
-    }
+    const Splat g = load_splat(j);
+    const int n = list_halves(g, row_done, all_rows, 0);
     if (n == 0) continue;
-    const float dx0 = fx0 - mx;
-    const float ha = -0.5f * a;
-    for (int k = 0; k < 16; ++k) {
-        const float dx = dx0 + (float)k;
-        dxl[k] = dx;
-        pa[k] = ha * dx * dx;
-    }
-    const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = op;
+    lane_constants(g);
+    const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
     for (int e = 0; e < n; ++e) {
         const int q = hq[e], off = 8 * (q & 1);
         const v8f dx = *(const v8f*)(dxl + off);
@@ -262,13 +237,7 @@ for (int j = start; j < end; ++j) {
         *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);   // took ? Tn : Tk (see the forward)
         const v8f covered = sel(Tn < vts, acc, (v8f)0.0f);
         const int nh = __builtin_reduce_or((stop + covered > 0.0f) & BIT);
-        if (nh != 0) {
-            const int r = q >> 1;
-            const int old = row_done[r];
-            const int now = old | (nh << off);
-            row_done[r] = now;
-            if (now == full && old != full) --rows_left;
-        }
+        mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
 }
@@ -291,9 +260,8 @@ for (int q = 0; q < 32; ++q)
         T[q][k] = 0.0f; S[q][k] = 0.0f; GR[q][k] = 0.0f; GG[q][k] = 0.0f; GB[q][k] = 0.0f; VD[q][k] = 0.0f;
         NC[q][k] = 0.0f;
     }
-alignas(32) int row_max[32];
-alignas(32) int none[32];
-for (int r = 0; r < 32; ++r) { row_max[r] = 0; none[r] = 0; }
+alignas(32) int row_max[32];   // the largest n_contrib of each row (16 and a vector's overhang)
+for (int r = 0; r < 32; ++r) row_max[r] = 0;
 int n_max = 0;
 for (int r = 0; r < ny; ++r) {
     const int y = y0 + r;
@@ -321,43 +289,20 @@ float* grads = (float*)pair_grads.data;
 // one Gaussian's running sums over the tile, per lane (0-7 the left half, 8-15 the right): 0 v_pow, 1 dy v_pow,
 // 2 dy^2 v_pow, 3 v_alpha_raw E, 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums
 alignas(64) float ACC[10][16];
-alignas(64) float dxl[16], pa[16];
-int hq[32], hm[32];
-float hc[32], hb[32], hd[32];
 for (int jj = 0; jj < n_max; ++jj) {
     const int i = n_max - 1 - jj;
     const float fi = (float)i;
     const int j = start + i;
-    const float* s = sp + 8L * j;
-    const float mx = s[0], my = s[1], a = s[2], b = s[3], c = s[4], op = s[5], r2 = s[7];
-    const float det = a * c - b * b;
-    const float inv_a = 1.0f / a;
-    const float ry = wp::sqrt(a * r2 / det);
-    const int lo0 = (int)wp::ceil(my - ry - fy0);
-    const int hi0 = (int)wp::floor(my + ry - fy0);
-    const int lo = lo0 > 0 ? lo0 : 0;
-    const int hi = hi0 < ny - 1 ? hi0 : ny - 1;
-    row_spans(lo, hi, mx, my, a, b, c, r2, det, inv_a, none, row_max, i);
-    int n = 0;
-    for (int t = 0; t < hi - lo + 1; ++t) {
-        const int m = mrow[t], q = 2 * (lo + t);
-        const float cyy = cyyr[t], bdy = bdyr[t], dy = dyr[t];
-        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m & 255) != 0;
-        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m >> 8) != 0;
-    }
+    const Splat g = load_splat(j);
+    const int n = list_halves(g, no_rows, row_max, i);
     if (n == 0) continue;
-    const float dx0 = fx0 - mx;
-    const float ha = -0.5f * a;
-    for (int k = 0; k < 16; ++k) {
-        const float dx = dx0 + (float)k;
-        dxl[k] = dx;
-        pa[k] = ha * dx * dx;
-    }
+    lane_constants(g);
+    const float a = g.a, b = g.b, c = g.c;
     for (int t = 0; t < 10; ++t)
         for (int k = 0; k < 16; ++k) ACC[t][k] = 0.0f;
     const float* col = cp + 4L * j;
     const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
-    const v8f vop = op;
+    const v8f vop = g.op;
     for (int e = 0; e < n; ++e) {
         const int q = hq[e], off = 8 * (q & 1);
         const float dy = hd[e], bdy = hb[e];
@@ -413,13 +358,13 @@ for (int jj = 0; jj < n_max; ++jj) {
         t3[k] = dxl[k] * ACC[1][k];
     }
     const float P1 = lane_sum(t1), P2 = lane_sum(t2), Q1 = lane_sum(ACC[1]), Q2 = lane_sum(t3), Q3 = lane_sum(ACC[2]);
-    float* g = grads + 12L * slot_p[j];
-    g[0] = g[0] + (a * P1 + b * Q1);
-    g[1] = g[1] + (b * P1 + c * Q1);
-    g[2] = g[2] + -0.5f * P2;
-    g[3] = g[3] + -Q2;
-    g[4] = g[4] + -0.5f * Q3;
-    for (int t = 3; t < 10; ++t) g[t + 2] = g[t + 2] + lane_sum(ACC[t]);
+    float* pg = grads + 12L * slot_p[j];
+    pg[0] = pg[0] + (a * P1 + b * Q1);
+    pg[1] = pg[1] + (b * P1 + c * Q1);
+    pg[2] = pg[2] + -0.5f * P2;
+    pg[3] = pg[3] + -Q2;
+    pg[4] = pg[4] + -0.5f * Q3;
+    for (int t = 3; t < 10; ++t) pg[t + 2] = pg[t + 2] + lane_sum(ACC[t]);
 }
 return 1;
 """
