@@ -33,9 +33,9 @@ scenes; docs/rasteriser.md): forward blend 2.4x and backward blend 1.5-1.75x fas
 Results agree with the row kernels to float rounding (the row kernels use an ``exp`` recurrence along the row).
 Intended for the CPU: on CUDA a thread per tile leaves the GPU idle, use ``pixels_per_thread=1`` there (the default).
 
-On the CPU each kernel first hands its tile to a C++ snippet (:mod:`~mgso_kernels.splat.raster_tile_cpp`, about 1.3x
-faster: the spans of a Gaussian's rows 8 rows a vector, no masked stores) that computes the same values bit for bit;
-the Warp code below it runs where the snippet declines (CUDA) or is switched off (:func:`use_native`, for tests and
+On the CPU each kernel first hands its tile to a C++ snippet (:mod:`~mgso_kernels.splat.raster_tile_cpp`, about 1.5x
+faster: the spans of a Gaussian's rows 8 rows a vector, no masked stores, FMAs) that computes the same values to float
+rounding and the same stop decisions (tested); the Warp code below it runs where the snippet declines (CUDA) or is switched off (:func:`use_native`, for tests and
 profiles). Each launch writes which ran into :func:`status_buffer`.
 
 Twin: :func:`mgso_kernels.reference.splat.render` and :func:`~mgso_kernels.reference.splat.render_vjp`.
@@ -75,7 +75,7 @@ _status: dict = {}
 
 def use_native(on: bool) -> bool:
     """Whether the tile kernels run their C++ snippets where they apply (the CPU; the default) or their own Warp
-    code (the same results bit for bit; for tests and profiles). Returns the previous setting."""
+    code (the same results to float rounding; for tests and profiles). Returns the previous setting."""
     before = _native["on"]
     _native["on"] = bool(on)
     return before
@@ -186,7 +186,8 @@ def forward_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.a
                      rgb: wp.array3d(dtype=float), depth: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float),
                      T_final: wp.array2d(dtype=float), n_contrib: wp.array2d(dtype=wp.int32)) -> int:
     """:func:`rasterize_forward_tile`'s work for one tile in C++ (:mod:`~mgso_kernels.splat.raster_tile_cpp`): the
-    same outputs bit for bit. Returns 1, or 0 (nothing written) where it does not apply."""
+    same outputs to float rounding, the same stop decisions. Returns 1, or 0 (nothing written) where it does not
+    apply."""
     ...
 
 
@@ -332,8 +333,8 @@ def _alpha_tile_kernel(with_depth: bool):
     def alpha_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
                        splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4), t_stop: float,
                        alpha: wp.array2d(dtype=float), depth: wp.array2d(dtype=float)) -> int:
-        """:func:`rasterize_alpha_tile`'s work for one tile in C++: the same alpha (and depth) bit for bit. Returns 1,
-        or 0 (nothing written) where it does not apply."""
+        """:func:`rasterize_alpha_tile`'s work for one tile in C++: the same alpha (and depth) to float rounding.
+        Returns 1, or 0 (nothing written) where it does not apply."""
         ...
 
     @wp.kernel
@@ -441,8 +442,8 @@ def _backward_tile_cpp(with_absgrad: bool):
                           n_contrib: wp.array2d(dtype=wp.int32), v_rgb: wp.array3d(dtype=float),
                           v_depth: wp.array2d(dtype=float), v_alpha: wp.array2d(dtype=float), use_depth: int,
                           use_alpha: int, pair_grads: wp.array(dtype=vec12)) -> int:
-        """:func:`rasterize_backward_tile`'s work for one tile in C++: the same sums bit for bit. Returns 1, or 0
-        (nothing written) where it does not apply."""
+        """:func:`rasterize_backward_tile`'s work for one tile in C++: the same sums to float rounding. Returns 1,
+        or 0 (nothing written) where it does not apply."""
         ...
 
     return backward_tile_cpp

@@ -4,7 +4,7 @@
 tile row it reaches: the row's span (a ``sqrt``), a branch on the span, then 16 (or 8) lanes of blending on a copy of
 the row's state that is written back. Measured on a Zen 3 core (docs/rasteriser.md) that costs about 200 cycles a
 row visit, four to five times the lanes' arithmetic: the lanes wait on the span and on the branches around them, one
-row after the other. These snippets compute the same thing in the same float operations in another order of work:
+row after the other. These snippets compute the same thing in another order of work:
 
 - **Per Gaussian, the lane constants once**: ``dx = x0 + k - mean_x`` and ``-0.5 a dx^2`` for the 16 columns (the
   same products, in the same order, as :func:`~mgso_kernels.splat.raster_tile.lane_power` makes per row).
@@ -17,9 +17,14 @@ row after the other. These snippets compute the same thing in the same float ope
 - The backward lists half rows the same way; its running sums stay per lane over the tile (lanes 0-7 the left half,
   8-15 the right), reduced by the Warp kernel's tree.
 
-Every value is the Warp kernel's bit for bit (``fp contract(off)`` as Warp's CPU code; tested on the profile's scene
-and on edge cases), so :mod:`mgso_kernels.reference.splat` stays the twin. Each snippet returns 1, or 0 where it
-does not apply (CUDA, or arrays that are not contiguous) and the Warp code after it runs.
+Every value is the Warp kernel's to float rounding: the same operations, but with FMAs where the snippets ask for one
+(``__builtin_elementwise_fma``; contraction stays off elsewhere) and ``exp_lane``'s polynomial in Estrin's form
+(measured at most 2e-6 of an array's largest value apart, and the same stop decisions, ``n_contrib``, on the tests'
+scenes). The forward, coverage and backward snippets share ``vexp`` and the power's expression, so they make the
+same skip and stop decisions bit for bit, and :mod:`mgso_kernels.reference.splat` stays the twin. The FMAs and the
+shorter dependency chain of Estrin's form took a forward blend from 74-75 to 62-64 ms and a backward blend from
+135-144 to 119-126 ms (640x480, 50k Gaussians, one Zen 3 thread; docs/rasteriser.md). Each snippet returns 1, or 0
+where it does not apply (CUDA, or arrays that are not contiguous) and the Warp code after it runs.
 """
 
 from __future__ import annotations
@@ -48,12 +53,19 @@ auto ldi = [](const int* p) -> v8i { v8i v; __builtin_memcpy(&v, p, sizeof v); r
 auto sel = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
 // wp::min(k, v) and wp::max(v, k) as Warp's CPU code has them (C fmin / fmax: a NaN v gives k)
 auto vmin = [&](float k, v8f v) -> v8f { return sel((v8f)k <= v, (v8f)k, sel(v == v, v, (v8f)k)); };
+// a b + c rounded once (an FMA instruction; the snippets say where they want one, contraction stays off)
+auto fma8 = [](v8f a, v8f b, v8f c) -> v8f { return __builtin_elementwise_fma(a, b, c); };
+// exp(x) per lane: exp_lane's range reduction and polynomial with FMAs, the polynomial in Estrin's form (three
+// dependent steps after f instead of Horner's seven); within float rounding of exp_lane (tested)
 auto vexp = [&](v8f x) -> v8f {
     x = sel(x >= -87.0f, x, (v8f)-87.0f);
-    const v8f nf = __builtin_elementwise_floor(x * LOG2E_ + 0.5f);
-    const v8f f = x - nf * LN2HI - nf * LN2LO;
-    const v8f p = 1.0f + f * (1.0f + f * (0.5f + f * (0.16666667f + f * (0.041666668f + f * (0.008333334f + f * (
-        0.0013888889f + f * 0.0001984127f))))));
+    const v8f nf = __builtin_elementwise_floor(fma8(x, (v8f)LOG2E_, (v8f)0.5f));
+    const v8f f = fma8(nf, (v8f)-LN2LO, fma8(nf, (v8f)-LN2HI, x));
+    const v8f f2 = f * f, f4 = f2 * f2;
+    const v8f p01 = 1.0f + f, p23 = fma8(f, (v8f)0.16666667f, (v8f)0.5f);
+    const v8f p45 = fma8(f, (v8f)0.008333334f, (v8f)0.041666668f);
+    const v8f p67 = fma8(f, (v8f)0.0001984127f, (v8f)0.0013888889f);
+    const v8f p = fma8(f4, fma8(f2, p67, p45), fma8(f2, p23, p01));
     return p * (v8f)((__builtin_convertvector(nf, v8i) + 127) << 23);
 };
 if (splats.strides[0] != 32 || splat_rgbz.strides[0] != 16) return 0;
@@ -164,8 +176,7 @@ for (int j = start; j < end; ++j) {
     for (int e = 0; e < n; ++e) {
         const int q = hq[e], off = 8 * (q & 1);
         const v8f dx = *(const v8f*)(dxl + off);
-        const v8f pw = *(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)hb[e] * dx;
-        const v8f al = vmin(AMAX, vop * vexp(pw));
+        const v8f al = vmin(AMAX, vop * vexp(fma8(-(v8f)hb[e], dx, *(const v8f*)(pa + off) + (v8f)hc[e])));
         const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
         const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
         const v8f Tk = *(v8f*)T[q];
@@ -173,10 +184,10 @@ for (int j = start; j < end; ++j) {
         const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
         const v8f acc = ok - stop;
         const v8f w = acc * al * Tk;
-        *(v8f*)CR[q] = *(v8f*)CR[q] + w * vc0;
-        *(v8f*)CG[q] = *(v8f*)CG[q] + w * vc1;
-        *(v8f*)CB[q] = *(v8f*)CB[q] + w * vc2;
-        *(v8f*)DD[q] = *(v8f*)DD[q] + w * vc3;
+        *(v8f*)CR[q] = fma8(w, vc0, *(v8f*)CR[q]);
+        *(v8f*)CG[q] = fma8(w, vc1, *(v8f*)CG[q]);
+        *(v8f*)CB[q] = fma8(w, vc2, *(v8f*)CB[q]);
+        *(v8f*)DD[q] = fma8(w, vc3, *(v8f*)DD[q]);
         // T = took ? Tn : Tk and L = took ? pos : L without a select on what was loaded from the same place
         // (LLVM makes that a masked store, which Zen 3 runs slowly and cannot forward to the next Gaussian's load):
         // Tk * 1 is Tk, and L only grows along the list
@@ -225,14 +236,14 @@ for (int j = start; j < end; ++j) {
     for (int e = 0; e < n; ++e) {
         const int q = hq[e], off = 8 * (q & 1);
         const v8f dx = *(const v8f*)(dxl + off);
-        const v8f al = vmin(AMAX, vop * vexp(*(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)hb[e] * dx));
+        const v8f al = vmin(AMAX, vop * vexp(fma8(-(v8f)hb[e], dx, *(const v8f*)(pa + off) + (v8f)hc[e])));
         const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
         const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
         const v8f Tk = *(v8f*)T[q];
         const v8f Tn = Tk * (1.0f - al);
         const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
         const v8f acc = ok - stop;
-        if (@DEPTH@) *(v8f*)DD[q] = *(v8f*)DD[q] + acc * al * Tk * vz;
+        if (@DEPTH@) *(v8f*)DD[q] = fma8(acc * al * Tk, vz, *(v8f*)DD[q]);
         const v8i took = acc > 0.0f;
         *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);   // took ? Tn : Tk (see the forward)
         const v8f covered = sel(Tn < vts, acc, (v8f)0.0f);
@@ -307,7 +318,7 @@ for (int jj = 0; jj < n_max; ++jj) {
         const int q = hq[e], off = 8 * (q & 1);
         const float dy = hd[e], bdy = hb[e];
         const v8f dx = *(const v8f*)(dxl + off);
-        const v8f ev = vexp(*(const v8f*)(pa + off) + (v8f)hc[e] - (v8f)bdy * dx);
+        const v8f ev = vexp(fma8(-(v8f)bdy, dx, *(const v8f*)(pa + off) + (v8f)hc[e]));
         const v8f raw = vop * ev;
         const v8f al = vmin(AMAX, raw);
         const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
@@ -319,8 +330,8 @@ for (int jj = 0; jj < n_max; ++jj) {
         const v8f vD = *(const v8f*)VD[q];
         const v8f Tk = Tq * inv;
         const v8f w = al * Tk;
-        const v8f gi = c0 * gR + c1 * gG + c2 * gB + c3 * vD;
-        const v8f v_al = Tk * gi - Sq * inv;
+        const v8f gi = fma8((v8f)c3, vD, fma8((v8f)c2, gB, fma8((v8f)c1, gG, c0 * gR)));
+        const v8f v_al = fma8(Tk, gi, -(Sq * inv));
         const v8i okb = ok > 0.0f;
         // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
         // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
@@ -331,17 +342,18 @@ for (int jj = 0; jj < n_max; ++jj) {
         const v8f wk = w * ok;
         float* A = &ACC[0][off];
         *(v8f*)(A + 0 * 16) = *(v8f*)(A + 0 * 16) + v_pow;
-        *(v8f*)(A + 1 * 16) = *(v8f*)(A + 1 * 16) + dy * v_pow;
-        *(v8f*)(A + 2 * 16) = *(v8f*)(A + 2 * 16) + dy * dy * v_pow;
-        *(v8f*)(A + 3 * 16) = *(v8f*)(A + 3 * 16) + v_raw * ev;
-        *(v8f*)(A + 4 * 16) = *(v8f*)(A + 4 * 16) + wk * gR;
-        *(v8f*)(A + 5 * 16) = *(v8f*)(A + 5 * 16) + wk * gG;
-        *(v8f*)(A + 6 * 16) = *(v8f*)(A + 6 * 16) + wk * gB;
-        *(v8f*)(A + 7 * 16) = *(v8f*)(A + 7 * 16) + wk * vD;
+        *(v8f*)(A + 1 * 16) = fma8((v8f)dy, v_pow, *(v8f*)(A + 1 * 16));
+        *(v8f*)(A + 2 * 16) = fma8((v8f)(dy * dy), v_pow, *(v8f*)(A + 2 * 16));
+        *(v8f*)(A + 3 * 16) = fma8(v_raw, ev, *(v8f*)(A + 3 * 16));
+        *(v8f*)(A + 4 * 16) = fma8(wk, gR, *(v8f*)(A + 4 * 16));
+        *(v8f*)(A + 5 * 16) = fma8(wk, gG, *(v8f*)(A + 5 * 16));
+        *(v8f*)(A + 6 * 16) = fma8(wk, gB, *(v8f*)(A + 6 * 16));
+        *(v8f*)(A + 7 * 16) = fma8(wk, vD, *(v8f*)(A + 7 * 16));
         if (@ABSGRAD@) {
             const v8f mp = __builtin_elementwise_abs(v_pow);
-            *(v8f*)(A + 8 * 16) = *(v8f*)(A + 8 * 16) + __builtin_elementwise_abs(a * dx + bdy) * mp;
-            *(v8f*)(A + 9 * 16) = *(v8f*)(A + 9 * 16) + __builtin_elementwise_abs(b * dx + c * dy) * mp;
+            *(v8f*)(A + 8 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp, *(v8f*)(A + 8 * 16));
+            *(v8f*)(A + 9 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)b, dx, (v8f)(c * dy))), mp,
+                                       *(v8f*)(A + 9 * 16));
         }
     }
     // sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow (dx is the lane's constant), each lane sum as raster_tile's
@@ -371,8 +383,9 @@ return 1;
 
 
 def fill(body: str, consts: dict[str, float | int]) -> str:
-    """The snippet: CPU only (clang), no contraction into FMAs (Warp's CPU code makes none), the prelude and
-    ``body`` with the constants filled in (a float as a float32 literal, an int as itself)."""
+    """The snippet: CPU only (clang), no contraction into FMAs but the snippet's own ``fma8`` (so the forward and
+    the backward compute each alpha the same way), the prelude and ``body`` with the constants filled in (a float as
+    a float32 literal, an int as itself)."""
     text = ("#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
             + _PRELUDE + body + "\n}\n#else\nreturn 0;\n#endif\n")
     for name, value in consts.items():
