@@ -3,7 +3,8 @@
     python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N] [--modes one-pass,two-pass]
 
 ``RUN_DIR`` is an ``mgso run`` output folder (``map.ply``, ``trajectory.txt``, ``keyframes.txt``,
-``sequence.json`` or ``--sequence``). Its map is rendered at the trajectory's poses (no exposure: a multiply-add a
+``sequence.json`` or ``--sequence``). Its map is rendered at the trajectory's poses (``trajectory_refined.txt``'s
+where the run wrote one, as ``mgso run`` does) (no exposure: a multiply-add a
 pixel) and evaluated under the MonoGS and Photo-SLAM protocols as ``mgso run`` does:
 
 - ``one-pass``: :func:`mgso.eval.evaluate_protocols` -- each frame rendered once for both protocols, its figures
@@ -55,7 +56,10 @@ def main(argv=None) -> int:
     seq_path = args.sequence or Path(json.loads((args.run / "sequence.json").read_text())["path_absolute"])
     seq = open_sequence(str(seq_path))
     g = read_gaussians_ply(args.run / "map.ply")
-    traj = read_trajectory(str(args.run / "trajectory.txt"))
+    # the poses mgso run renders at: the refined trajectory where the map refined keyframe poses (the run's
+    # metrics.json, protocols.render_poses), else the odometry's
+    refined = args.run / "trajectory_refined.txt"
+    traj = read_trajectory(str(refined if refined.is_file() else args.run / "trajectory.txt"))
     kf = read_trajectory(str(args.run / "keyframes.txt"))
     cam = seq.calibration.output
     rast = Rasterizer()
