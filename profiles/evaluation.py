@@ -3,9 +3,9 @@
     python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N] [--modes one-pass,two-pass]
 
 ``RUN_DIR`` is an ``mgso run`` output folder (``map.ply``, ``trajectory.txt``, ``keyframes.txt``,
-``sequence.json`` or ``--sequence``). Its map is rendered at the trajectory's poses (``trajectory_refined.txt``'s
-where the run wrote one, as ``mgso run`` does) (no exposure: a multiply-add a
-pixel) and evaluated under the MonoGS and Photo-SLAM protocols as ``mgso run`` does:
+``sequence.json`` or ``--sequence``). Its map is rendered at the poses ``mgso run`` renders at
+(``trajectory_refined.txt`` where the run wrote one, else ``trajectory.txt``), without exposure (a multiply-add a
+pixel), and evaluated under the MonoGS and Photo-SLAM protocols as ``mgso run`` does:
 
 - ``one-pass``: :func:`mgso.eval.evaluate_protocols` -- each frame rendered once for both protocols, its figures
   taken in a worker thread while the next frame renders (``mgso run`` since 2026-12-05);

@@ -56,7 +56,8 @@ auto vmin = [&](float k, v8f v) -> v8f { return sel((v8f)k <= v, (v8f)k, sel(v =
 // a b + c rounded once (an FMA instruction; the snippets say where they want one, contraction stays off)
 auto fma8 = [](v8f a, v8f b, v8f c) -> v8f { return __builtin_elementwise_fma(a, b, c); };
 // exp(x) per lane: exp_lane's range reduction and polynomial with FMAs, the polynomial in Estrin's form (three
-// dependent steps after f instead of Horner's seven); within float rounding of exp_lane (tested)
+// dependent steps after f instead of Horner's seven); within float rounding of exp_lane (the images and gradients
+// against the Warp kernels', tests/kernels/test_splat_tile.py)
 auto vexp = [&](v8f x) -> v8f {
     x = sel(x >= -87.0f, x, (v8f)-87.0f);
     const v8f nf = __builtin_elementwise_floor(fma8(x, (v8f)LOG2E_, (v8f)0.5f));
@@ -351,7 +352,8 @@ for (int jj = 0; jj < n_max; ++jj) {
         *(v8f*)(A + 7 * 16) = fma8(wk, vD, *(v8f*)(A + 7 * 16));
         if (@ABSGRAD@) {
             const v8f mp = __builtin_elementwise_abs(v_pow);
-            *(v8f*)(A + 8 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp, *(v8f*)(A + 8 * 16));
+            *(v8f*)(A + 8 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp,
+                                       *(v8f*)(A + 8 * 16));
             *(v8f*)(A + 9 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)b, dx, (v8f)(c * dy))), mp,
                                        *(v8f*)(A + 9 * 16));
         }
