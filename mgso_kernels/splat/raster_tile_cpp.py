@@ -152,6 +152,31 @@ auto mark_done = [](int* row_done, int full, int& rows_left, int q, int nh) {
         if (now == full && old != full) --rows_left;
     }
 };
+// the power -0.5 (a dx^2 + c dy^2) - b dx dy of list entry e's 8 pixels: one expression for the forward, the
+// coverage and the backward, so that they compute each alpha alike
+auto entry_power = [&](int e) -> v8f {
+    const int off = 8 * (hq[e] & 1);
+    return fma8(-(v8f)hb[e], *(const v8f*)(dxl + off), *(const v8f*)(pa + off) + (v8f)hc[e]);
+};
+// the forward's and the coverage's step for entry e of a Gaussian of opacity vop: its alpha, the transmittance
+// before (Tk) and after (Tn), the pixels it stops (stop) and those that take it (acc, 0/1); the half row's T is
+// updated to took ? Tn : Tk without a select on what was loaded from the same place (LLVM makes that a masked store,
+// which Zen 3 runs slowly and cannot forward to the next Gaussian's load): Tk * 1 is Tk
+struct Step { v8f al, Tk, Tn, stop, acc; };
+typedef float HalfRow[8];   // a tile state's half row (a pointer to float[8]: Warp defines a macro float(x))
+auto front_step = [&](int e, HalfRow* T, v8f vop) -> Step {
+    const int q = hq[e];
+    Step s;
+    s.al = vmin(AMAX, vop * vexp(entry_power(e)));
+    const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
+    const v8f ok = sel(s.al >= AMIN, bit, (v8f)0.0f);
+    s.Tk = *(v8f*)T[q];
+    s.Tn = s.Tk * (1.0f - s.al);
+    s.stop = sel(s.Tn < TMIN, ok, (v8f)0.0f);
+    s.acc = ok - s.stop;
+    *(v8f*)T[q] = s.Tk * sel(s.acc > 0.0f, 1.0f - s.al, (v8f)1.0f);
+    return s;
+};
 """
 
 FORWARD = r"""
@@ -175,27 +200,16 @@ for (int j = start; j < end; ++j) {
     const float* col = cp + 4L * j;
     const v8f vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
     for (int e = 0; e < n; ++e) {
-        const int q = hq[e], off = 8 * (q & 1);
-        const v8f dx = *(const v8f*)(dxl + off);
-        const v8f al = vmin(AMAX, vop * vexp(fma8(-(v8f)hb[e], dx, *(const v8f*)(pa + off) + (v8f)hc[e])));
-        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-        const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
-        const v8f Tk = *(v8f*)T[q];
-        const v8f Tn = Tk * (1.0f - al);
-        const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
-        const v8f acc = ok - stop;
-        const v8f w = acc * al * Tk;
+        const int q = hq[e];
+        const Step st = front_step(e, T, vop);
+        const v8f w = st.acc * st.al * st.Tk;
         *(v8f*)CR[q] = fma8(w, vc0, *(v8f*)CR[q]);
         *(v8f*)CG[q] = fma8(w, vc1, *(v8f*)CG[q]);
         *(v8f*)CB[q] = fma8(w, vc2, *(v8f*)CB[q]);
         *(v8f*)DD[q] = fma8(w, vc3, *(v8f*)DD[q]);
-        // T = took ? Tn : Tk and L = took ? pos : L without a select on what was loaded from the same place
-        // (LLVM makes that a masked store, which Zen 3 runs slowly and cannot forward to the next Gaussian's load):
-        // Tk * 1 is Tk, and L only grows along the list
-        const v8i took = acc > 0.0f;
-        *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);
-        *(v8f*)LL[q] = __builtin_elementwise_max(*(v8f*)LL[q], sel(took, vpos, (v8f)0.0f));
-        const int nh = __builtin_reduce_or((stop > 0.0f) & BIT);
+        // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
+        *(v8f*)LL[q] = __builtin_elementwise_max(*(v8f*)LL[q], sel(st.acc > 0.0f, vpos, (v8f)0.0f));
+        const int nh = __builtin_reduce_or((st.stop > 0.0f) & BIT);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
@@ -235,20 +249,11 @@ for (int j = start; j < end; ++j) {
     lane_constants(g);
     const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
     for (int e = 0; e < n; ++e) {
-        const int q = hq[e], off = 8 * (q & 1);
-        const v8f dx = *(const v8f*)(dxl + off);
-        const v8f al = vmin(AMAX, vop * vexp(fma8(-(v8f)hb[e], dx, *(const v8f*)(pa + off) + (v8f)hc[e])));
-        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-        const v8f ok = sel(al >= AMIN, bit, (v8f)0.0f);
-        const v8f Tk = *(v8f*)T[q];
-        const v8f Tn = Tk * (1.0f - al);
-        const v8f stop = sel(Tn < TMIN, ok, (v8f)0.0f);
-        const v8f acc = ok - stop;
-        if (@DEPTH@) *(v8f*)DD[q] = fma8(acc * al * Tk, vz, *(v8f*)DD[q]);
-        const v8i took = acc > 0.0f;
-        *(v8f*)T[q] = Tk * sel(took, 1.0f - al, (v8f)1.0f);   // took ? Tn : Tk (see the forward)
-        const v8f covered = sel(Tn < vts, acc, (v8f)0.0f);
-        const int nh = __builtin_reduce_or((stop + covered > 0.0f) & BIT);
+        const int q = hq[e];
+        const Step st = front_step(e, T, vop);
+        if (@DEPTH@) *(v8f*)DD[q] = fma8(st.acc * st.al * st.Tk, vz, *(v8f*)DD[q]);
+        const v8f covered = sel(st.Tn < vts, st.acc, (v8f)0.0f);
+        const int nh = __builtin_reduce_or((st.stop + covered > 0.0f) & BIT);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
@@ -319,7 +324,7 @@ for (int jj = 0; jj < n_max; ++jj) {
         const int q = hq[e], off = 8 * (q & 1);
         const float dy = hd[e], bdy = hb[e];
         const v8f dx = *(const v8f*)(dxl + off);
-        const v8f ev = vexp(fma8(-(v8f)bdy, dx, *(const v8f*)(pa + off) + (v8f)hc[e]));
+        const v8f ev = vexp(entry_power(e));
         const v8f raw = vop * ev;
         const v8f al = vmin(AMAX, raw);
         const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
