@@ -693,14 +693,15 @@ class SeedingConfig:
                                       "off the point's by more than this fraction (the map has no surface where "
                                       "the odometry measured one: SplaTAM's depth-error rule; docs/seeding.md); 0 = "
                                       "alpha only")
-    depth_rule_max_median: float = opt(0.4, "skip the depth rule for a keyframe whose covered candidates' median "
+    depth_rule_max_median: float = opt(0.5, "skip the depth rule for a keyframe whose covered candidates' median "
                                             "relative depth error (the odometry's depth against the map's) is above "
                                             "this: when most of them disagree, the disagreement is the odometry's "
                                             "noise, not surfaces the map lacks (a handheld camera's: medians 0.46-3.8 "
                                             "on TUM freiburg1_rpy, where every keyframe seeded its points again and "
                                             "the map grew with the run into transparent fog; the synthetic demo's "
                                             "0.03-0.10, 7-Scenes' 0.02-0.2 with a stretch up to 0.6; 0.25 left 16 of "
-                                            "7-Scenes' 79 keyframes untrusted and cost it 0.27 dB against 0.4; "
+                                            "7-Scenes' 79 keyframes untrusted and cost it 0.42 dB against 0.5, 0.4 "
+                                            "six and 0.17 dB; "
                                             "docs/mapping.md, \"Handheld camera\"); such a keyframe is not trusted: "
                                             "no depth term, its pose refined (mapping.train.refine_poses null); 0 = "
                                             "never skip")

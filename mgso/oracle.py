@@ -6,7 +6,8 @@ can be tested and measured apart from tracking:
 
 - a keyframe every ``keyframe_every`` frames, with ``points`` pixels chosen by DSO's pixel selector
   (:mod:`mgso.tracking.pixel_selector`) on the keyframe and their inverse depth from the depth map (times
-  ``1 + N(0, idepth_noise)``);
+  ``1 + N(0, idepth_noise)``, and by ``exp(N(0, idepth_log_noise))``: errors by factors, as DSO's points that
+  little parallax constrains, whose inverse depths on a camera turning in place are off by 2x and more);
 - the keyframe's pose with a random error (``pose_noise_m``, ``pose_noise_rad``, per axis) when it is made, then the
   exact pose in a :class:`~mgso.messages.PoseUpdate` at the next keyframe (the window refined it), for the
   keyframes of a ``window`` of the newest ones;
@@ -77,8 +78,8 @@ class OracleOdometry:
 
     def __init__(self, camera: PinholeCamera, poses: Callable[[int], np.ndarray | None],
                  depth: Callable[[int], np.ndarray | None], *, keyframe_every: int = 5, points: int = 600,
-                 idepth_noise: float = 0.0, pose_noise_m: float = 0.0, pose_noise_rad: float = 0.0,
-                 window: int = 7, seed: int = 0, name: str = "oracle",
+                 idepth_noise: float = 0.0, idepth_log_noise: float = 0.0, pose_noise_m: float = 0.0,
+                 pose_noise_rad: float = 0.0, window: int = 7, seed: int = 0, name: str = "oracle",
                  drift: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         if keyframe_every < 1 or window < 1 or points < 1:
             raise ValueError("OracleOdometry: keyframe_every, window and points must be >= 1")
@@ -89,6 +90,7 @@ class OracleOdometry:
         self.keyframe_every = int(keyframe_every)
         self.points = int(points)
         self.idepth_noise = float(idepth_noise)
+        self.idepth_log_noise = float(idepth_log_noise)
         self.pose_noise = (float(pose_noise_m), float(pose_noise_rad))
         rot, trans, log_scale = (float(v) for v in drift)
         self._drift_xi = np.array([trans, 0.0, 0.0, 0.0, rot, 0.0, log_scale])
@@ -181,6 +183,9 @@ class OracleOdometry:
         if self.idepth_noise > 0:
             rng = np.random.default_rng([self.seed, 0x1D, int(frame.index)])
             idepth = np.maximum(idepth * (1.0 + self.idepth_noise * rng.standard_normal(len(z))), 1e-6)
+        if self.idepth_log_noise > 0:
+            rng = np.random.default_rng([self.seed, 0x1E, int(frame.index)])
+            idepth = idepth * np.exp(self.idepth_log_noise * rng.standard_normal(len(z)))
         return xy.astype(np.float64), idepth
 
     def _marginalize(self, entry) -> PointsMessage:

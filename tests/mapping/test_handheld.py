@@ -3,8 +3,8 @@
 On TUM RGB-D freiburg1_rpy (a handheld Kinect rolling, pitching and yawing over a desk) DSO's poses drift by 1-8
 degrees between views of the same place, its depths are poor (little parallax), and the map became fog. The
 synthetic reproduction: the package's room seen by a camera that rotates in place (``synthetic.rotation_path``),
-fed to the mapper by the oracle odometry with a drifting rotation and inverse depths 80 % off (their median relative
-depth error against the map 0.45-0.59, the low end of DSO's 0.46-3.8 on freiburg1_rpy).
+fed to the mapper by the oracle odometry with a drifting rotation and inverse depths off by 80 % and by factors
+(their median relative depth error against the map 0.54-0.71, within DSO's 0.46-3.8 on freiburg1_rpy).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from mgso.app.full import write_outputs
 # measured first (96x72, 40 frames, motion_scale 2, 15 steps a keyframe + 100 final): see the test's docstring
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=100", "output.plot=false",
         "system.eval_photo_slam=false", "output.save_renders=false"]
-ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.8, drift=(0.006, 0.0, 0.0))
+ORACLE = dict(keyframe_every=4, points=250, idepth_noise=0.8, idepth_log_noise=0.5, drift=(0.006, 0.0, 0.0))
 BEFORE = ["mapping.train.depth_weight=0.2", "mapping.train.refine_poses=false",      # the defaults before issue 41
           "mapping.seeding.depth_rule_max_median=0"]
 
@@ -53,30 +53,49 @@ def test_rotation_path_turns_in_place():
         synthetic.SequenceSpec(num_frames=3, path="spiral")
 
 
+def test_the_oracle_puts_a_factor_on_inverse_depths_as_a_point_little_parallax_constrains():
+    """OracleOdometry's ``idepth_log_noise``: each keyframe point's inverse depth times exp(N(0, sigma)), so the log
+    of its ratio to the true one has spread sigma and no bias; the control without it gives the true depths."""
+    folder = synthetic.cached_sequence_folder(num_frames=40, width=96, height=72, seed=0, path="rotation",
+                                              motion_scale=2.0)
+    seq = open_sequence(str(folder), config=load_config(None, []).input)
+    frame = next(iter(seq.frames()))
+    truth = seq.load_depth(frame.index)
+    logs = {}
+    for sigma in (0.0, 0.5):
+        odo = OracleOdometry.from_sequence(seq, keyframe_every=4, points=250, idepth_log_noise=sigma)
+        kf = next(m for m in odo.process(frame).messages if isinstance(m, KeyframeMessage))
+        uv = np.asarray(kf.points_uv).astype(int)
+        logs[sigma] = np.log(np.asarray(kf.idepths) * truth[uv[:, 1], uv[:, 0]])
+    assert len(logs[0.5]) > 150 and np.abs(logs[0.0]).max() < 1e-5
+    assert 0.4 < np.std(logs[0.5]) < 0.6 and abs(np.mean(logs[0.5])) < 0.1
+
+
 def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path):
     """The camera turns in place for 40 frames; every frame's world drifts by 0.34 degrees a frame (14 degrees
     over the run: revisited places disagree, as DSO's segments did on freiburg1_rpy) and the keyframes' inverse
-    depths are 80 % off (N(0, 0.8) relative noise; the keyframes' median relative depth error against the map
-    0.45-0.59, as DSO's on freiburg1_rpy, 0.46-3.8). The defaults of before (a sparse depth term pulling the map to
-    those depths, the odometry's poses taken as they are, and the seeding's depth rule seeding every point whose
-    depth the map misses by 10 %) make fog: 4,030 Gaussians of median opacity 0.064, which the summary flags. With
-    the defaults since issue 41 the keyframes after the first are not trusted (their depths miss the map by more
-    than the 0.4 median of mapping.seeding.depth_rule_max_median): no re-seeding, no depth term, their poses
-    refined; the map keeps the first keyframes' 223 seeds, median opacity 0.158.
+    depths are off by 80 % (N(0, 0.8) relative noise) and by factors (exp(N(0, 0.5)): a point little parallax
+    constrains is off by 2x and more): the keyframes' median relative depth error against the map 0.54-0.71, as
+    DSO's on freiburg1_rpy (0.46-3.8). The defaults of before (a sparse depth term pulling the map to those
+    depths, the odometry's poses taken as they are, and the seeding's depth rule seeding every point whose depth
+    the map misses by 10 %) make fog: 4,182 Gaussians of median opacity 0.074, which the summary flags. With the
+    defaults since issue 41 the keyframes after the first are not trusted (their depths miss the map by more than
+    the 0.5 median of mapping.seeding.depth_rule_max_median): no re-seeding, no depth term, their poses refined;
+    the map keeps the first keyframes' 223 seeds, median opacity 0.141.
 
-    Measured (MonoGS protocol): 26.83 dB before, 25.08 dB now. At this test's budget (15 steps a keyframe + 100
-    final) the compact map is 1.8 dB worse on this scene, the cost of growing by densification alone; on TUM
-    freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera"). With 50 % noise
-    (medians 0.34-0.41) the keyframes stay trusted at 0.4 and both maps are fog (0.046 and 0.048): the threshold
-    separates a handheld camera's depths from a moving camera's (7-Scenes: 0.02-0.2, a stretch to 0.6), not every
-    noise level."""
+    Measured (MonoGS protocol): 26.80 dB before, 24.87 dB now. At this test's budget (15 steps a keyframe + 100
+    final) the compact map is 1.9 dB worse on this scene, the cost of growing by densification alone; on TUM
+    freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera"). With relative noise
+    alone (80 %: medians 0.47-0.56, 9 of 19 keyframes trusted at 0.5, median opacity 0.065; 50 %: 0.34-0.41, every
+    keyframe trusted) the map fogs: the threshold separates a handheld camera's depths from a moving camera's
+    (7-Scenes: 0.02-0.2, a stretch to 0.6), not every noise level."""
     from mgso.app.full import FOG_MEDIAN_OPACITY, map_warnings
     folder = synthetic.cached_sequence_folder(num_frames=40, width=96, height=72, seed=0, path="rotation",
                                               motion_scale=2.0)
     before = _run(folder, tmp_path / "before", *BEFORE)
     now = _run(folder, tmp_path / "now")
     hb, hn = before["map_health"], now["map_health"]
-    assert hb["median_opacity"] < FOG_MEDIAN_OPACITY and hn["median_opacity"] > 2.0 * hb["median_opacity"]
+    assert hb["median_opacity"] < FOG_MEDIAN_OPACITY and hn["median_opacity"] > 1.5 * hb["median_opacity"]
     assert any("mostly transparent" in w for w in map_warnings(hb))
     assert now["num_gaussians"] < before["num_gaussians"] / 5
     assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 2.5
@@ -141,11 +160,11 @@ def _tum_run(folder, out, *over):
 def test_on_tum_freiburg1_rpy_the_depth_rule_stands_down_and_the_map_does_not_grow_with_the_run(data_dir, tmp_path):
     """The real handheld recording (TUM RGB-D freiburg1_rpy, its first 40 frames at 160x120, 5 steps a keyframe +
     50 final; skips without ../shared/data). DSO's depths of the rotating camera miss the map's, over a seeding's
-    covered candidates, by a median of 0.81 (measured), so the seeding's depth rule stands down on 52 of the 55
-    seedings after the first keyframe (the threshold 0.4; 53 at 0.25) and the map grows from the first seeds: 1,831
-    Gaussians, against 26,608 with the rule always on (the control: the defaults of before issue 41 in this
-    respect), which re-seeds nearly every point of every keyframe. At this small budget the compact map renders a
-    little worse (15.2 against 15.8 dB); over a whole run it pays (at 640x480 the defaults give 20.18 dB; no depth
+    covered candidates, by a median of 0.75 (measured), so the seeding's depth rule stands down on 45 of the 55
+    seedings after the first keyframe (the threshold 0.5; 52 at 0.4, 53 at 0.25) and the map grows from the first
+    seeds: 3,689 Gaussians (1,831 at 0.4), against 26,608 with the rule always on (the control: the defaults of
+    before issue 41 in this respect), which re-seeds nearly every point of every keyframe. At this small budget the compact map renders a
+    little worse (15.4 against 15.8 dB); over a whole run it pays (at 640x480 the defaults give 20.09 dB; no depth
     term and every pose refined with the rule always on, 17.84 dB: docs/mapping.md, "Handheld camera"), so the
     floor here only catches a broken run."""
     folder = data_dir / "rgbd_dataset_freiburg1_rpy_0-359"
@@ -154,8 +173,8 @@ def test_on_tum_freiburg1_rpy_the_depth_rule_stands_down_and_the_map_does_not_gr
     now, m = _tum_run(folder, tmp_path / "now")
     ctl, c = _tum_run(folder, tmp_path / "control", "mapping.seeding.depth_rule_max_median=0")
     later = [r for r in m.stats.seed_results[1:] if r.depth_error_median is not None]
-    assert len(later) >= 8 and sum(r.depth_tolerance_used == float("inf") for r in later) >= 0.8 * len(later)
-    assert np.median([r.depth_error_median for r in later]) > 0.4
+    assert len(later) >= 8 and sum(r.depth_tolerance_used == float("inf") for r in later) >= 0.6 * len(later)
+    assert np.median([r.depth_error_median for r in later]) > 0.5
     # the control: the rule always on, at its tolerance
     assert all(r.depth_error_median is None for r in c.stats.seed_results)
     assert sum(r.depth_tolerance_used == 0.1 for r in c.stats.seed_results) >= len(later)
