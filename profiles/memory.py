@@ -268,7 +268,7 @@ def system_containers(system, dso=None) -> dict:
            "queue": mapper.queue.qsize()}
     if dso is not None:
         out["odometry"] = odometry_containers(dso)
-        out["odometry"]["pending_events"] = len(getattr(system.odometry, "_events", getattr(dso, "_outbox", ())))
+        out["odometry"]["pending_events"] = len(getattr(system.odometry, "_events", getattr(dso, "outbox", ())))
     return out
 
 

@@ -2,9 +2,10 @@
 ``deliverTrackedFrame``, ``makeKeyFrame``, ``makeNonKeyFrame``, ``initializeFromInitializer``).
 
 :class:`Odometry` holds the coarse tracker, the keyframe policy, the window, the initialiser, the pixel selector and
-point activator, and a back end (:class:`WindowBackEnd`; by default :class:`~mgso.window.depth_refine.
-FixedWindowBackEnd`, the stand-in until the window optimisation exists). Work is split as DSO splits it between its
-tracking and mapping threads, with typed messages between the halves:
+point activator, a back end (:class:`~mgso.odometry.back_end.WindowBackEnd`: the window's bundle adjustment,
+``window.backend``), the segments' similarities (:class:`~mgso.odometry.segments.Segments`) and its messages to the
+mapper (:class:`~mgso.odometry.outbox.MapperOutbox`). Work is split as DSO splits it between its tracking and mapping
+threads, with typed messages between the halves (:mod:`mgso.odometry.records`):
 
 - :meth:`Odometry.track` (tracking side): builds the frame's pyramid, runs the initialiser or the coarse tracker,
   decides keyframe or not, detects tracking loss, and returns a :class:`TrackedFrame` (the frame's pyramid travels
@@ -18,7 +19,8 @@ tracking and mapping threads, with typed messages between the halves:
 
 :meth:`Odometry.process` runs both in order (deterministic and single-threaded, for tests and evaluation). With
 ``map_thread=True`` (DSO's split, for real time; off by default) :meth:`process` tracks the frame and returns, and
-:meth:`map` runs on a thread of the odometry's own, fed by a queue of :class:`TrackedFrame`: a keyframe's window
+:meth:`map` runs on a thread of the odometry's own (:class:`~mgso.odometry.map_thread.MappingThread`), fed by a
+queue of :class:`TrackedFrame`: a keyframe's window
 optimisation no longer delays the frames behind it, the tracker keeps tracking against the latest reference until
 the new one is handed over, and when frames wait the older ones are mapped as non-keyframes (traced only) and only
 the newest keeps its keyframe request (DSO ``needToKetchupMapping``). The initialiser's frames and a tracking loss
@@ -37,8 +39,8 @@ reset: the segment's first keyframe at the origin, inverse depths of mean 1 (DSO
 For output the segments are chained: segment ``k > 0`` is mapped into the common world by a similarity
 (:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last reliable pose of segment ``k - 1``
 (inlier ratio at least 0.5 and RMSE within ``kf_rmse_factor`` x the first RMSE; the frames just before a loss are
-often already wrong; the camera is assumed not to have moved since) and sets its scale, which monocular odometry cannot know, so that the
-median depth of its first points equals the median depth of the previous segment's last tracking reference.
+often already wrong; the camera is assumed not to have moved since) and sets its scale, which monocular odometry
+cannot know, so that the median depth of its first points equals the median depth of the previous segment's last tracking reference.
 :attr:`FrameRecord.cam_to_world` and :attr:`KeyframeRecord.cam_to_world` are in the segment's frame; the
 trajectories, :class:`FrameResult`, the observer events and :meth:`Odometry.point_cloud_world` are in the common
 world. Every frame carries its segment number.
@@ -46,205 +48,39 @@ world. Every frame carries its segment number.
 
 from __future__ import annotations
 
-import collections
 import logging
-import queue
 import threading
 import time
-from dataclasses import dataclass
-from enum import Enum
-from typing import Any, Protocol
 
 import numpy as np
 
-from mgso_kernels.image import ImagePyramid, PyramidGeometry, plan_pyramid, Pinhole
 from mgso_kernels import runtime
+from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry, plan_pyramid
 from mgso_kernels.photometric import affine_from_to, extract_patterns
 
-from .config import Config
-from .geometry import se3_exp, se3_inverse, se3_log, se3_renormalize
-from .io.trajectory import Trajectory
-from .observers import Observer
-from .tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
+from ..camera import PinholeCamera
+from ..config import Config
+from ..geometry import se3_exp, se3_inverse, se3_log, se3_renormalize
+from ..io.trajectory import Trajectory
+from ..observers import Observer
+from ..tracking.coarse_tracker import (CoarseTracker, TrackResult, TrackingReference, make_tracking_reference,
                                       motion_hypotheses)
-from .tracking.immature_points import (ActivationResult, PointActivator, TraceCounts, make_immature_points,
-                                       trace_immature_points, trace_params_from_config)
-from .tracking.initializer import CoarseInitializer, InitResult, InitStatus
-from .tracking.keyframe_policy import KeyframeDecision, KeyframePolicy, KeyframeReason
-from .tracking.pixel_selector import PixelSelector
-from .window.depth_refine import FixedWindowBackEnd
-from .window.window import MarginalizedPoints, Window
+from ..tracking.immature_points import (PointActivator, make_immature_points, trace_immature_points,
+                                        trace_params_from_config)
+from ..tracking.initializer import CoarseInitializer, InitStatus
+from ..tracking.keyframe_policy import KeyframeDecision, KeyframePolicy, KeyframeReason
+from ..tracking.pixel_selector import PixelSelector
+from ..window.window import Window
+from .back_end import WindowBackEnd, make_back_end
+from .map_thread import MappingThread
+from .outbox import MapperOutbox
+from .records import (FrameRecord, FrameResult, FrameStatus, KeyframeEvent, KeyframeRecord, LossReason,
+                      TrackedFrame, TrackingLost, WindowUpdate)
+from .segments import Segments
 
-__all__ = [
-    "Odometry", "FrameStatus", "FrameResult", "FrameRecord", "KeyframeRecord", "TrackedFrame", "TrackingLost",
-    "LossReason", "KeyframeEvent", "WindowUpdate", "WindowBackEnd", "make_back_end", "geometry_for",
-]
+__all__ = ["Odometry", "geometry_for"]
 
 log = logging.getLogger(__name__)
-
-
-class FrameStatus(str, Enum):
-    FIRST_FRAME = "first_frame"  # became the initialiser's first frame (pose: the segment's origin once initialised)
-    INITIALIZING = "initializing"  # aligned by the initialiser, no pose kept (as DSO)
-    INITIALIZED = "initialized"  # the initialiser finished on this frame: the second keyframe
-    TRACKED = "tracked"
-    LOST = "lost"  # tracking failed on this frame; a new segment starts
-    INIT_FAILED = "init_failed"  # the initialiser gave up; it restarts from this frame
-    DUPLICATE = "duplicate"  # the same image as the previous frame: its pose is the previous frame's (not tracked)
-
-
-class LossReason(str, Enum):
-    NON_FINITE = "non_finite"  # pose, affine or RMSE not finite
-    NO_HYPOTHESIS = "no_hypothesis"  # no motion hypothesis converged within the checks
-    RESIDUAL = "residual"  # RMSE above lost_rmse_factor x the reference's first RMSE
-    INLIERS = "inliers"  # too few reference points within the cutoff
-    JUMP = "jump"  # farther from the reference than lost_max_translation x its median depth, or faster than
-    # lost_max_speed_factor x the segment's recent typical step (per frame of the source)
-
-
-@dataclass
-class FrameRecord:
-    """Per frame (DSO ``FrameShell``). ``cam_to_world`` (in its segment's frame) is None while the frame has no
-    pose."""
-
-    index: int
-    timestamp: float
-    segment: int
-    status: FrameStatus
-    cam_to_world: np.ndarray | None = None
-    cam_to_tracking_ref: np.ndarray | None = None
-    tracking_ref: int = -1  # keyframe id it was tracked against (-1: none)
-    affine: tuple[float, float] = (0.0, 0.0)
-    keyframe_id: int = -1  # its own keyframe id when it is a keyframe
-
-    @property
-    def pose_valid(self) -> bool:
-        return self.cam_to_world is not None
-
-
-@dataclass
-class KeyframeRecord:
-    """Per keyframe; ``cam_to_world`` in its segment's frame (the window's estimate while in the window)."""
-
-    keyframe_id: int
-    frame_index: int
-    timestamp: float
-    segment: int
-    cam_to_world: np.ndarray
-    in_window: bool = True
-
-
-@dataclass
-class TrackingLost:
-    """What ``Observer.on_tracking_lost`` gets."""
-
-    frame_index: int
-    timestamp: float
-    segment: int  # the segment that ended
-    reason: LossReason
-    rmse: float
-    first_rmse: float  # the RMSE it was compared with (TrackResult.baseline_rmse)
-    inlier_ratio: float
-    message: str = ""
-
-
-@dataclass
-class KeyframeEvent:
-    """What ``Observer.on_keyframe`` gets."""
-
-    keyframe_id: int
-    frame_index: int
-    timestamp: float
-    segment: int
-    cam_to_world: np.ndarray
-    reason: str
-    activation: ActivationResult | None
-    new_immature: int
-    window: dict  # Window.describe()
-
-
-@dataclass
-class WindowUpdate:
-    """What ``Observer.on_window_optimized`` gets: the window's keyframes after the back end ran."""
-
-    keyframe_ids: list[int]
-    cam_to_world: np.ndarray  # [k, 4, 4]
-    active_points: np.ndarray  # [n, 3] world positions
-    active_colors: np.ndarray  # [n, 3]
-    optimization: Any  # the back end's result value
-
-
-@dataclass
-class FrameResult:
-    """What :meth:`Odometry.process` returns for a frame (and ``Observer.on_frame`` gets)."""
-
-    index: int
-    timestamp: float
-    status: FrameStatus
-    segment: int
-    cam_to_world: np.ndarray | None  # pose at tracking time in the common world (refined later; Odometry.frames)
-    is_keyframe: bool
-    keyframe_reason: str = ""
-    track: TrackResult | None = None
-    init: InitResult | None = None
-    lost: TrackingLost | None = None
-    trace: TraceCounts | None = None
-    time_track_s: float = 0.0
-    time_map_s: float = 0.0
-    affine: tuple[float, float] = (0.0, 0.0)  # DSO's (a, b) of the frame, 0-255 scale
-    keyframe_id: int = -1  # its keyframe id when it became a keyframe
-    exposure_ms: float | None = None  # the frame's exposure time (None: unknown)
-    messages: tuple = ()  # what it emits for the Gaussian mapper, in order (with ``emit_messages``)
-
-    @property
-    def ok(self) -> bool:
-        return self.cam_to_world is not None
-
-    @property
-    def seconds(self) -> float:
-        """The odometry's time on the frame (tracking and mapping halves)."""
-        return self.time_track_s + self.time_map_s
-
-
-@dataclass
-class TrackedFrame:
-    """The message from the tracking half to the mapping half (DSO ``deliverTrackedFrame``)."""
-
-    record: FrameRecord
-    pyramid: ImagePyramid | None  # owned by the message until mapped; None for a duplicate frame
-    exposure: float
-    rgb: Any  # callable or array giving the frame's RGB (only read for keyframes)
-    need_keyframe: bool
-    reason: str
-    result: FrameResult
-    initialize: InitResult | None = None  # the initialiser finished on this frame: map() starts the window
-
-
-class WindowBackEnd(Protocol):
-    """What the odometry asks of the window's back end on every keyframe (in this order)."""
-
-    def flag_frames_for_marginalization(self, window: Window) -> list[int]:
-        """Before the new keyframe is added: set ``window.flagged_`` for keyframes to remove."""
-
-    def optimize(self, window: Window) -> Any:
-        """After the new keyframe and the activation: optimise, update residual states, drop outliers."""
-
-    def marginalize_points(self, window: Window) -> MarginalizedPoints:
-        """Remove points that leave (to the point cloud or dropped)."""
-
-    def marginalize_frames(self, window: Window) -> list[int]:
-        """Remove the flagged keyframes; returns their keyframe ids."""
-
-
-def make_back_end(cfg: Config, device: str = "cpu") -> WindowBackEnd:
-    """The back end ``cfg.window.backend`` names: ``bundle`` (:class:`~mgso.window.backend.WindowOptimizer`) or
-    ``fixed`` (:class:`~mgso.window.depth_refine.FixedWindowBackEnd`); both read ``cfg.window`` and ``cfg.tracking``
-    themselves."""
-    if cfg.window.backend == "fixed":
-        return FixedWindowBackEnd(cfg.window, cfg.tracking)
-    from .window.backend import WindowOptimizer
-
-    return WindowOptimizer(cfg.window, cfg.tracking, device=device)
 
 
 def geometry_for(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
@@ -286,14 +122,7 @@ class Odometry:
         self.emit_messages = bool(emit_messages)
         # DSO's split (module text): the mapping half on a thread of its own, fed by a queue
         self.map_thread = bool(map_thread)
-        self._map_queue: queue.Queue | None = None
-        self._map_worker: threading.Thread | None = None
-        self._map_error: BaseException | None = None
-        self._ready: collections.deque = collections.deque()  # messages the mapping thread has made, in order
-        self.num_keyframe_requests_merged = 0  # keyframe requests mapped as non-keyframes by the catch-up
-        self._outbox: list = []  # mapper messages of the frame being processed (emit_messages)
         self._valid_src: np.ndarray | None = None  # the frames' validity mask (Frame.valid: the same array for all)
-        self._valid_weights: np.ndarray | None = None  # ... in the odometry's geometry, as loss weights
         cfg = self.config
         t = cfg.tracking
         self.geometry = geometry
@@ -323,7 +152,6 @@ class Odometry:
         self._pending_reference: TrackingReference | None = None
         self._last_good: FrameRecord | None = None  # last reliably tracked frame (chaining segments)
         self._last_median_depth = float("nan")  # of the last tracking reference, in its segment's units
-        self._segment_sim: dict[int, np.ndarray] = {0: np.eye(4)}  # segment frame -> common world (Sim3 4x4)
         self._frames_since_kf = 0
         self._init_step: np.ndarray | None = None  # mean cam_k -> cam_k+1 motion of the last initialisation
         self._init_rmse = -1.0  # the last initialisation's level-0 RMSE (loss baseline until a reference has one)
@@ -333,6 +161,15 @@ class Odometry:
         self._prev_rec: FrameRecord | None = None  # the previous tracked frame (this segment)
         self._prev_image: np.ndarray | None = None  # the previous frame's adjusted image (duplicate detection)
         self.num_duplicates = 0
+        self.segments = Segments()  # segment frame -> common world (module text, "Segments")
+        c = geometry.camera
+        # the messages for the Gaussian mapper (emit_messages), in the odometry's image geometry (the pyramid crop)
+        self.outbox = MapperOutbox(self.window, PinholeCamera(c.fx, c.fy, c.cx, c.cy, geometry.width,
+                                                              geometry.height), self.segments,
+                                   enabled=self.emit_messages)
+        # DSO's mapping thread (map_thread): map() runs there, the messages it makes wait for process()
+        self._mapping = MappingThread(self.map, self.outbox.drain if self.emit_messages else None,
+                                      self._pool.release)
 
     @classmethod
     def for_camera(cls, camera, config: Config, **kwargs) -> "Odometry":
@@ -350,7 +187,7 @@ class Odometry:
         tracked = self.track(frame)
         t0 = time.perf_counter()
         self.map(tracked)
-        return self._result(tracked, frame, t0, self._drain)
+        return self._result(tracked, frame, t0, self.outbox.drain)
 
     def _result(self, tracked: TrackedFrame, frame, t0: float, messages) -> FrameResult:
         """The frame's result once its mapping (here) is done or queued: the mapping time on this thread since
@@ -363,6 +200,11 @@ class Odometry:
         if self.emit_messages:
             r.messages = tuple(messages())
         return r
+
+    @property
+    def num_keyframe_requests_merged(self) -> int:
+        """Keyframe requests the mapping thread mapped as non-keyframes (a newer frame waited: it took them)."""
+        return self._mapping.num_keyframe_requests_merged
 
     @property
     def num_lost(self) -> int:
@@ -384,78 +226,18 @@ class Odometry:
         """:meth:`process` with ``map_thread``: track here, map on the mapping thread (initialiser frames and a loss:
         here, in order). ``time_map_s`` is the time spent mapping on this thread; ``keyframe_id`` is -1 for a
         keyframe mapped on the thread (not known yet); ``messages`` are those the mapping thread has finished."""
-        self._raise_map_error()
+        self._mapping.raise_error()
         tracked = self.track(frame)
         t0 = time.perf_counter()
         if tracked.pyramid is not None:
             if tracked.record.status == FrameStatus.TRACKED and tracked.initialize is None:
-                self._start_map_thread()
-                self._map_queue.put(tracked)
+                self._mapping.submit(tracked)
             else:
-                self._wait_mapped()
+                self._mapping.wait()
                 self.map(tracked)
                 if self.emit_messages:
-                    self._ready.extend(self._drain())
-        return self._result(tracked, frame, t0, self._take_ready)
-
-    def _start_map_thread(self) -> None:
-        if self._map_worker is None or not self._map_worker.is_alive():
-            self._map_queue = queue.Queue()
-            self._map_worker = threading.Thread(target=self._map_loop, name="mgso-odometry-map", daemon=True)
-            self._map_worker.start()
-
-    def _map_loop(self) -> None:
-        q = self._map_queue
-        while True:
-            batch = [q.get()]
-            while True:
-                try:
-                    batch.append(q.get_nowait())
-                except queue.Empty:
-                    break
-            for i, tracked in enumerate(batch):
-                try:
-                    if tracked is None:
-                        return
-                    if self._map_error is not None:  # after an error: only give the pyramids back
-                        if tracked.pyramid is not None:
-                            self._pool.release(tracked.pyramid)
-                        continue
-                    if tracked.need_keyframe and any(t is not None for t in batch[i + 1:]):
-                        tracked.need_keyframe = False  # a newer frame waits: it takes the keyframe request
-                        self.num_keyframe_requests_merged += 1
-                    self.map(tracked)
-                    if self.emit_messages:
-                        self._ready.extend(self._drain())
-                except BaseException as e:  # handed to the tracking thread (process / finish raise it)
-                    self._map_error = e
-                finally:
-                    q.task_done()
-
-    def _wait_mapped(self) -> None:
-        """Wait until the mapping thread has mapped every queued frame (then raise its error, if any)."""
-        if self._map_queue is not None:
-            self._map_queue.join()
-        self._raise_map_error()
-
-    def _raise_map_error(self) -> None:
-        if self._map_error is not None:
-            raise self._map_error
-
-    def _stop_map_thread(self) -> None:
-        if self._map_worker is not None and self._map_worker.is_alive():
-            self._map_queue.put(None)
-            self._map_worker.join()
-        self._map_worker = None
-        self._raise_map_error()
-
-    def _take_ready(self) -> list:
-        out = []
-        while True:
-            try:
-                out.append(self._ready.popleft())
-            except IndexError:
-                return out
+                    self._mapping.add_ready(self.outbox.drain())
+        return self._result(tracked, frame, t0, self._mapping.take_ready)
 
     def track(self, frame) -> TrackedFrame:
         """The tracking half: returns the message for :meth:`map`."""
@@ -472,8 +254,8 @@ class Odometry:
         valid = getattr(frame, "valid", None)
         if valid is not self._valid_src:  # pixels without a source (undistortion): left out of the map's loss
             self._valid_src = valid
-            self._valid_weights = (None if valid is None or bool(np.all(valid))
-                                   else (self.geometry.adjust(np.asarray(valid, np.float32)) > 0.5).astype(np.float32))
+            self.outbox.mask = (None if valid is None or bool(np.all(valid))
+                                else (self.geometry.adjust(np.asarray(valid, np.float32)) > 0.5).astype(np.float32))
         rec = FrameRecord(int(frame.index), float(frame.timestamp), self.segment, FrameStatus.INITIALIZING)
         prev_img, self._prev_image = self._prev_image, img
         if (self.config.tracking.skip_duplicate_frames and self.initialized and prev_img is not None
@@ -519,7 +301,7 @@ class Odometry:
         last messages for the mapper: what is still in the outbox, the final pose of every keyframe and the points
         still active (as :class:`~mgso.messages.PointsMessage`); otherwise ``[]``."""
         if self.map_thread:
-            self._stop_map_thread()  # every queued frame mapped first
+            self._mapping.stop()  # every queued frame mapped first
         w = self.window
         for s in w.order:
             kid = int(w.keyframe_id_[s])
@@ -528,131 +310,17 @@ class Odometry:
         self._rechain_frames()
         if not self.emit_messages:
             return []
-        from .messages import PointsMessage, PoseUpdate
-
-        out = self._take_ready() + self._drain()
-        kt = self.keyframe_trajectory()
-        ids = sorted(self.keyframes)
-        if ids:
-            out.append(PoseUpdate({k: T for k, T in zip(ids, kt.cam_to_world)}))
-        if w.active.n:
-            seg = int(w.segment_[w.order[-1]]) if w.order else self.segment
-            pos = self._world_points(w.points_world(), seg)
-            hosts = w.keyframe_id_[w.active.host]
-            for h in np.unique(hosts):
-                out.append(PointsMessage(pos[hosts == h], w.active.rgb[hosts == h], host_keyframe_id=int(h)))
-        return out
-
-    # ------------------------------------------------------------------------------- mapper messages
-    # With ``emit_messages`` the odometry speaks the mapper's language (:mod:`mgso.messages`) itself: it
-    # owns the window whose images, affine parameters and points the messages carry.
-    def _world_points(self, positions: np.ndarray, segment: int) -> np.ndarray:
-        S = self.segment_similarity(segment)
-        return np.asarray(positions, np.float64) @ S[:3, :3].T + S[:3, 3]
-
-    def _message_camera(self):
-        from .camera import PinholeCamera
-
-        g = self.geometry
-        c = g.camera
-        return PinholeCamera(c.fx, c.fy, c.cx, c.cy, g.width, g.height)
-
-    # Events are queued as they happen and turned into messages when the frame is done (:meth:`_drain`), so that a
-    # keyframe's message carries the window's state after the whole frame (the first keyframe's points after the
-    # window's first optimisation).
-    def _emit_keyframe(self, keyframe_id: int, rec: FrameRecord, cam_to_world_world: np.ndarray) -> None:
-        if self.emit_messages:
-            self._outbox.append(("keyframe", (keyframe_id, rec, np.array(cam_to_world_world, np.float64))))
-
-    def _keyframe_message(self, keyframe_id: int, rec: FrameRecord, c2w: np.ndarray):
-        """A :class:`~mgso.messages.KeyframeMessage`: the keyframe's RGB and camera in the odometry's image
-        geometry (the pyramid crop), its pose in the common world, DSO's affine (a, b) and exposure time, and every
-        active point of the window (depth refined by the window) projected into it (the depth map the coarse
-        tracker tracks against; a new keyframe hosts no point with a depth yet); ``mask``: the frames' ``valid``
-        pixels (``None`` when all are), so that the map never trains on pixels undistortion had no source for."""
-        from .messages import KeyframeMessage
-
-        w = self.window
-        try:
-            slot = w.slot_of_keyframe(keyframe_id)
-        except KeyError:  # marginalised within its own frame (cannot happen with DSO's rule; be safe)
-            log.warning("keyframe %d left the window before it reached the map", keyframe_id)
-            return None
-        if w.rgb_ is None:
-            raise RuntimeError("the odometry's window keeps no RGB images: the map needs them")
-        pts = self._world_points(w.points_world(), rec.segment) if w.active.n else np.zeros((0, 3))
-        T = se3_inverse(c2w)
-        pc = pts @ T[:3, :3].T + T[:3, 3]
-        cam = self._message_camera()
-        ok = pc[:, 2] > 1e-6
-        z = np.where(ok, pc[:, 2], 1.0)
-        uv = np.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], axis=1)
-        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
-        exposure = float(w.exposure_[slot])
-        return KeyframeMessage(keyframe_id, rec.index, rec.timestamp, w.rgb_[slot], cam, c2w, uv[ok], 1.0 / z[ok],
-                               affine=tuple(w.affine_[slot]), exposure_ms=exposure if exposure > 0 else None,
-                               segment=rec.segment, mask=self._valid_weights)
-
-    def _emit_window(self, keyframe_ids: list[int], cam_to_world: np.ndarray) -> None:
-        if self.emit_messages:
-            self._outbox.append(("window", (list(keyframe_ids), np.array(cam_to_world, np.float64))))
-
-    def _pose_update(self, keyframe_ids: list[int], cam_to_world: np.ndarray):
-        from .messages import PoseUpdate
-
-        w = self.window
-        aff = {}
-        for kid in keyframe_ids:
-            try:
-                aff[int(kid)] = tuple(w.affine_[w.slot_of_keyframe(int(kid))])
-            except KeyError:  # left the window since: its affine is the one the map has
-                pass
-        return PoseUpdate({int(k): T for k, T in zip(keyframe_ids, cam_to_world)}, affine=aff)
-
-    def _emit_points(self, marg: MarginalizedPoints) -> None:
-        if self.emit_messages and len(marg):
-            self._outbox.append(("points", marg))
-
-    def _points_messages(self, marg: MarginalizedPoints) -> list:
-        from .messages import PointsMessage
-
-        pos = self._world_points(marg.positions, marg.segment)
-        hosts = np.asarray(marg.host_keyframe_ids)
-        cols = np.asarray(marg.colors)
-        return [PointsMessage(pos[hosts == h], cols[hosts == h], host_keyframe_id=int(h)) for h in np.unique(hosts)]
-
-    def _drain(self) -> list:
-        """The queued events as mapper messages, keyframes first (DSO decides a keyframe's window update and the
-        points it marginalises before it announces the keyframe; the map needs the view before its poses)."""
-        events, self._outbox = self._outbox, []
-        kfs, rest = [], []
-        for kind, ev in events:
-            if kind == "keyframe":
-                msg = self._keyframe_message(*ev)
-                if msg is not None:
-                    kfs.append(msg)
-            elif kind == "window":
-                rest.append(self._pose_update(*ev))
-            else:
-                rest += self._points_messages(ev)
-        return kfs + rest
+        return self._mapping.take_ready() + self.outbox.final(sorted(self.keyframes),
+                                                               self.keyframe_trajectory().cam_to_world, self.segment)
 
     def segment_similarity(self, segment: int) -> np.ndarray:
         """4x4 similarity ``[[s R, t], [0, 1]]`` from a segment's frame to the common world (identity for 0)."""
-        return self._segment_sim.get(int(segment), np.eye(4))
+        return self.segments.similarity(segment)
 
     def to_world(self, segment: int, cam_to_world: np.ndarray) -> np.ndarray:
         """A camera pose of ``segment`` in the common world (a rigid pose: the similarity's scale moves the camera
         centre only)."""
-        S = self.segment_similarity(segment)
-        if segment == 0 or np.allclose(S, np.eye(4)):
-            return np.asarray(cam_to_world, dtype=np.float64).copy()
-        sc = float(np.cbrt(np.linalg.det(S[:3, :3])))
-        R = S[:3, :3] / sc
-        out = np.eye(4)
-        out[:3, :3] = R @ cam_to_world[:3, :3]
-        out[:3, 3] = S[:3, :3] @ cam_to_world[:3, 3] + S[:3, 3]
-        return out
+        return self.segments.to_world(segment, cam_to_world)
 
     def trajectory(self) -> Trajectory:
         """Every frame with a pose, camera-to-world in the common world (segments chained)."""
@@ -688,11 +356,7 @@ class Odometry:
             col = np.concatenate([col, a.rgb])
             seg = np.concatenate([seg, np.full(a.n, self.segment)])
             hosts = np.concatenate([hosts, self.window.keyframe_id_[a.host[:a.n]].astype(np.int64)])
-        out = pos.copy()
-        for sg in np.unique(seg):
-            S = self.segment_similarity(int(sg))
-            m = seg == sg
-            out[m] = pos[m] @ S[:3, :3].T + S[:3, 3]
+        out = self.segments.mixed_to_world(pos, seg)
         return (out.astype(np.float32), col, hosts) if with_hosts else (out.astype(np.float32), col)
 
     # ------------------------------------------------------------------------------------ initialisation
@@ -731,8 +395,8 @@ class Odometry:
         rescale = 1.0 / ((float(np.sum(iR)) + 1e-5) / (len(iR) + 1e-5))
         idepth = iR * rescale
         # a new segment lives in its own frame; its chaining similarity is computed here
-        if self.segment > 0 and self.segment not in self._segment_sim:
-            self._segment_sim[self.segment] = self._chain_segment(idepth)
+        if self.segment > 0 and self.segment not in self.segments:
+            self.segments.set(self.segment, self._chain_segment(idepth))
         first_to_new = tracked.initialize.first_to_new.copy()
         first_to_new[:3, 3] /= rescale
         # the initialiser's mean motion per frame: the first tracked frame's constant-motion guess (DSO has only
@@ -769,7 +433,7 @@ class Odometry:
         self.observer.on_keyframe(KeyframeEvent(kid0, first_rec.index, first_rec.timestamp, self.segment,
                                                 self.to_world(self.segment, c2w_first), KeyframeReason.FIRST.value,
                                                 None, 0, w.describe()))
-        self._emit_keyframe(kid0, first_rec, self.to_world(self.segment, c2w_first))
+        self.outbox.keyframe(kid0, first_rec, self.to_world(self.segment, c2w_first))
         rec = tracked.record
         rec.cam_to_tracking_ref = se3_inverse(first_to_new)
         rec.tracking_ref = kid0
@@ -975,7 +639,7 @@ class Odometry:
     def _end_segment(self) -> None:
         """Close the window: keyframes keep their last poses, active points go to the point cloud."""
         if self.map_thread:
-            self._wait_mapped()  # the mapping thread finishes the frames before the loss first
+            self._mapping.wait()  # the mapping thread finishes the frames before the loss first
         w = self.window
         ref = self.tracker.reference
         if ref is not None:
@@ -988,7 +652,7 @@ class Odometry:
         if w.active.n:
             pts = w.marginalize_points(np.ones(w.active.n, bool))
             self.observer.on_points_marginalized(pts)
-            self._emit_points(pts)
+            self.outbox.points(pts)
         w.clear()
         self.tracker.set_reference(None)
         with self._ref_lock:
@@ -1041,7 +705,7 @@ class Odometry:
         marg = self.back_end.marginalize_points(w)
         if len(marg):
             self.observer.on_points_marginalized(marg)
-            self._emit_points(marg)
+            self.outbox.points(marg)
         n_new = make_immature_points(w, slot, self.selector, cfg.immature_density,
                                      grad_c2=cfg.outlier_th_sum_component, recursions=cfg.selector_recursions)
         removed = self.back_end.marginalize_frames(w)
@@ -1051,13 +715,13 @@ class Odometry:
         self.observer.on_keyframe(KeyframeEvent(kid, rec.index, rec.timestamp, self.segment,
                                                 self.to_world(self.segment, rec.cam_to_world), tracked.reason, act,
                                                 n_new, w.describe()))
-        self._emit_keyframe(kid, rec, self.to_world(self.segment, rec.cam_to_world))
-        S = self.segment_similarity(self.segment)
+        self.outbox.keyframe(kid, rec, self.to_world(self.segment, rec.cam_to_world))
         ids = [int(w.keyframe_id_[s]) for s in w.order]
         poses = np.stack([self.to_world(self.segment, w.cam_to_world(s)) for s in w.order])
         self.observer.on_window_optimized(WindowUpdate(
-            ids, poses, (w.points_world() @ S[:3, :3].T + S[:3, 3]).astype(np.float32), w.active.rgb.copy(), opt))
-        self._emit_window(ids, poses)
+            ids, poses, self.segments.points_to_world(w.points_world(), self.segment).astype(np.float32),
+            w.active.rgb.copy(), opt))
+        self.outbox.window_poses(ids, poses)
         if self.tracker.reference is None:  # the very first reference: nothing to wait for
             self._swap_reference()
 

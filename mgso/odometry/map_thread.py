@@ -1,0 +1,104 @@
+"""The odometry's mapping half on a thread of its own (DSO's ``mappingLoop``, for real time).
+
+:class:`MappingThread` is fed :class:`~mgso.odometry.records.TrackedFrame` messages by the tracking thread and maps
+them in order with the odometry's ``map_frame``. When frames wait, the older ones are mapped as non-keyframes (traced
+only) and only the newest keeps its keyframe request (DSO ``needToKetchupMapping``): a keyframe's window optimisation
+no longer delays the frames behind it. The messages for the Gaussian mapper that mapping makes (``drain``) wait in
+:meth:`MappingThread.take_ready` for the tracking thread. An error on the thread is kept and raised on the tracking
+thread by the next :meth:`submit`, :meth:`wait` or :meth:`stop`; after it, queued frames only give their pyramids
+back (``release``).
+"""
+
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+from collections.abc import Callable
+
+from .records import TrackedFrame
+
+__all__ = ["MappingThread"]
+
+
+class MappingThread:
+    """``map_frame(tracked)`` maps a frame; ``drain()`` (or ``None``: no messages) returns the messages it made;
+    ``release(pyramid)`` gives a frame's pyramid back when it is not mapped."""
+
+    def __init__(self, map_frame: Callable[[TrackedFrame], None], drain: Callable[[], list] | None,
+                 release: Callable[[object], None]):
+        self._map_frame = map_frame
+        self._drain = drain
+        self._release = release
+        self._queue: queue.Queue | None = None
+        self._worker: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._ready: collections.deque = collections.deque()   # messages the thread has made, in order
+        self.num_keyframe_requests_merged = 0   # keyframe requests mapped as non-keyframes by the catch-up
+
+    def submit(self, tracked: TrackedFrame) -> None:
+        """Queue a tracked frame (the thread starts with the first)."""
+        if self._worker is None or not self._worker.is_alive():
+            self._queue = queue.Queue()
+            self._worker = threading.Thread(target=self._loop, name="mgso-odometry-map", daemon=True)
+            self._worker.start()
+        self._queue.put(tracked)
+
+    def wait(self) -> None:
+        """Wait until every queued frame is mapped (then raise the thread's error, if any)."""
+        if self._queue is not None:
+            self._queue.join()
+        self.raise_error()
+
+    def stop(self) -> None:
+        """Map what is queued, end the thread, raise its error if any."""
+        if self._worker is not None and self._worker.is_alive():
+            self._queue.put(None)
+            self._worker.join()
+        self._worker = None
+        self.raise_error()
+
+    def raise_error(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def add_ready(self, messages: list) -> None:
+        """Messages made on the tracking thread (initialisation, a loss), in order behind the thread's."""
+        self._ready.extend(messages)
+
+    def take_ready(self) -> list:
+        """The messages made so far, oldest first (each once)."""
+        out = []
+        while True:
+            try:
+                out.append(self._ready.popleft())
+            except IndexError:
+                return out
+
+    def _loop(self) -> None:
+        q = self._queue
+        while True:
+            batch = [q.get()]
+            while True:
+                try:
+                    batch.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            for i, tracked in enumerate(batch):
+                try:
+                    if tracked is None:
+                        return
+                    if self._error is not None:  # after an error: only give the pyramids back
+                        if tracked.pyramid is not None:
+                            self._release(tracked.pyramid)
+                        continue
+                    if tracked.need_keyframe and any(t is not None for t in batch[i + 1:]):
+                        tracked.need_keyframe = False  # a newer frame waits: it takes the keyframe request
+                        self.num_keyframe_requests_merged += 1
+                    self._map_frame(tracked)
+                    if self._drain is not None:
+                        self._ready.extend(self._drain())
+                except BaseException as e:  # handed to the tracking thread (process / finish raise it)
+                    self._error = e
+                finally:
+                    q.task_done()
