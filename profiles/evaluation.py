@@ -108,6 +108,9 @@ def main(argv=None) -> int:
             cpu[m].append(time.process_time() - c0)
             figures[m] = {r.protocol_key: {"frames": r.num_frames, "psnr_db": r.mean_psnr, "ssim": r.mean_ssim}
                           for r in res}
+    # the SSIM as the protocols take it (float32 since 2026-12-05; an older tree has only float64)
+    from mgso.eval import render_metrics as rm
+    ssim_kw = {"dtype": rm.PROTOCOL_SSIM_DTYPE} if hasattr(rm, "PROTOCOL_SSIM_DTYPE") else {}
     parts = {"render": [], "reference": [], "psnr": [], "ssim": []}
     for i in tracked[:: max(1, len(tracked) // max(1, args.parts_frames))][:args.parts_frames]:
         t0 = time.perf_counter()
@@ -117,7 +120,7 @@ def main(argv=None) -> int:
         t2 = time.perf_counter()
         ev.psnr(x, y)
         t3 = time.perf_counter()
-        ev.ssim(x, y, border="valid")
+        ev.ssim(x, y, border="valid", **ssim_kw)
         t4 = time.perf_counter()
         for k, v in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             parts[k].append(v * 1000)
