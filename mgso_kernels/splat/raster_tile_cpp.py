@@ -23,7 +23,9 @@ Every value is the Warp kernel's to float rounding: the same operations, but wit
 scenes). The forward, coverage and backward snippets share ``vexp`` and the power's expression, so they make the
 same skip and stop decisions bit for bit, and :mod:`mgso_kernels.reference.splat` stays the twin. The FMAs and the
 shorter dependency chain of Estrin's form took a forward blend from 74-75 to 62-64 ms and a backward blend from
-135-144 to 119-126 ms (640x480, 50k Gaussians, one Zen 3 thread; docs/rasteriser.md). Each snippet returns 1, or 0
+135-144 to 119-126 ms (640x480, 50k Gaussians, one Zen 3 thread; docs/rasteriser.md); reading the loop constants from a
+stack array and single x86 instructions for min, max and the lanes' bits (each behind ``__AVX__``) took the forward
+blend on to 55-56 ms and the coverage render from 80-81 to 72-74 ms, bit for bit. Each snippet returns 1, or 0
 where it does not apply (CUDA, or arrays that are not contiguous) and the Warp code after it runs.
 """
 
@@ -51,21 +53,64 @@ const v8i BIT = {1, 2, 4, 8, 16, 32, 64, 128};
 auto ldi = [](const int* p) -> v8i { v8i v; __builtin_memcpy(&v, p, sizeof v); return v; };
 // a ? b : c per lane, bit for bit (a: a comparison's all-ones / zero lanes)
 auto sel = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
-// wp::min(k, v) and wp::max(v, k) as Warp's CPU code has them (C fmin / fmax: a NaN v gives k)
-auto vmin = [&](float k, v8f v) -> v8f { return sel((v8f)k <= v, (v8f)k, sel(v == v, v, (v8f)k)); };
+// wp::min(k, v) as Warp's CPU code has it (C fmin: a NaN v gives k); on x86 one vminps(v, k), which returns its
+// second operand where either is NaN or they are equal (the same value), v where v < k: the same result; LLVM made
+// fmin's NaN rule a compare, a second compare and two blends
+auto vmin = [&](v8f k, v8f v) -> v8f {
+#if defined(__AVX__)
+    return __builtin_ia32_minps256(v, k);
+#else
+    return sel(k <= v, k, sel(v == v, v, k));
+#endif
+};
+// max(a, b) of lanes that are never NaN (vmaxps on x86; __builtin_elementwise_max adds fmax's NaN rule)
+auto vmax = [](v8f a, v8f b) -> v8f {
+#if defined(__AVX__)
+    return __builtin_ia32_maxps256(a, b);
+#else
+    return __builtin_elementwise_max(a, b);
+#endif
+};
+// the lanes of a comparison (all-ones / zero) as 8 bits, lane k at bit k (vmovmskps on x86: one instruction where
+// OR-reducing the lanes' bits took eight)
+auto bits8 = [&](v8i c) -> int {
+#if defined(__AVX__)
+    return __builtin_ia32_movmskps256((v8f)c);
+#else
+    return __builtin_reduce_or(c & BIT);
+#endif
+};
 // a b + c rounded once (an FMA instruction; the snippets say where they want one, contraction stays off)
 auto fma8 = [](v8f a, v8f b, v8f c) -> v8f { return __builtin_elementwise_fma(a, b, c); };
+// vexp's constants and the blend's thresholds as vectors in a stack array that the compiler cannot fold back into
+// constants (the empty asm statement tells it the array may have changed): the loops read them as memory operands,
+// where LLVM rematerialised each from the constant pool on every list entry (a movabs and a broadcast, under Warp's
+// large code model: 26 of an entry's 100 instructions). The same values, so the same results bit for bit
+enum { KX_MIN, K_LOG2E, K_HALF, K_NLN2HI, K_NLN2LO, K_P3, K_P5, K_P4, K_P7, K_P6, K_AMAX, K_AMIN, K_TMIN, K_N };
+alignas(32) float KV[K_N][8];
+{
+    const float k1[K_N] = {-87.0f, LOG2E_, 0.5f, -LN2HI, -LN2LO, 0.16666667f, 0.008333334f, 0.041666668f,
+                           0.0001984127f, 0.0013888889f, AMAX, AMIN, TMIN};
+    for (int i = 0; i < K_N; ++i)
+        for (int k = 0; k < 8; ++k) KV[i][k] = k1[i];
+}
+asm volatile("" : : "r"(&KV[0][0]) : "memory");
+auto kv = [&](int i) -> v8f { return *(const v8f*)KV[i]; };
 // exp(x) per lane: exp_lane's range reduction and polynomial with FMAs, the polynomial in Estrin's form (three
 // dependent steps after f instead of Horner's seven); within float rounding of exp_lane (the images and gradients
 // against the Warp kernels', tests/kernels/test_splat_tile.py)
 auto vexp = [&](v8f x) -> v8f {
-    x = sel(x >= -87.0f, x, (v8f)-87.0f);
-    const v8f nf = __builtin_elementwise_floor(fma8(x, (v8f)LOG2E_, (v8f)0.5f));
-    const v8f f = fma8(nf, (v8f)-LN2LO, fma8(nf, (v8f)-LN2HI, x));
+#if defined(__AVX__)
+    x = __builtin_ia32_maxps256(x, kv(KX_MIN));     // vmaxps(x, k): k where x is NaN, as the select below
+#else
+    x = sel(x >= kv(KX_MIN), x, kv(KX_MIN));
+#endif
+    const v8f nf = __builtin_elementwise_floor(fma8(x, kv(K_LOG2E), kv(K_HALF)));
+    const v8f f = fma8(nf, kv(K_NLN2LO), fma8(nf, kv(K_NLN2HI), x));
     const v8f f2 = f * f, f4 = f2 * f2;
-    const v8f p01 = 1.0f + f, p23 = fma8(f, (v8f)0.16666667f, (v8f)0.5f);
-    const v8f p45 = fma8(f, (v8f)0.008333334f, (v8f)0.041666668f);
-    const v8f p67 = fma8(f, (v8f)0.0001984127f, (v8f)0.0013888889f);
+    const v8f p01 = 1.0f + f, p23 = fma8(f, kv(K_P3), kv(K_HALF));
+    const v8f p45 = fma8(f, kv(K_P5), kv(K_P4));
+    const v8f p67 = fma8(f, kv(K_P7), kv(K_P6));
     const v8f p = fma8(f4, fma8(f2, p67, p45), fma8(f2, p23, p01));
     return p * (v8f)((__builtin_convertvector(nf, v8i) + 127) << 23);
 };
@@ -167,12 +212,12 @@ typedef float HalfRow[8];   // a tile state's half row (a pointer to float[8]: W
 auto front_step = [&](int e, HalfRow* T, v8f vop) -> Step {
     const int q = hq[e];
     Step s;
-    s.al = vmin(AMAX, vop * vexp(entry_power(e)));
+    s.al = vmin(kv(K_AMAX), vop * vexp(entry_power(e)));
     const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-    const v8f ok = sel(s.al >= AMIN, bit, (v8f)0.0f);
+    const v8f ok = sel(s.al >= kv(K_AMIN), bit, (v8f)0.0f);
     s.Tk = *(v8f*)T[q];
     s.Tn = s.Tk * (1.0f - s.al);
-    s.stop = sel(s.Tn < TMIN, ok, (v8f)0.0f);
+    s.stop = sel(s.Tn < kv(K_TMIN), ok, (v8f)0.0f);
     s.acc = ok - s.stop;
     *(v8f*)T[q] = s.Tk * sel(s.acc > 0.0f, 1.0f - s.al, (v8f)1.0f);
     return s;
@@ -208,8 +253,8 @@ for (int j = start; j < end; ++j) {
         *(v8f*)CB[q] = fma8(w, vc2, *(v8f*)CB[q]);
         *(v8f*)DD[q] = fma8(w, vc3, *(v8f*)DD[q]);
         // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
-        *(v8f*)LL[q] = __builtin_elementwise_max(*(v8f*)LL[q], sel(st.acc > 0.0f, vpos, (v8f)0.0f));
-        const int nh = __builtin_reduce_or((st.stop > 0.0f) & BIT);
+        *(v8f*)LL[q] = vmax(*(v8f*)LL[q], sel(st.acc > 0.0f, vpos, (v8f)0.0f));
+        const int nh = bits8(st.stop > 0.0f);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
@@ -253,7 +298,7 @@ for (int j = start; j < end; ++j) {
         const Step st = front_step(e, T, vop);
         if (@DEPTH@) *(v8f*)DD[q] = fma8(st.acc * st.al * st.Tk, vz, *(v8f*)DD[q]);
         const v8f covered = sel(st.Tn < vts, st.acc, (v8f)0.0f);
-        const int nh = __builtin_reduce_or((st.stop + covered > 0.0f) & BIT);
+        const int nh = bits8(st.stop + covered > 0.0f);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
@@ -326,9 +371,9 @@ for (int jj = 0; jj < n_max; ++jj) {
         const v8f dx = *(const v8f*)(dxl + off);
         const v8f ev = vexp(entry_power(e));
         const v8f raw = vop * ev;
-        const v8f al = vmin(AMAX, raw);
+        const v8f al = vmin(kv(K_AMAX), raw);
         const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-        const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= AMIN, bit, (v8f)0.0f), (v8f)0.0f);
+        const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (v8f)0.0f), (v8f)0.0f);
         const v8f inv = 1.0f / (1.0f - al);
         const v8f Tq = *(const v8f*)T[q];
         const v8f Sq = *(const v8f*)S[q];
@@ -343,7 +388,7 @@ for (int jj = 0; jj < n_max; ++jj) {
         // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
         *(v8f*)T[q] = Tq * sel(okb, inv, (v8f)1.0f);
         *(v8f*)S[q] = Sq + sel(okb, w * gi, (v8f)-0.0f);
-        const v8f v_raw = sel(raw <= AMAX, v_al, (v8f)0.0f) * ok;
+        const v8f v_raw = sel(raw <= kv(K_AMAX), v_al, (v8f)0.0f) * ok;
         const v8f v_pow = v_raw * raw;
         const v8f wk = w * ok;
         float* A = &ACC[0][off];
