@@ -220,6 +220,7 @@ BAD = {
     "loop.loop_edge_weight": [0], "loop.graph_iterations": [0],
     "loop.prefilter_above": [-1], "loop.prefilter_keep": [0], "loop.vocabulary_words": [0],
     "loop.realtime_cpu_share": [0, 1.1], "loop.depth_tolerance": [0], "loop.min_depth_consistent": [-0.1, 1.1], "loop.min_depth_compared": [-1],
+    "loop.planar_fraction": [-0.1, 1.1],
 }
 FREE = {"input.camera"}  # names a camera of the dataset's layout: checked when the sequence is opened
 

@@ -62,8 +62,9 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopRecord:
-    """One accepted loop: the new keyframe, the old one it closed on, the evidence and how far it moved the
-    trajectory (the newest keyframe's correction: translation in the odometry's units, rotation in degrees, scale)."""
+    """One accepted loop: the new keyframe, the old one it closed on, the evidence, how far it moved the trajectory
+    (the newest keyframe's correction: translation in the odometry's units, rotation in degrees, scale) and the loop
+    edge itself (``relative``: the verified 4x4 Sim(3) from the new keyframe's camera to the old one's, as rows)."""
 
     keyframe_id: int
     candidate_id: int
@@ -77,6 +78,7 @@ class LoopRecord:
     correction_degrees: float
     correction_scale: float
     graph_seconds: float
+    relative: list | None = None
 
 
 @dataclass
@@ -481,7 +483,8 @@ class LoopCloser:
                          None if v.scale is None else float(v.scale),
                          correction_translation=float(np.linalg.norm(t)),
                          correction_degrees=float(np.degrees(np.linalg.norm(so3_log(R)))),
-                         correction_scale=s, graph_seconds=seconds)
+                         correction_scale=s, graph_seconds=seconds,
+                         relative=np.asarray(v.relative, dtype=np.float64).tolist())
         self.stats.accepted += 1
         self.stats.loops.append(rec)
         log.info("loop closed: keyframe %d (frame %d) on keyframe %d (frame %d), %d inliers; the newest keyframe "

@@ -25,7 +25,10 @@ W, H = 320, 240
 SCAM = SyntheticCamera.from_fov(W, H)
 CAM = PinholeCamera(SCAM.fx, SCAM.fy, SCAM.cx, SCAM.cy, W, H)
 PATH = camera_path(80).cam_to_world
-SETTINGS = LoopConfig()
+# the 3D-3D geometry with the depth check and no planar check (the defaults before 2026-12-05): most tests here check
+# those steps; the defaults (the new keyframe's geometry, no depth check, the planar check) are tested at the end
+SETTINGS = LoopConfig(geometry="both", min_depth_consistent=0.75, planar_fraction=0.0)
+DEFAULTS = LoopConfig()
 SCALE = 1.3
 
 
@@ -220,3 +223,49 @@ def test_current_geometry_refuses_the_photograph_by_its_depths(current, width_m,
     v = verify(cur, look_alike(img, width_m, yaw_deg), CURRENT)
     assert not v.accepted and v.reason == "depth inconsistent", v
     assert v.inliers >= CURRENT.min_inliers and v.depth_consistent < 0.6      # measured 0.45 / 0.47
+
+
+# ------------------------------------------------------------------------------------------------- the defaults
+def test_the_defaults_accept_true_views_and_loose_depths_and_refuse_the_photograph_as_planar(current):
+    """The defaults (loop.geometry current, the depth check off, loop.planar_fraction 0.8): a true view of the room
+    is accepted, and so is one whose depths are loose (log-normal noise, sigma 0.6: a first pass's, which the depth
+    check refused); the photograph of the current view passes PnP and the photometric check and is refused by the
+    planar check (its points on one plane, the current keyframe's not). The control: without the planar check the
+    photograph is accepted."""
+    cur, img = current
+    assert DEFAULTS.geometry == "current" and DEFAULTS.min_depth_consistent == 0 and DEFAULTS.planar_fraction == 0.8
+    cand = candidate_at(20)
+    v = verify(cur, cand, DEFAULTS)
+    assert v.accepted, v
+    assert v.planar_candidate < 0.6 and v.planar_current < 0.6                # measured 0.37 and 0.37
+    rot, tdir, scale = errors(v.relative, true_relative(20))
+    assert rot < 0.03 and tdir < 0.2 and scale < 6e-3, (rot, tdir, scale)
+    loose = dataclasses.replace(cand, points_idepth=cand.points_idepth * np.exp(
+        np.random.default_rng(4).normal(0.0, 0.6, len(cand.points_idepth))))
+    v = verify(cur, loose, DEFAULTS)
+    assert v.accepted and v.planar_candidate < 0.3, v                         # measured 0.11
+    for width_m, yaw_deg in ((3.2, -10.0), (3.2, -5.0)):
+        look = look_alike(img, width_m, yaw_deg)
+        v = verify(cur, look, DEFAULTS)
+        assert not v.accepted and v.reason == "planar look-alike", v
+        assert v.planar_candidate > 0.9 and v.inliers >= DEFAULTS.min_inliers  # measured 0.98 / 0.99
+        off = verify(cur, look, dataclasses.replace(DEFAULTS, planar_fraction=0.0))
+        assert off.accepted, off
+    assert "planar look-alike" in REASONS
+
+
+def test_planar_fraction_of_a_wall_a_room_and_loose_depths(current):
+    """planar_fraction: a photograph on a wall (exact depths) about 1, a view of the room 0.3-0.5, the same view's
+    depths made loose below 0.2; deterministic for a generator's seed."""
+    from mgso.loop.verify import planar_fraction
+
+    cur, img = current
+    rng = lambda: np.random.default_rng(0)  # noqa: E731
+    assert planar_fraction(look_alike(img, 2.8, 0.0), rng()) > 0.95                       # measured 1.0
+    room = planar_fraction(cur, rng())
+    assert 0.25 < room < 0.6 and planar_fraction(cur, rng()) == room                       # measured 0.37
+    loose = dataclasses.replace(cur, points_idepth=cur.points_idepth * np.exp(
+        np.random.default_rng(4).normal(0.0, 0.6, len(cur.points_idepth))))
+    assert planar_fraction(loose, rng()) < 0.2                                            # measured 0.09
+    few = dataclasses.replace(cur, points_uv=cur.points_uv[:2], points_idepth=cur.points_idepth[:2])
+    assert planar_fraction(few, rng()) == 0.0
