@@ -1,7 +1,7 @@
 """Geometric and photometric verification of a loop candidate (docs/loop.md, "Place recognition and verification").
 
 A wrong loop bends the whole trajectory and the map with it, so a candidate from :mod:`mgso.loop.place` is accepted
-only after four checks, each with a threshold of ``loop`` (:class:`~mgso.config.LoopConfig`):
+only after five checks, each with a threshold of ``loop`` (:class:`~mgso.config.LoopConfig`):
 
 1. **Matches with depth.** ORB descriptors matched both ways with Lowe's ratio test (``match_ratio``), kept when
    mutual and when at least one of the two keypoints has a DSO depth. Pairs with a depth on both sides (3D-3D)
@@ -481,8 +481,8 @@ def verify(current: KeyframeFeatures, candidate: KeyframeFeatures, settings: Loo
     pyramid and coarse tracker's settings for the photometric check (default ``TrackingConfig()``; pass the run's
     ``config.tracking``). The depth check's thresholds: the arguments, else ``settings``' fields of those names
     when it has them, else :data:`DEPTH_TOLERANCE`, :data:`MIN_DEPTH_CONSISTENT`, :data:`MIN_DEPTH_COMPARED`
-    (``min_depth_consistent=0`` and ``min_depth_compared=0`` switch it off). Deterministic for ``rng_seed`` (on one
-    device)."""
+    (``min_depth_consistent=0`` and ``min_depth_compared=0`` switch it off); the planar check's from
+    ``settings.planar_fraction`` (0 or absent: off). Deterministic for ``rng_seed`` (on one device)."""
     cfg = settings
 
     def pick(value, name, default):

@@ -20,10 +20,10 @@ threads, with typed messages between the halves (:mod:`mgso.odometry.records`):
 :meth:`Odometry.process` runs both in order (deterministic and single-threaded, for tests and evaluation). With
 ``map_thread=True`` (DSO's split, for real time; off by default) :meth:`process` tracks the frame and returns, and
 :meth:`map` runs on a thread of the odometry's own (:class:`~mgso.odometry.map_thread.MappingThread`), fed by a
-queue of :class:`TrackedFrame`: a keyframe's window
-optimisation no longer delays the frames behind it, the tracker keeps tracking against the latest reference until
-the new one is handed over, and when frames wait the older ones are mapped as non-keyframes (traced only) and only
-the newest keeps its keyframe request (DSO ``needToKetchupMapping``). The initialiser's frames and a tracking loss
+queue of :class:`TrackedFrame`: a keyframe's window optimisation no longer delays the frames behind it, the tracker
+keeps tracking against the latest reference until the new one is handed over, and when frames wait the older ones
+are mapped as non-keyframes (traced only) and only the newest keeps its keyframe request (DSO
+``needToKetchupMapping``). The initialiser's frames and a tracking loss
 are mapped in order on the calling thread (the queue is emptied first); the mapper's messages are returned by the
 next :meth:`process` calls and :meth:`finish`; the observer's keyframe, window and point events come from the
 mapping thread. Results are then no longer bit-identical run to run.
@@ -40,7 +40,8 @@ For output the segments are chained: segment ``k > 0`` is mapped into the common
 (:meth:`Odometry.segment_similarity`) that puts its first keyframe at the last reliable pose of segment ``k - 1``
 (inlier ratio at least 0.5 and RMSE within ``kf_rmse_factor`` x the first RMSE; the frames just before a loss are
 often already wrong; the camera is assumed not to have moved since) and sets its scale, which monocular odometry
-cannot know, so that the median depth of its first points equals the median depth of the previous segment's last tracking reference.
+cannot know, so that the median depth of its first points equals the median depth of the previous segment's last
+tracking reference (:mod:`mgso.odometry.segments` keeps the similarities).
 :attr:`FrameRecord.cam_to_world` and :attr:`KeyframeRecord.cam_to_world` are in the segment's frame; the
 trajectories, :class:`FrameResult`, the observer events and :meth:`Odometry.point_cloud_world` are in the common
 world. Every frame carries its segment number.
