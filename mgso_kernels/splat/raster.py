@@ -41,7 +41,7 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "rasterize_forward", "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
+__all__ = ["pack_splats", "pack_splats_blocks", "last_pack_status", "PACK_BLOCK", "rasterize_forward", "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
            "row_span", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
 
 TS = wp.constant(TILE_SIZE)
@@ -110,6 +110,88 @@ def span_exp_start(s: vec8, dx: float, dy: float) -> wp.vec2:
     power = -0.5 * (a * dx * dx + s[4] * dy * dy) - b * dx * dy
     step = -(a * dx + b * dy) - 0.5 * a
     return wp.vec2(wp.exp(power), wp.exp(step))
+
+
+# The CPU's pack in C++ (a native snippet): a block of 32 pairs looks up its Gaussians first, then copies their data,
+# so the block's dependent loads (slot -> Gaussian -> data, each a cache miss on a large map) overlap instead of
+# waiting one pair at a time; the copy is the same bytes. 1.65 against 3.44 ms for 245k pairs and 11.0 against 52.0
+# ms for 972k (50k and 200k Gaussians, one Zen 3 thread; docs/rasteriser.md). Returns 0 (nothing written) where the
+# arrays are not contiguous, and on CUDA, where :func:`pack_splats` runs a thread per pair.
+_PACK_CPP = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+if (slots.strides[0] != 4 || pair_gauss.strides[0] != 4 || splat_g.strides[0] != 32 || rgbz_g.strides[0] != 16
+    || depths_g.strides[0] != 4 || splats.strides[0] != 32 || splat_rgbz.strides[0] != 16) return 0;
+const int* sl = (const int*)slots.data;
+const int* pg = (const int*)pair_gauss.data;
+const float* sg = (const float*)splat_g.data;
+const float* cg = (const float*)rgbz_g.data;
+const float* dg = (const float*)depths_g.data;
+float* so = (float*)splats.data;
+float* co = (float*)splat_rgbz.data;
+int g[32];
+for (int j0 = lo; j0 < hi; j0 += 32) {
+    const int m = hi - j0 < 32 ? hi - j0 : 32;
+    for (int k = 0; k < m; ++k) g[k] = pg[sl[j0 + k]];
+    for (int k = 0; k < m; ++k) {
+        __builtin_memcpy(so + 8L * (j0 + k), sg + 8L * g[k], 32);
+        if (with_color == 1) {
+            __builtin_memcpy(co + 4L * (j0 + k), cg + 4L * g[k], 16);
+        } else if (with_color == 2) {
+            float* c = co + 4L * (j0 + k);
+            c[0] = 0.0f; c[1] = 0.0f; c[2] = 0.0f; c[3] = dg[g[k]];
+        }
+    }
+}
+return 1;
+#else
+return 0;
+#endif
+"""
+
+
+@wp.func_native(_PACK_CPP)
+def pack_splats_cpp(lo: int, hi: int, slots: wp.array(dtype=wp.int32), pair_gauss: wp.array(dtype=wp.int32),
+                    splat_g: wp.array(dtype=vec8), rgbz_g: wp.array(dtype=wp.vec4), depths_g: wp.array(dtype=float),
+                    with_color: int, splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4)) -> int:
+    """:func:`pack_splats` for the pairs ``[lo, hi)`` in C++ (above): the same bytes. Returns 1, or 0 where it does
+    not apply (nothing written)."""
+    ...
+
+
+@wp.kernel
+def pack_splats_blocks(
+    offset: int,
+    block: int,  # pairs a thread
+    n_pairs: int,
+    slots: wp.array(dtype=wp.int32),
+    pair_gauss: wp.array(dtype=wp.int32),
+    splat_g: wp.array(dtype=vec8),
+    rgbz_g: wp.array(dtype=wp.vec4),
+    depths_g: wp.array(dtype=float),
+    with_color: int,
+    splats: wp.array(dtype=vec8),
+    splat_rgbz: wp.array(dtype=wp.vec4),
+    native: int,  # 1: the C++ block where it applies; 0: this kernel's loop (raster_tile.use_native)
+    status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the C++ block did the pairs
+):
+    """:func:`pack_splats` with ``block`` pairs a thread, for the CPU: the C++ block first, this loop where it
+    declines."""
+    c = offset + wp.tid()
+    lo = c * block
+    hi = wp.min(lo + block, n_pairs)
+    done = int(0)
+    if native != 0:
+        done = pack_splats_cpp(lo, hi, slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats,
+                               splat_rgbz)
+    status[c] = done
+    if done == 0:
+        for j in range(lo, hi):
+            g = pair_gauss[slots[j]]
+            splats[j] = splat_g[g]
+            if with_color == 1:
+                splat_rgbz[j] = rgbz_g[g]
+            elif with_color == 2:
+                splat_rgbz[j] = wp.vec4(0.0, 0.0, 0.0, depths_g[g])
 
 
 @wp.kernel
@@ -300,8 +382,40 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
     with_color = 1 if rgbz_g is not None else (2 if depths_g is not None else 0)
     rgbz_g = rgbz_g if rgbz_g is not None else _dummy(wp.vec4, 1, device)
     depths_g = depths_g if depths_g is not None else _dummy(wp.float32, 1, device)
+    if str(device).startswith("cpu"):
+        from .raster_tile import native_flag
+
+        # blocks of PACK_BLOCK pairs, a thread each (the C++ block; launch_split spreads the blocks over the cores)
+        n_blocks = (n_pairs + PACK_BLOCK - 1) // PACK_BLOCK
+        status = _pack_status(n_blocks, device)
+        launch_split(pack_splats_blocks, n_blocks, [PACK_BLOCK, n_pairs, slots, pair_gauss, splat_g, rgbz_g, depths_g,
+                                                    with_color, splats, splat_rgbz, native_flag(), status], device,
+                     threads=threads, min_chunk=max(1, min_chunk // PACK_BLOCK))
+        return
     launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats,
                                         splat_rgbz], device, threads=threads, min_chunk=min_chunk)
+
+
+#: Pairs a thread of the CPU's pack (:func:`pack_splats_blocks`).
+PACK_BLOCK = 1024
+_pack_statuses: dict = {}
+
+
+def _pack_status(n: int, device) -> wp.array:
+    """The CPU pack's per-block status array (grown, kept): ``last_pack_status()`` reads it."""
+    key = str(device)
+    arr = _pack_statuses.get(key)
+    if arr is None or arr.shape[0] < n:
+        arr = wp.zeros(max(n, 64), dtype=wp.int32, device=device)
+        _pack_statuses[key] = arr
+    _pack_statuses[key + "/n"] = n
+    return arr
+
+
+def last_pack_status(device="cpu"):
+    """The per-block status of the last CPU pack on ``device`` (1 where the C++ block did the pairs), for tests."""
+    key = str(device)
+    return _pack_statuses[key].numpy()[: _pack_statuses[key + "/n"]].copy()
 
 
 _dummies: dict = {}
