@@ -267,3 +267,42 @@ def test_the_cpus_blocked_pack_copies_the_bytes_of_the_pair_kernel(wp_device, wi
             raster_tile.use_native(before)
         np.testing.assert_array_equal(off_s, got_s)
         np.testing.assert_array_equal(off_c, got_c)
+
+
+@pytest.mark.parametrize("n_tiles", [2, 1200, 70000])
+def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
+    """bin.sort_pairs sorts (tile << 32 | depth bits, slot) pairs stably by the key's low tile_key_bits; on the CPU in
+    C++ (8-bit digits: 5, 6 and 7 passes for these tile counts, so the result ends in either half), elsewhere with
+    wp.utils.radix_sort_pairs. The same keys and slots bit for bit on 30,000 pairs with repeated depths (ties keep
+    the slot order), and the C++ sort ran on the CPU (returned 1); the control with the C++ switched off returns 0
+    and the same order."""
+    from mgso_kernels.splat import bin as binning
+
+    rng = np.random.default_rng(5)
+    m = 30000
+    tile = rng.integers(0, n_tiles, m).astype(np.int64)
+    depth = rng.choice(np.float32([0.5, 1.0, 2.5, 7.25]), m) if n_tiles == 2 else rng.random(m, dtype=np.float32) + 0.1
+    keys = (tile << 32) | depth.view(np.uint32).astype(np.int64)
+    slots = np.arange(m, dtype=np.int32)
+
+    def run(native):
+        k = wp.array(np.concatenate([keys, keys]), dtype=wp.int64, device=wp_device)
+        v = wp.array(np.concatenate([slots, slots]), dtype=wp.int32, device=wp_device)
+        if native is None:
+            wp.utils.radix_sort_pairs(k, v, m, begin_bit=0, end_bit=binning.tile_key_bits(n_tiles))
+            return k.numpy()[:m], v.numpy()[:m], None
+        before = raster_tile.use_native(native)
+        try:
+            ran = binning.sort_pairs(k, v, m, n_tiles)
+        finally:
+            raster_tile.use_native(before)
+        return k.numpy()[:m], v.numpy()[:m], ran
+
+    want_k, want_v, _ = run(None)
+    order = np.lexsort((slots, keys))                      # stable by key: NumPy's own
+    np.testing.assert_array_equal(want_v, order)
+    for native in (True, False):
+        got_k, got_v, ran = run(native)
+        np.testing.assert_array_equal(got_k, want_k)
+        np.testing.assert_array_equal(got_v, want_v)
+        assert ran == (1 if native and str(wp_device).startswith("cpu") else 0)
