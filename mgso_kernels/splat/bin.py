@@ -279,9 +279,6 @@ def radix_sort_pairs_cpu(n: int, end_bit: int, keys: wp.array(dtype=wp.int64), v
     status[0] = done
 
 
-_sort_status: dict = {}
-
-
 def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> int:
     """Radix-sort the first ``n_pairs`` (key, slot) pairs by (tile, depth), in place (stable): on the CPU in C++
     (:func:`radix_sort_cpp`; ``raster_tile.use_native(False)`` switches it off), else, or where that declines,
@@ -293,10 +290,7 @@ def sort_pairs(keys, slots, n_pairs: int, n_tiles: int) -> int:
     if device.is_cpu:
         from .raster_tile import native_flag
 
-        key = str(device)
-        if key not in _sort_status:
-            _sort_status[key] = wp.zeros(1, dtype=wp.int32, device=device)
-        status = _sort_status[key]
+        status = wp.zeros(1, dtype=wp.int32, device=device)   # a call's own (renders may sort on two threads)
         wp.launch(radix_sort_pairs_cpu, dim=1, inputs=[n_pairs, end_bit, keys, slots, native_flag(), status],
                   device=device)
         if int(status.numpy()[0]) == 1:
