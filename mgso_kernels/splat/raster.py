@@ -41,7 +41,8 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "pack_splats_blocks", "last_pack_status", "PACK_BLOCK", "rasterize_forward", "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
+__all__ = ["pack_splats", "pack_splats_blocks", "last_pack_status", "PACK_BLOCK", "rasterize_forward", "rasterize_alpha",
+           "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
            "row_span", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
 
 TS = wp.constant(TILE_SIZE)
