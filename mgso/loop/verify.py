@@ -84,12 +84,13 @@ from mgso_kernels.image import ImagePyramid, Pinhole, PyramidGeometry, plan_pyra
 from mgso_kernels.photometric import make_frame_pair
 from mgso_kernels.track import track_system
 
-#: Defaults of the depth-consistency check (step 4 of the module text) until LoopConfig has them as settings
-#: (``loop.depth_tolerance``, ``loop.min_depth_consistent``, ``loop.min_depth_compared``; read from ``settings`` when
-#: it has them): the relative inverse-depth difference within which a current point agrees with the candidate's
-#: depth map (DSO's depths of good points are within a few percent; 15 % leaves room for depth edges and the
-#: dilated map), the fraction of compared points that must agree (true revisits measured 0.95-0.98 on synthetic
-#: scenes, a photograph of the place hung elsewhere 0.41-0.54: docs/loop.md) and the fewest points compared.
+#: The depth-consistency check's thresholds (step 4 of the module text) for settings objects without the fields
+#: ``depth_tolerance``, ``min_depth_consistent``, ``min_depth_compared`` (LoopConfig has them; its
+#: ``min_depth_consistent`` is 0, off, since 2026-12-05): the relative inverse-depth difference within which a
+#: current point agrees with the candidate's depth map (DSO's depths of good points are within a few percent; 15 %
+#: leaves room for depth edges and the dilated map), the fraction of compared points that must agree (true revisits
+#: measured 0.95-0.98 on synthetic scenes, a photograph of the place hung elsewhere 0.41-0.54: docs/loop.md) and the
+#: fewest points compared.
 DEPTH_TOLERANCE = 0.15
 MIN_DEPTH_CONSISTENT = 0.75
 MIN_DEPTH_COMPARED = 30

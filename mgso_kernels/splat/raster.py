@@ -41,9 +41,9 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "pack_splats_blocks", "last_pack_status", "PACK_BLOCK", "rasterize_forward", "rasterize_alpha",
-           "rasterize_alpha_depth", "vec8", "vec16", "vec16i",
-           "row_span", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
+__all__ = ["pack_splats", "pack_splats_blocks", "pack_pair", "last_pack_status", "PACK_BLOCK", "rasterize_forward",
+           "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i", "row_span", "ALPHA_MIN", "ALPHA_MAX",
+           "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
 
 TS = wp.constant(TILE_SIZE)
 SEGMENT_WIDTHS = (1, 2, 4, 8, 16, TILE_SIZE * TILE_SIZE)  # pixels per thread the blend kernels accept; 256 = a
@@ -111,6 +111,19 @@ def span_exp_start(s: vec8, dx: float, dy: float) -> wp.vec2:
     power = -0.5 * (a * dx * dx + s[4] * dy * dy) - b * dx * dy
     step = -(a * dx + b * dy) - 0.5 * a
     return wp.vec2(wp.exp(power), wp.exp(step))
+
+
+@wp.func
+def pack_pair(j: int, slots: wp.array(dtype=wp.int32), pair_gauss: wp.array(dtype=wp.int32),
+              splat_g: wp.array(dtype=vec8), rgbz_g: wp.array(dtype=wp.vec4), depths_g: wp.array(dtype=float),
+              with_color: int, splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4)):
+    """Sorted pair ``j`` gets its Gaussian's data (see :func:`pack_splats`)."""
+    g = pair_gauss[slots[j]]
+    splats[j] = splat_g[g]
+    if with_color == 1:
+        splat_rgbz[j] = rgbz_g[g]
+    elif with_color == 2:
+        splat_rgbz[j] = wp.vec4(0.0, 0.0, 0.0, depths_g[g])
 
 
 # The CPU's pack in C++ (a native snippet): a block of 32 pairs looks up its Gaussians first, then copies their data,
@@ -187,12 +200,7 @@ def pack_splats_blocks(
     status[c] = done
     if done == 0:
         for j in range(lo, hi):
-            g = pair_gauss[slots[j]]
-            splats[j] = splat_g[g]
-            if with_color == 1:
-                splat_rgbz[j] = rgbz_g[g]
-            elif with_color == 2:
-                splat_rgbz[j] = wp.vec4(0.0, 0.0, 0.0, depths_g[g])
+            pack_pair(j, slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats, splat_rgbz)
 
 
 @wp.kernel
@@ -207,13 +215,7 @@ def pack_splats(
     splats: wp.array(dtype=vec8),  # [M] out, in sorted order
     splat_rgbz: wp.array(dtype=wp.vec4),  # [M] out: r, g, b, depth
 ):
-    j = offset + wp.tid()
-    g = pair_gauss[slots[j]]
-    splats[j] = splat_g[g]
-    if with_color == 1:
-        splat_rgbz[j] = rgbz_g[g]
-    elif with_color == 2:
-        splat_rgbz[j] = wp.vec4(0.0, 0.0, 0.0, depths_g[g])
+    pack_pair(offset + wp.tid(), slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats, splat_rgbz)
 
 
 @wp.kernel
@@ -399,24 +401,22 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
 
 #: Pairs a thread of the CPU's pack (:func:`pack_splats_blocks`).
 PACK_BLOCK = 1024
-_pack_statuses: dict = {}
+_pack_statuses: dict = {}   # device -> (status array, blocks of the last pack)
 
 
 def _pack_status(n: int, device) -> wp.array:
     """The CPU pack's per-block status array (grown, kept): ``last_pack_status()`` reads it."""
-    key = str(device)
-    arr = _pack_statuses.get(key)
+    arr, _ = _pack_statuses.get(str(device), (None, 0))
     if arr is None or arr.shape[0] < n:
         arr = wp.zeros(max(n, 64), dtype=wp.int32, device=device)
-        _pack_statuses[key] = arr
-    _pack_statuses[key + "/n"] = n
+    _pack_statuses[str(device)] = (arr, n)
     return arr
 
 
 def last_pack_status(device="cpu"):
     """The per-block status of the last CPU pack on ``device`` (1 where the C++ block did the pairs), for tests."""
-    key = str(device)
-    return _pack_statuses[key].numpy()[: _pack_statuses[key + "/n"]].copy()
+    arr, n = _pack_statuses[str(device)]
+    return arr.numpy()[:n].copy()
 
 
 _dummies: dict = {}
