@@ -808,6 +808,11 @@ class MapperConfig:
                                      "leave many faint Gaussians in a SLAM map; 0.05 halves the 7-Scenes map (6.14 -> "
                                      "3.08 MB) for 0.22 dB and cuts KITTI's by a third at equal PSNR "
                                      "(docs/mapping.md); 0 = mapping.densify's")
+    final_refine_after: int = opt(200, "where the stream left the map unrefined (real time on a small CPU: a few "
+                                       "steps while the camera ran, every seed untrained; 7-Scenes' 118k Gaussians "
+                                       "then cost 290 ms a step until the schedule's first refinement at step 600), "
+                                       "the final refinement densifies and prunes this many steps in; a map refined "
+                                       "while the stream ran keeps its schedule; 0 = the schedule alone")
     grow_grad2d: float = opt(0.0008, "the mapper's clone/split threshold (grad_mode grad), in place of mapping."
                                      "densify.grow_grad2d (3DGS's 0.0002, what `mgso fit` uses): with every keyframe "
                                      "trained to the end the map grows where its views disagree (7-Scenes 640x480: "
@@ -817,7 +822,7 @@ class MapperConfig:
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)
         c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every", "running_max_pixels",
-             "defer_seeding_above")
+             "defer_seeding_above", "final_refine_after")
         c.within(0, 1, "running_train_share", open_hi=True)    # a share of 1 would never handle a message
         c.within(0, 1, "prune_opacity", open_hi=True)
         c.ge(0, "grow_grad2d")

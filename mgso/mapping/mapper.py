@@ -812,10 +812,32 @@ class Mapper:
     def refine(self, iterations: int) -> int:
         """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice)."""
         t0 = time.perf_counter()
+        self._bring_refining_forward()
         done = self.train(iterations)
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done
+
+    def _bring_refining_forward(self) -> None:
+        """Before the final refinement: where the stream left the map unrefined (real time on a small CPU: a few
+        steps while the camera ran, every seed untrained), the first refinement comes
+        ``mapping.mapper.final_refine_after`` steps in (one step more for the strategy) instead of at the first
+        scheduled one (after ``refine_start_step``, at a multiple of ``refine_every``): its opacity prune drops the
+        seeds training did not keep, and the rest of the refinement runs on the smaller map (docs/mgso.md). A map
+        refined while the stream ran keeps its schedule."""
+        after = self.cfg.final_refine_after
+        ts = self.trainer.train_step
+        st = ts.strategy
+        if after <= 0 or not isinstance(st, DefaultStrategy) or ts.strategy_state.refines > 0:
+            return
+        c = st.cfg
+        now = self.trainer.step_count
+        first = max(c.refine_start_step + 1, now)
+        scheduled = -(-first // c.refine_every) * c.refine_every       # the first step the schedule refines
+        at = now + after
+        if at < scheduled and st.is_active(at):
+            ts.strategy = dataclasses.replace(st, extra_refine_steps=st.extra_refine_steps | {at})
+            log.debug("final refinement: a first refinement at step %d (the schedule's first: %d)", at, scheduled)
 
     # ------------------------------------------------------------------------------------------ health
     HEALTH_VIEWS = 8            # training views rendered by health(), evenly spread over the keyframes

@@ -22,7 +22,8 @@ what it did as a :class:`RefineResult` value.
 Rules (graphdeco 3DGS ``densify_and_prune`` / gsplat ``DefaultStrategy``; units in brackets):
 
 - Refine at ``step > refine_start_step`` when ``step % refine_every == 0`` and ``step < refine_stop_step`` (0 = never
-  stop), skipping ``pause_refine_after_reset`` steps after each opacity reset.
+  stop), skipping ``pause_refine_after_reset`` steps after each opacity reset; also at the strategy's
+  ``extra_refine_steps`` (none by default; the mapper's final refinement after an unrefined stream adds one).
 - Mean screen-space gradient ``g = grad2d_sum / vis_count`` [NDC units: |dL/d mean_ndc| = |(gx_px W/2, gy_px H/2)|,
   3DGS's threshold 0.0002 is in these units]. Gaussians visible in fewer than ``grow_min_views`` views since the last
   refine do not grow.
@@ -88,6 +89,9 @@ class DefaultStrategy:
     """3DGS adaptive density control; hyperparameters are the fields of :class:`mgso.config.DensifyConfig`."""
 
     cfg: DensifyConfig = field(default_factory=DensifyConfig)
+    # steps that refine besides the schedule (while refining is on): the mapper's first refinement of a final
+    # refinement that follows an unrefined stream (mapping.mapper.final_refine_after)
+    extra_refine_steps: frozenset = frozenset()
 
     def __post_init__(self):
         c = self.cfg
@@ -128,7 +132,8 @@ class DefaultStrategy:
 
     def is_refine_step(self, step: int) -> bool:
         c = self.cfg
-        if not self.is_active(step) or step <= c.refine_start_step or step % c.refine_every != 0:
+        scheduled = step > c.refine_start_step and step % c.refine_every == 0
+        if not self.is_active(step) or not (scheduled or step in self.extra_refine_steps):
             return False
         return c.reset_every <= 0 or step % c.reset_every >= c.pause_refine_after_reset
 

@@ -590,6 +590,34 @@ def test_the_mappers_prune_threshold_replaces_densifys(wp_device, seq, cam):
     assert counts[0.05][1] > counts[0.0][1] and counts[0.05][0] < counts[0.0][0], counts
 
 
+def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, seq, cam):
+    """mapping.mapper.final_refine_after: a mapper that did not refine while the stream ran (real time on a small
+    CPU) refines that many steps into its final refinement, and its untrained seeds are pruned there; the control
+    (0) does not refine at all in the same steps (the schedule's first refinement: after step 500), and a map
+    already refined while the stream ran keeps its schedule."""
+    def run(after, *over):
+        mp = Mapper(_cfg(f"mapping.mapper.final_refine_after={after}", "mapping.mapper.refine_every=10",
+                         "mapping.mapper.iterations_per_keyframe=1", "mapping.seeding.init_opacity=0.03", *over),
+                    device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        mp.submit(_kf(seq, cam, 8))
+        mp.process_pending()
+        seeded = mp.gmap.n
+        mp.refine(30)
+        return mp, seeded
+
+    mp, seeded = run(5)
+    # 2 steps while the stream ran (0-1): the final refinement's steps 2-31, the first refinement at step 2 + 5
+    assert mp.trainer.train_step.strategy.extra_refine_steps == {7}
+    assert mp.stats.densify["refines"] == 1 and mp.stats.densify["pruned_opacity"] > 0.5 * seeded, \
+        (seeded, mp.stats.densify)
+    control, _ = run(0)
+    assert control.stats.densify["refines"] == 0 and control.gmap.n >= seeded       # the control: nothing pruned
+    refined, _ = run(5, "mapping.densify.refine_start_step=1", "mapping.mapper.iterations_per_keyframe=6")
+    assert refined.stats.densify["refines"] >= 1                                     # at step 10, while streaming
+    assert refined.trainer.train_step.strategy.extra_refine_steps == frozenset()     # its schedule kept
+
+
 def test_random_sampler_keeps_training_the_first_keyframes(wp_device, seq, cam):
     """mapping.mapper.sampler=random: the newest keyframe with newest_probability, otherwise any keyframe, so the
     first keyframe keeps being trained while later ones arrive. Negative control: least_used gives a new keyframe
