@@ -810,9 +810,9 @@ class MapperConfig:
                                      "(docs/mapping.md); 0 = mapping.densify's")
     final_refine_after: int = opt(200, "where the stream left the map unrefined (real time on a small CPU: a few "
                                        "steps while the camera ran, every seed untrained; 7-Scenes' 118k Gaussians "
-                                       "then cost 290 ms a step until the schedule's first refinement at step 600), "
-                                       "the final refinement densifies and prunes this many steps in; a map refined "
-                                       "while the stream ran keeps its schedule; 0 = the schedule alone")
+                                       "then cost 275-331 ms a step until the schedule's first refinement at step "
+                                       "600), the final refinement densifies and prunes this many steps in; a map "
+                                       "refined while the stream ran keeps its schedule; 0 = the schedule alone")
     grow_grad2d: float = opt(0.0008, "the mapper's clone/split threshold (grad_mode grad), in place of mapping."
                                      "densify.grow_grad2d (3DGS's 0.0002, what `mgso fit` uses): with every keyframe "
                                      "trained to the end the map grows where its views disagree (7-Scenes 640x480: "
