@@ -13,6 +13,10 @@ width; opacities sigmoid(N(1, 1.5)), median 0.73; SH degree 0 colours unless --d
 - ``volume``: a stress case, N Gaussians filling the frustum at 1-5 m with 1-20 px standard deviations; depth
   complexity grows with N (about 50 blended Gaussians per pixel at 50k, 640x480).
 
+``--run DIR`` profiles a real run's map instead: ``DIR/map.ply`` rendered at the run's image size and intrinsics
+(``sequence.json``) from ``--views`` poses spread evenly over ``DIR/trajectory.txt``; ``--sizes`` and ``--counts``
+are ignored and the row's ``count`` is the map's size (medians over views and repeats).
+
 Per size and count: medians over ``--repeats`` (after one warm-up) of each stage in milliseconds: forward
 ``project``, ``bin_count`` (tile counting + prefix scan + reading the pair count), ``bin_keys`` (key emission),
 ``sort``, ``ranges``, ``sh``, ``pack``, ``blend``, ``forward_total``; backward ``backward_blend``,
@@ -140,6 +144,31 @@ def volume_scene(rng: np.random.Generator, n: int, width: int, height: int, degr
     return scene, make_camera(f, f, cx, cy, width, height, np.eye(4))
 
 
+def run_scene(run: str, views: int, device: str):
+    """A finished run's map (parameters as Warp arrays) and ``views`` cameras along its trajectory."""
+    import json as _json
+    from pathlib import Path
+
+    import warp as wp
+
+    from mgso.io.ply import read_gaussians_ply
+    from mgso.io.trajectory import read_tum
+
+    d = Path(run)
+    g = read_gaussians_ply(d / "map.ply")
+    info = _json.loads((d / "sequence.json").read_text())
+    k = info["intrinsics"]
+    width, height = (int(x) for x in (info.get("image_size_out") or info["image_size_in"]))
+    traj = read_tum(d / "trajectory.txt")
+    sh = np.asarray(g.sh, np.float32).reshape(len(g.means), -1, 3)
+    params = [wp.array(np.ascontiguousarray(a, np.float32), device=device)
+              for a in (g.means, g.log_scales, g.quats, g.opacity_logits, sh)]
+    idx = np.linspace(0, len(traj) - 1, views + 2).round().astype(int)[1:-1]
+    cams = [make_camera(k["fx"], k["fy"], k["cx"], k["cy"], width, height, np.linalg.inv(traj.cam_to_world[i]))
+            for i in idx]
+    return params, cams, width, height, len(g.means), int(round(np.sqrt(sh.shape[1]))) - 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -149,6 +178,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="CPU threads for split launches (0 = all cores)")
     ap.add_argument("--degree", type=int, default=0)
     ap.add_argument("--scene", choices=("room", "volume"), default="room")
+    ap.add_argument("--run", help="profile this finished run's map.ply along its trajectory (see above)")
+    ap.add_argument("--views", type=int, default=4, help="--run: poses along the trajectory")
     ap.add_argument("--no-stages", action="store_true",
                     help="totals only: no synchronisation between stages (on a GPU the per-stage timing adds a "
                          "synchronisation per stage to the totals)")
@@ -157,50 +188,62 @@ def main(argv=None) -> int:
     import warp as wp
 
     results = []
-    for size in args.sizes.split(","):
-        width, height = (int(s) for s in size.lower().split("x"))
-        for count in (int(c) for c in args.counts.split(",")):
-            rng = np.random.default_rng(1234)
-            make = room_scene if args.scene == "room" else volume_scene
-            scene, cam = make(rng, count, width, height, args.degree)
-            params = [wp.array(scene[k], dtype=wp.float32, device=device)
-                      for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
-            v_rgb = wp.array(rng.normal(size=(height, width, 3)).astype(np.float32) * 1e-3, device=device)
-            v_depth = wp.array(rng.normal(size=(height, width)).astype(np.float32) * 1e-3, device=device)
-            rast = Rasterizer(device, profile=not args.no_stages)
-            fwd, bwd, alpha_only, cpu_f, cpu_b = [], [], [], [], []
-            out = None
-            for rep in range(args.repeats + 1):
-                c0, t0 = time.process_time(), time.perf_counter()
-                out = rast.forward(*params, cam)
-                wp.synchronize_device(device)
-                c1, t1 = time.process_time(), time.perf_counter()
-                f_t = dict(rast.timings if not args.no_stages else {}, forward_total=t1 - t0)
-                rast.backward(out, v_rgb, v_depth)
-                wp.synchronize_device(device)
-                c2, t2 = time.process_time(), time.perf_counter()
-                b_t = dict(rast.timings if not args.no_stages else {}, backward_total=t2 - t1)
-                t3 = time.perf_counter()
-                rast.render_alpha(*params[:4], cam)
-                wp.synchronize_device(device)
-                a_t = time.perf_counter() - t3
-                if rep > 0:  # the first run allocates and (maybe) compiles
-                    fwd.append(f_t)
-                    bwd.append(b_t)
-                    alpha_only.append(a_t)
-                    cpu_f.append(c1 - c0)
-                    cpu_b.append(c2 - c1)
-            row = {"size": f"{width}x{height}", "count": count, "pairs": out.n_pairs if out else 0,
-                   "visible": out.num_visible if out else 0}
-            for runs in (fwd, bwd):
-                for key in runs[0]:
-                    row[key + "_ms"] = round(1e3 * statistics.median(r[key] for r in runs), 2)
-            row["alpha_only_ms"] = round(1e3 * statistics.median(alpha_only), 2)
-            row["forward_cpu_ms"] = round(1e3 * statistics.median(cpu_f), 2)
-            row["backward_cpu_ms"] = round(1e3 * statistics.median(cpu_b), 2)
-            results.append(row)
+    cases = []
+    degree = args.degree
+    if args.run:
+        params, cams, width, height, count, degree = run_scene(args.run, args.views, device)
+        cases.append((params, cams, width, height, count))
+    else:
+        for size in args.sizes.split(","):
+            width, height = (int(s) for s in size.lower().split("x"))
+            for count in (int(c) for c in args.counts.split(",")):
+                rng = np.random.default_rng(1234)
+                make = room_scene if args.scene == "room" else volume_scene
+                scene, cam = make(rng, count, width, height, args.degree)
+                params = [wp.array(scene[k], dtype=wp.float32, device=device)
+                          for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+                cases.append((params, [cam], width, height, count))
+    for params, cam_list, width, height, count in cases:
+        rng = np.random.default_rng(1234)
+        v_rgb = wp.array(rng.normal(size=(height, width, 3)).astype(np.float32) * 1e-3, device=device)
+        v_depth = wp.array(rng.normal(size=(height, width)).astype(np.float32) * 1e-3, device=device)
+        rast = Rasterizer(device, profile=not args.no_stages)
+        fwd, bwd, alpha_only, cpu_f, cpu_b = [], [], [], [], []
+        out = None
+        pairs = []
+        for rep, cam in ((r, c) for c in cam_list for r in range(args.repeats + 1)):
+            c0, t0 = time.process_time(), time.perf_counter()
+            out = rast.forward(*params, cam)
+            wp.synchronize_device(device)
+            c1, t1 = time.process_time(), time.perf_counter()
+            f_t = dict(rast.timings if not args.no_stages else {}, forward_total=t1 - t0)
+            rast.backward(out, v_rgb, v_depth)
+            wp.synchronize_device(device)
+            c2, t2 = time.process_time(), time.perf_counter()
+            b_t = dict(rast.timings if not args.no_stages else {}, backward_total=t2 - t1)
+            t3 = time.perf_counter()
+            rast.render_alpha(*params[:4], cam)
+            wp.synchronize_device(device)
+            a_t = time.perf_counter() - t3
+            if rep > 0:  # the first run (of each view) allocates and (maybe) compiles
+                pairs.append(out.n_pairs)
+                fwd.append(f_t)
+                bwd.append(b_t)
+                alpha_only.append(a_t)
+                cpu_f.append(c1 - c0)
+                cpu_b.append(c2 - c1)
+        row = {"size": f"{width}x{height}", "count": count,
+               "pairs": int(statistics.median(pairs)) if pairs else 0,
+               "visible": out.num_visible if out else 0}
+        for runs in (fwd, bwd):
+            for key in runs[0]:
+                row[key + "_ms"] = round(1e3 * statistics.median(r[key] for r in runs), 2)
+        row["alpha_only_ms"] = round(1e3 * statistics.median(alpha_only), 2)
+        row["forward_cpu_ms"] = round(1e3 * statistics.median(cpu_f), 2)
+        row["backward_cpu_ms"] = round(1e3 * statistics.median(cpu_b), 2)
+        results.append(row)
     print(json.dumps({"profile": "splat_raster", "device": device, "threads": runtime.cpu_threads(),
-                      "repeats": args.repeats, "sh_degree": args.degree, "scene": args.scene,
+                      "repeats": args.repeats, "sh_degree": degree, "scene": args.run or args.scene,
                       "cpu": platform.processor() or
                       platform.machine(), "results": results}))
     return 0
