@@ -41,9 +41,9 @@ from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["pack_splats", "pack_splats_blocks", "pack_pair", "last_pack_status", "PACK_BLOCK", "rasterize_forward",
-           "rasterize_alpha", "rasterize_alpha_depth", "vec8", "vec16", "vec16i", "row_span", "ALPHA_MIN", "ALPHA_MAX",
-           "T_MIN", "SEGMENT_WIDTHS", "segment_threads"]
+__all__ = ["pack_splats", "pack_splats_blocks", "pack_pair", "PACK_BLOCK", "rasterize_forward", "rasterize_alpha",
+           "rasterize_alpha_depth", "vec8", "vec16", "vec16i", "row_span", "ALPHA_MIN", "ALPHA_MAX", "T_MIN",
+           "SEGMENT_WIDTHS", "segment_threads"]
 
 TS = wp.constant(TILE_SIZE)
 SEGMENT_WIDTHS = (1, 2, 4, 8, 16, TILE_SIZE * TILE_SIZE)  # pixels per thread the blend kernels accept; 256 = a
@@ -372,16 +372,17 @@ rasterize_alpha_depth = _alpha_kernel(True)   # the coverage alpha and the accum
 
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats, splat_rgbz, device: str,
-                       threads: int | None = None, min_chunk: int = 4096, depths_g=None) -> None:
+                       threads: int | None = None, min_chunk: int = 4096, depths_g=None):
     """Copy the sorted pairs' Gaussian data into contiguous arrays: with ``rgbz_g`` their colour and depth too;
     without it but with ``depths_g`` (N,) their depth only (``splat_rgbz[:, 3]``, for the coverage depth); with
-    neither the blending data only (alpha-only)."""
+    neither the blending data only (alpha-only). On the CPU returns the call's own per-block status (a Warp int32
+    array, 1 where the C++ block did the block's pairs; renders may pack on two threads at once), else None."""
     from ..runtime import launch_split
 
     if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
         raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
     if n_pairs == 0:
-        return
+        return None
     with_color = 1 if rgbz_g is not None else (2 if depths_g is not None else 0)
     rgbz_g = rgbz_g if rgbz_g is not None else _dummy(wp.vec4, 1, device)
     depths_g = depths_g if depths_g is not None else _dummy(wp.float32, 1, device)
@@ -390,33 +391,18 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
 
         # blocks of PACK_BLOCK pairs, a thread each (the C++ block; launch_split spreads the blocks over the cores)
         n_blocks = (n_pairs + PACK_BLOCK - 1) // PACK_BLOCK
-        status = _pack_status(n_blocks, device)
+        status = wp.empty(n_blocks, dtype=wp.int32, device=device)     # every block writes its own entry
         launch_split(pack_splats_blocks, n_blocks, [PACK_BLOCK, n_pairs, slots, pair_gauss, splat_g, rgbz_g, depths_g,
                                                     with_color, splats, splat_rgbz, native_flag(), status], device,
                      threads=threads, min_chunk=max(1, min_chunk // PACK_BLOCK))
-        return
+        return status
     launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats,
                                         splat_rgbz], device, threads=threads, min_chunk=min_chunk)
+    return None
 
 
 #: Pairs a thread of the CPU's pack (:func:`pack_splats_blocks`).
 PACK_BLOCK = 1024
-_pack_statuses: dict = {}   # device -> (status array, blocks of the last pack)
-
-
-def _pack_status(n: int, device) -> wp.array:
-    """The CPU pack's per-block status array (grown, kept): ``last_pack_status()`` reads it."""
-    arr, _ = _pack_statuses.get(str(device), (None, 0))
-    if arr is None or arr.shape[0] < n:
-        arr = wp.zeros(max(n, 64), dtype=wp.int32, device=device)
-    _pack_statuses[str(device)] = (arr, n)
-    return arr
-
-
-def last_pack_status(device="cpu"):
-    """The per-block status of the last CPU pack on ``device`` (1 where the C++ block did the pairs), for tests."""
-    arr, n = _pack_statuses[str(device)]
-    return arr.numpy()[:n].copy()
 
 
 _dummies: dict = {}
