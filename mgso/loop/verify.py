@@ -562,7 +562,7 @@ def _verdict(ph: PhotometricResult, common: dict, cfg: LoopConfig, min_compared:
 
 def _verify_from_current(current, candidate, cfg, pairs, hc, hk, device, tracking, tol, min_consistent,
                          min_compared, reject, rng_seed: int = 0) -> Verification:
-    """Steps 2-4 with the geometry of the current keyframe alone (``loop.geometry = "current"``; module text)."""
+    """Steps 2-5 with the geometry of the current keyframe alone (``loop.geometry = "current"``; module text)."""
     n_match = len(pairs)
     cur = pairs[hc]                     # the current keyframe's 3D points seen at the candidate's keypoints
     cand_depth = hk[hc]

@@ -820,9 +820,9 @@ class Mapper:
 
     def _bring_refining_forward(self) -> None:
         """Before the final refinement: where the stream left the map unrefined (real time on a small CPU: a few
-        steps while the camera ran, every seed untrained), the first refinement comes
-        ``mapping.mapper.final_refine_after`` steps in (one step more for the strategy) instead of at the first
-        scheduled one (after ``refine_start_step``, at a multiple of ``refine_every``): its opacity prune drops the
+        steps while the camera ran, every seed untrained), the first refinement comes at the global step
+        ``mapping.mapper.final_refine_after`` after the refinement's first instead of at the first scheduled one
+        (after ``refine_start_step``, at a multiple of ``refine_every``): its opacity prune drops the
         seeds training did not keep, and the rest of the refinement runs on the smaller map (docs/mgso.md). A map
         refined while the stream ran keeps its schedule."""
         after = self.cfg.final_refine_after
