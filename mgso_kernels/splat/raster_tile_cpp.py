@@ -14,8 +14,11 @@ row after the other. These snippets compute the same thing in another order of w
   belongs to one), so the core overlaps them.
 - No select on a value just loaded from the same place (``T = Tk * (took ? 1 - alpha : 1)`` instead of
   ``took ? Tn : Tk``): LLVM makes such a select a masked store, slow on Zen 3 and not forwarded to the next load.
-- The backward lists half rows the same way; its running sums stay per lane over the tile (lanes 0-7 the left half,
-  8-15 the right), reduced by the Warp kernel's tree.
+- The backward lists half rows the same way, the left halves and the right ones in two blocks, and does a block in
+  two passes: the first blends back to front and keeps each entry's ``v_pow`` and ``w``, the second sums what the
+  gradients need per lane, each sum in a register (one pass reading and writing eight sums through memory every
+  entry took 112-119 against 102 ms a backward blend, 640x480, 50k Gaussians, one Zen 3 thread; docs/rasteriser.md).
+  The lane sums are those of one pass in list order, bit for bit, reduced by the Warp kernel's tree.
 
 Every value is the Warp kernel's to float rounding: the same operations, but with FMAs where the snippets ask for one
 (``__builtin_elementwise_fma``; contraction stays off elsewhere) and ``exp_lane``'s polynomial in Estrin's form
@@ -136,17 +139,19 @@ auto load_splat = [&](int j) -> Splat {
 // list_halves(g, done, rmax, i): per row r in [lo, hi] (8 rows a vector) the span of the row inside the cut-off
 // ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none where rmax[r] <= i; then
 // the half rows (q = 2 r + 0 / 1) with a bit left, listed in hq / hm (their 8 bits) with the row's -0.5 c dy^2,
-// b dy and dy in hc, hb, hd. Returns their number. done and rmax hold 32 rows (16 and a vector's overhang).
+// b dy and dy in hc, hb, hd: the left halves (q even) at 0, 1, ..., the right ones at 16, 17, ..., each block in
+// row order. Sets nl and nr to their numbers. done and rmax hold 32 rows (16 and a vector's overhang).
 alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
 for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
 alignas(32) int mrow[16];
 alignas(32) float dyr[16], cyyr[16], bdyr[16];
 int hq[32], hm[32];
 float hc[32], hb[32], hd[32];
-auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) -> int {
-    const int lo = g.lo, hi = g.hi, nr = hi - lo + 1;
+int nl = 0, nr = 0;
+auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) {
+    const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
     const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
-    for (int r8 = 0; r8 < nr; r8 += 8) {
+    for (int r8 = 0; r8 < nrows; r8 += 8) {
         const v8i rr = (v8i)(lo + r8) + LANE;
         const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - g.my;
         const v8f disc = ar2 - g.det * dy * dy;
@@ -166,14 +171,15 @@ auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) 
         *(v8f*)(cyyr + r8) = hc_ * dy * dy;
         *(v8f*)(bdyr + r8) = g.b * dy;
     }
-    int n = 0;
-    for (int t = 0; t < nr; ++t) {
+    int a = 0, b = 16;
+    for (int t = 0; t < nrows; ++t) {
         const int m = mrow[t], q = 2 * (lo + t);
         const float cyy = cyyr[t], bdy = bdyr[t], dy = dyr[t];
-        hq[n] = q; hm[n] = m & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m & 255) != 0;
-        hq[n] = q + 1; hm[n] = (m >> 8) & 255; hc[n] = cyy; hb[n] = bdy; hd[n] = dy; n += (m >> 8) != 0;
+        hq[a] = q; hm[a] = m & 255; hc[a] = cyy; hb[a] = bdy; hd[a] = dy; a += (m & 255) != 0;
+        hq[b] = q + 1; hm[b] = (m >> 8) & 255; hc[b] = cyy; hb[b] = bdy; hd[b] = dy; b += (m >> 8) != 0;
     }
-    return n;
+    nl = a;
+    nr = b - 16;
 };
 // per column k of the tile: dx = x0 + k - mean_x and -0.5 a dx^2 (lane_power's first product)
 alignas(64) float dxl[16], pa[16];
@@ -239,12 +245,12 @@ const int full = (1 << nx) - 1;
 int rows_left = ny;
 for (int j = start; j < end; ++j) {
     const Splat g = load_splat(j);
-    const int n = list_halves(g, row_done, all_rows, 0);
-    if (n == 0) continue;
+    list_halves(g, row_done, all_rows, 0);
+    if (nl + nr == 0) continue;
     lane_constants(g);
     const float* col = cp + 4L * j;
     const v8f vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
-    for (int e = 0; e < n; ++e) {
+    for (int e = nl > 0 ? 0 : 16; e < 16 + nr; e = e + 1 == nl ? 16 : e + 1) {   // the left block, the right one
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
         const v8f w = st.acc * st.al * st.Tk;
@@ -289,11 +295,11 @@ int rows_left = ny;
 const v8f vts = t_stop;
 for (int j = start; j < end; ++j) {
     const Splat g = load_splat(j);
-    const int n = list_halves(g, row_done, all_rows, 0);
-    if (n == 0) continue;
+    list_halves(g, row_done, all_rows, 0);
+    if (nl + nr == 0) continue;
     lane_constants(g);
     const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
-    for (int e = 0; e < n; ++e) {
+    for (int e = nl > 0 ? 0 : 16; e < 16 + nr; e = e + 1 == nl ? 16 : e + 1) {   // the left block, the right one
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
         if (@DEPTH@) *(v8f*)DD[q] = fma8(st.acc * st.al * st.Tk, vz, *(v8f*)DD[q]);
@@ -356,58 +362,76 @@ for (int jj = 0; jj < n_max; ++jj) {
     const float fi = (float)i;
     const int j = start + i;
     const Splat g = load_splat(j);
-    const int n = list_halves(g, no_rows, row_max, i);
-    if (n == 0) continue;
+    list_halves(g, no_rows, row_max, i);
+    if (nl + nr == 0) continue;
     lane_constants(g);
     const float a = g.a, b = g.b, c = g.c;
-    for (int t = 0; t < 10; ++t)
-        for (int k = 0; k < 16; ++k) ACC[t][k] = 0.0f;
     const float* col = cp + 4L * j;
     const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
     const v8f vop = g.op;
-    for (int e = 0; e < n; ++e) {
-        const int q = hq[e], off = 8 * (q & 1);
-        const float dy = hd[e], bdy = hb[e];
-        const v8f dx = *(const v8f*)(dxl + off);
-        const v8f ev = vexp(entry_power(e));
-        const v8f raw = vop * ev;
-        const v8f al = vmin(kv(K_AMAX), raw);
-        const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-        const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (v8f)0.0f), (v8f)0.0f);
-        const v8f inv = 1.0f / (1.0f - al);
-        const v8f Tq = *(const v8f*)T[q];
-        const v8f Sq = *(const v8f*)S[q];
-        const v8f gR = *(const v8f*)GR[q], gG = *(const v8f*)GG[q], gB = *(const v8f*)GB[q];
-        const v8f vD = *(const v8f*)VD[q];
-        const v8f Tk = Tq * inv;
-        const v8f w = al * Tk;
-        const v8f gi = fma8((v8f)c3, vD, fma8((v8f)c2, gB, fma8((v8f)c1, gG, c0 * gR)));
-        const v8f v_al = fma8(Tk, gi, -(Sq * inv));
-        const v8i okb = ok > 0.0f;
-        // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
-        // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
-        *(v8f*)T[q] = Tq * sel(okb, inv, (v8f)1.0f);
-        *(v8f*)S[q] = Sq + sel(okb, w * gi, (v8f)-0.0f);
-        const v8f v_raw = sel(raw <= kv(K_AMAX), v_al, (v8f)0.0f) * ok;
-        const v8f v_pow = v_raw * raw;
-        const v8f wk = w * ok;
-        float* A = &ACC[0][off];
-        *(v8f*)(A + 0 * 16) = *(v8f*)(A + 0 * 16) + v_pow;
-        *(v8f*)(A + 1 * 16) = fma8((v8f)dy, v_pow, *(v8f*)(A + 1 * 16));
-        *(v8f*)(A + 2 * 16) = fma8((v8f)(dy * dy), v_pow, *(v8f*)(A + 2 * 16));
-        *(v8f*)(A + 3 * 16) = fma8(v_raw, ev, *(v8f*)(A + 3 * 16));
-        *(v8f*)(A + 4 * 16) = fma8(wk, gR, *(v8f*)(A + 4 * 16));
-        *(v8f*)(A + 5 * 16) = fma8(wk, gG, *(v8f*)(A + 5 * 16));
-        *(v8f*)(A + 6 * 16) = fma8(wk, gB, *(v8f*)(A + 6 * 16));
-        *(v8f*)(A + 7 * 16) = fma8(wk, vD, *(v8f*)(A + 7 * 16));
-        if (@ABSGRAD@) {
-            const v8f mp = __builtin_elementwise_abs(v_pow);
-            *(v8f*)(A + 8 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp,
-                                       *(v8f*)(A + 8 * 16));
-            *(v8f*)(A + 9 * 16) = fma8(__builtin_elementwise_abs(fma8((v8f)b, dx, (v8f)(c * dy))), mp,
-                                       *(v8f*)(A + 9 * 16));
+    // the entries [e0, e1) of one block (off 0: the left halves, 8: the right ones), their sums kept in registers
+    // (the same lane sums in the same order as one loop over both blocks with the sums in ACC[.][off], but without
+    // reading and writing eight of them through memory every entry), stored in ACC[.][off .. off + 7] at the end
+    // the entries [e0, e1) of one block (off 0: the left halves, 8: the right ones) in two passes: the first
+    // blends back to front, sums v_raw E and keeps each entry's v_pow and w ok (VP, WK); the second sums those per
+    // lane, each sum in a register (the same lane sums in the same order as one loop over both blocks that adds to
+    // ACC[.][off] as it goes), stored in ACC[.][off .. off + 7] at the end
+    alignas(64) float VP[32][8], WK[32][8];
+    auto blend_block = [&](const int off, const int e0, const int e1) __attribute__((always_inline)) {
+        v8f s3 = 0.0f;
+        for (int e = e0; e < e1; ++e) {
+            const int q = hq[e];
+            const v8f ev = vexp(entry_power(e));
+            const v8f raw = vop * ev;
+            const v8f al = vmin(kv(K_AMAX), raw);
+            const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
+            const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (v8f)0.0f), (v8f)0.0f);
+            const v8f inv = 1.0f / (1.0f - al);
+            const v8f Tq = *(const v8f*)T[q];
+            const v8f Sq = *(const v8f*)S[q];
+            const v8f gR = *(const v8f*)GR[q], gG = *(const v8f*)GG[q], gB = *(const v8f*)GB[q];
+            const v8f vD = *(const v8f*)VD[q];
+            const v8f Tk = Tq * inv;
+            const v8f w = al * Tk;
+            const v8f gi = fma8((v8f)c3, vD, fma8((v8f)c2, gB, fma8((v8f)c1, gG, c0 * gR)));
+            const v8f v_al = fma8(Tk, gi, -(Sq * inv));
+            const v8i okb = ok > 0.0f;
+            // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
+            // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
+            *(v8f*)T[q] = Tq * sel(okb, inv, (v8f)1.0f);
+            *(v8f*)S[q] = Sq + sel(okb, w * gi, (v8f)-0.0f);
+            const v8f v_raw = sel(raw <= kv(K_AMAX), v_al, (v8f)0.0f) * ok;
+            *(v8f*)VP[e] = v_raw * raw;
+            s3 = fma8(v_raw, ev, s3);
+            *(v8f*)WK[e] = w * ok;
         }
-    }
+        const v8f dx = *(const v8f*)(dxl + off);
+        v8f s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s4 = 0.0f, s5 = 0.0f, s6 = 0.0f, s7 = 0.0f, s8 = 0.0f,
+            s9 = 0.0f;
+        for (int e = e0; e < e1; ++e) {
+            const int q = hq[e];
+            const float dy = hd[e], bdy = hb[e];
+            const v8f v_pow = *(const v8f*)VP[e], wk = *(const v8f*)WK[e];
+            s0 = s0 + v_pow;
+            s1 = fma8((v8f)dy, v_pow, s1);
+            s2 = fma8((v8f)(dy * dy), v_pow, s2);
+            s4 = fma8(wk, *(const v8f*)GR[q], s4);
+            s5 = fma8(wk, *(const v8f*)GG[q], s5);
+            s6 = fma8(wk, *(const v8f*)GB[q], s6);
+            s7 = fma8(wk, *(const v8f*)VD[q], s7);
+            if (@ABSGRAD@) {
+                const v8f mp = __builtin_elementwise_abs(v_pow);
+                s8 = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp, s8);
+                s9 = fma8(__builtin_elementwise_abs(fma8((v8f)b, dx, (v8f)(c * dy))), mp, s9);
+            }
+        }
+        *(v8f*)(ACC[0] + off) = s0; *(v8f*)(ACC[1] + off) = s1; *(v8f*)(ACC[2] + off) = s2;
+        *(v8f*)(ACC[3] + off) = s3; *(v8f*)(ACC[4] + off) = s4; *(v8f*)(ACC[5] + off) = s5;
+        *(v8f*)(ACC[6] + off) = s6; *(v8f*)(ACC[7] + off) = s7; *(v8f*)(ACC[8] + off) = s8;
+        *(v8f*)(ACC[9] + off) = s9;
+    };
+    blend_block(0, 0, nl);
+    blend_block(8, 16, 16 + nr);
     // sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow (dx is the lane's constant), each lane sum as raster_tile's
     auto lane_sum = [](const float* v) -> float {
         float h[8], q4[4];
