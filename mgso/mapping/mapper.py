@@ -34,8 +34,8 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 ``mapping.mapper.iterations_per_keyframe`` steps after each keyframe message; the same map on every CPU run.
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
-its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels`` (the
-final refinement at full resolution). Far behind (``defer_seeding_above``), a keyframe's seeding waits with its
+its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
+the first ``final_coarse_share`` (0.8 in real time) of the final refinement's steps, the rest at full resolution. Far behind (``defer_seeding_above``), a keyframe's seeding waits with its
 marginalised points until the queue is empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
 (:meth:`request_snapshot`, :meth:`request_render`), answered at the next safe point (:meth:`safe_point`).
@@ -104,6 +104,7 @@ class MapperStats:
     steps: int = 0                          # training steps, all of them
     train_seconds: float = 0.0              # wall time inside training steps
     final_steps: int = 0                    # steps of the final refinement (included in steps)
+    final_coarse_steps: int = 0             # of them at the coarser level (mapping.mapper.final_coarse_share)
     final_seconds: float = 0.0
     final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
     # the mapper's process: its CPU priority while the camera ran and in the final refinement ("SCHED_IDLE",
@@ -375,6 +376,15 @@ class Mapper:
         """Stop as soon as the queued messages are applied (views, poses, seeds), without training on; in real
         time from any thread."""
         self._interrupt.set()
+
+    def final_coarse_share(self) -> float:
+        """``mapping.mapper.final_coarse_share``, its null resolved: 0.8 in real time (a mapping thread or process:
+        the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0 in the
+        deterministic mode."""
+        share = self.cfg.final_coarse_share
+        if share is None:
+            share = 0.8 if self._thread is not None else 0.0
+        return float(share)
 
     def running_level(self) -> int:
         """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most
@@ -776,7 +786,7 @@ class Mapper:
         """One training step; ``level``: at least this pyramid level (the real-time steps while the stream runs)."""
         t0 = time.perf_counter()
         r = self.trainer.step(min_level=level)
-        if level:
+        if level and not self.stream_ended.is_set():
             self.stats.running_level = level
         self.stats.train_seconds += time.perf_counter() - t0
         self.stats.steps += 1
@@ -813,7 +823,14 @@ class Mapper:
         """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice)."""
         t0 = time.perf_counter()
         self._bring_refining_forward()
-        done = self.train(iterations)
+        # its first share at the real-time level (coarse to fine: the untrained map's first steps need no fine
+        # detail; a step at 320x240 costs about a third of one at 640x480), then at full resolution
+        coarse = int(round(iterations * self.final_coarse_share()))
+        level = self.running_level() if coarse > 0 else 0
+        done = self.train(coarse, level=level) if level > 0 else 0
+        self.stats.final_coarse_steps += done
+        if done == coarse or level == 0:
+            done += self.train(iterations - done)
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done

@@ -366,11 +366,12 @@ def test_a_deferred_seeding_follows_its_view_and_waits_for_its_budget(wp_device,
 def test_a_mapper_behind_keeps_a_share_for_training_at_a_coarser_level(wp_device, seq, cam):
     """Real time on a small CPU: seeding the keyframes fills the core the odometry leaves, and a mapper that trained
     only when its queue was empty made 1-2 steps while a 640x480 camera ran (docs/mgso.md). With a training share it
-    trains while messages wait, at the running level (a cheaper step), and refines at full resolution."""
+    trains while messages wait, at the running level (a cheaper step), and refines at full resolution (with
+    final_coarse_share 0; its own test covers the coarse first share)."""
     def run(share):
         cfg = _cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.seeding.min_new_gaussians=1",
                    f"mapping.mapper.running_train_share={share}", "mapping.mapper.running_max_pixels=1200",
-                   "mapping.mapper.final_iterations=3")
+                   "mapping.mapper.final_iterations=3", "mapping.mapper.final_coarse_share=0")
         mp = Mapper(cfg, device=wp_device)
         levels, step = [], mp.trainer.step
 
@@ -616,6 +617,40 @@ def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, se
     refined, _ = run(5, "mapping.densify.refine_start_step=1", "mapping.mapper.iterations_per_keyframe=6")
     assert refined.stats.densify["refines"] >= 1                                     # at step 10, while streaming
     assert refined.trainer.train_step.strategy.extra_refine_steps == frozenset()     # its schedule kept
+
+
+def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
+    """mapping.mapper.final_coarse_share: the first share of the final refinement's steps train at the level
+    running_max_pixels gives (the real-time mapper's level while the stream runs), the rest at full resolution;
+    the control (0) trains every final step at full resolution. Its default (null) is 0.8 in real time and 0 in the
+    deterministic mode, whose steps after each keyframe stay at full resolution."""
+    full, half = (0, 80, 60), (1, 40, 30)     # 80x60 views: level 1 is the finest with at most 1,500 pixels
+
+    def levels(*over, realtime=False):
+        mp = Mapper(_cfg("mapping.mapper.running_max_pixels=1500", "mapping.mapper.iterations_per_keyframe=2",
+                         "mapping.mapper.final_iterations=10", *over), device=wp_device)
+        seen = []
+        step = mp.trainer.step
+
+        def recording(*a, **k):
+            r = step(*a, **k)
+            seen.append((r.level, r.width, r.height))
+            return r
+
+        mp.trainer.step = recording
+        if realtime:
+            mp.start()
+        mp.submit(_kf(seq, cam, 0))
+        mp.stop()
+        assert mp.stats.final_steps == 10
+        return seen, mp.stats.final_coarse_steps
+
+    assert levels("mapping.mapper.final_coarse_share=0.7") == ([full] * 2 + [half] * 7 + [full] * 3, 7)
+    assert levels("mapping.mapper.final_coarse_share=0") == ([full] * 12, 0)              # the control
+    assert levels() == ([full] * 12, 0)                                         # the default, deterministic
+    seen, coarse = levels(realtime=True)                                        # the default in real time
+    assert coarse == 8 and seen[-10:] == [half] * 8 + [full] * 2, seen
+    assert set(seen[:-10]) <= {half}                                            # its steps while streaming
 
 
 def test_random_sampler_keeps_training_the_first_keyframes(wp_device, seq, cam):
