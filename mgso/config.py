@@ -758,7 +758,7 @@ class MapperConfig:
     final_coarse_share: float | None = opt(None, "the share of the final refinement's steps (its first) trained at "
                                                 "the level running_max_pixels gives, the rest at full resolution; "
                                                 "null = 0.8 in real time (7-Scenes on 2 cores: the final 1,300 "
-                                                "steps in 129-143 s, not 235-306 s, at the PSNR of before within "
+                                                "steps in 129-151 s, not 235-306 s, at the PSNR of before within "
                                                 "the runs' spread), 0 in the deterministic mode (KITTI lost 0.24 "
                                                 "dB there; docs/mapping.md)")
     keyframe_steps_coarse: bool = opt(False, "deterministic mode: the steps after each keyframe train at the level "
