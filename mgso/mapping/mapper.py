@@ -35,8 +35,9 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
-the first ``final_coarse_share`` (0.8 in real time) of the final refinement's steps, the rest at full resolution. Far behind (``defer_seeding_above``), a keyframe's seeding waits with its
-marginalised points until the queue is empty. The real-time system runs the same loop in a process of its own
+the first ``final_coarse_share`` (0.8 in real time) of the final refinement's steps, the rest at full resolution.
+Far behind (``defer_seeding_above``), a keyframe's seeding waits with its marginalised points until the queue is
+empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
 (:meth:`request_snapshot`, :meth:`request_render`), answered at the next safe point (:meth:`safe_point`).
 :meth:`submit` puts a message on the bounded queue; when it is full the caller waits (backpressure), and every wait
@@ -825,7 +826,7 @@ class Mapper:
         self._bring_refining_forward()
         # its first share at the real-time level (coarse to fine: the untrained map's first steps need no fine
         # detail; a step at 320x240 costs about a third of one at 640x480), then at full resolution
-        coarse = int(round(iterations * self.final_coarse_share()))
+        coarse = round(iterations * self.final_coarse_share())
         level = self.running_level() if coarse > 0 else 0
         done = self.train(coarse, level=level) if level > 0 else 0
         self.stats.final_coarse_steps += done

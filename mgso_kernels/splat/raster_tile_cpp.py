@@ -369,9 +369,6 @@ for (int jj = 0; jj < n_max; ++jj) {
     const float* col = cp + 4L * j;
     const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
     const v8f vop = g.op;
-    // the entries [e0, e1) of one block (off 0: the left halves, 8: the right ones), their sums kept in registers
-    // (the same lane sums in the same order as one loop over both blocks with the sums in ACC[.][off], but without
-    // reading and writing eight of them through memory every entry), stored in ACC[.][off .. off + 7] at the end
     // the entries [e0, e1) of one block (off 0: the left halves, 8: the right ones) in two passes: the first
     // blends back to front, sums v_raw E and keeps each entry's v_pow and w ok (VP, WK); the second sums those per
     // lane, each sum in a register (the same lane sums in the same order as one loop over both blocks that adds to
