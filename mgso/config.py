@@ -757,10 +757,10 @@ class MapperConfig:
                                           "refinement's first steps too (final_coarse_share); 0 = full resolution")
     final_coarse_share: float | None = opt(None, "the share of the final refinement's steps (its first) trained at "
                                                 "the level running_max_pixels gives, the rest at full resolution; "
-                                                "null = 0.8 in real time (7-Scenes on 2 cores: the final 1,300 "
-                                                "steps in 129-151 s, not 235-306 s, at the PSNR of before within "
+                                                "null = 0.95 in real time (7-Scenes on 2 cores: the final 1,300 "
+                                                "steps in 122 s, 129-151 s at 0.8, 235-306 s at 0, the PSNR within "
                                                 "the runs' spread), 0 in the deterministic mode (KITTI lost 0.24 "
-                                                "dB there; docs/mapping.md)")
+                                                "dB there at 0.8; docs/mapping.md)")
     keyframe_steps_coarse: bool = opt(False, "deterministic mode: the steps after each keyframe train at the level "
                                              "running_max_pixels gives, as the real-time mapper's steps while the "
                                              "stream runs (the final refinement: final_coarse_share)")

@@ -35,7 +35,7 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
-the first ``final_coarse_share`` (0.8 in real time) of the final refinement's steps, the rest at full resolution.
+the first ``final_coarse_share`` (0.95 in real time) of the final refinement's steps, the rest at full resolution.
 Far behind (``defer_seeding_above``), a keyframe's seeding waits with its marginalised points until the queue is
 empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
@@ -379,12 +379,12 @@ class Mapper:
         self._interrupt.set()
 
     def final_coarse_share(self) -> float:
-        """``mapping.mapper.final_coarse_share``, its null resolved: 0.8 in real time (a mapping thread or process:
+        """``mapping.mapper.final_coarse_share``, its null resolved: 0.95 in real time (a mapping thread or process:
         the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0 in the
         deterministic mode."""
         share = self.cfg.final_coarse_share
         if share is None:
-            share = 0.8 if self._thread is not None else 0.0
+            share = 0.95 if self._thread is not None else 0.0
         return float(share)
 
     def running_level(self) -> int:

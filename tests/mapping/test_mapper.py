@@ -622,13 +622,13 @@ def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, se
 def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     """mapping.mapper.final_coarse_share: the first share of the final refinement's steps train at the level
     running_max_pixels gives (the real-time mapper's level while the stream runs), the rest at full resolution;
-    the control (0) trains every final step at full resolution. Its default (null) is 0.8 in real time and 0 in the
+    the control (0) trains every final step at full resolution. Its default (null) is 0.95 in real time and 0 in the
     deterministic mode, whose steps after each keyframe stay at full resolution."""
     full, half = (0, 80, 60), (1, 40, 30)     # 80x60 views: level 1 is the finest with at most 1,500 pixels
 
     def levels(*over, realtime=False):
         mp = Mapper(_cfg("mapping.mapper.running_max_pixels=1500", "mapping.mapper.iterations_per_keyframe=2",
-                         "mapping.mapper.final_iterations=10", *over), device=wp_device)
+                         "mapping.mapper.final_iterations=20", *over), device=wp_device)
         seen = []
         step = mp.trainer.step
 
@@ -642,15 +642,15 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
             mp.start()
         mp.submit(_kf(seq, cam, 0))
         mp.stop()
-        assert mp.stats.final_steps == 10
+        assert mp.stats.final_steps == 20
         return seen, mp.stats.final_coarse_steps
 
-    assert levels("mapping.mapper.final_coarse_share=0.7") == ([full] * 2 + [half] * 7 + [full] * 3, 7)
-    assert levels("mapping.mapper.final_coarse_share=0") == ([full] * 12, 0)              # the control
-    assert levels() == ([full] * 12, 0)                                         # the default, deterministic
+    assert levels("mapping.mapper.final_coarse_share=0.7") == ([full] * 2 + [half] * 14 + [full] * 6, 14)
+    assert levels("mapping.mapper.final_coarse_share=0") == ([full] * 22, 0)              # the control
+    assert levels() == ([full] * 22, 0)                                         # the default, deterministic
     seen, coarse = levels(realtime=True)                                        # the default in real time
-    assert coarse == 8 and seen[-10:] == [half] * 8 + [full] * 2, seen
-    assert set(seen[:-10]) <= {half}                                            # its steps while streaming
+    assert coarse == 19 and seen[-20:] == [half] * 19 + [full], seen
+    assert set(seen[:-20]) <= {half}                                            # its steps while streaming
 
 
 def test_random_sampler_keeps_training_the_first_keyframes(wp_device, seq, cam):
