@@ -828,10 +828,12 @@ class Mapper:
         # detail; a step at 320x240 costs about a third of one at 640x480), then at full resolution
         coarse = round(iterations * self.final_coarse_share())
         level = self.running_level() if coarse > 0 else 0
-        done = self.train(coarse, level=level) if level > 0 else 0
+        if level == 0:
+            coarse = 0                  # no coarser level (a small camera, running_max_pixels 0)
+        done = self.train(coarse, level=level)
         self.stats.final_coarse_steps += done
-        if done == coarse or level == 0:
-            done += self.train(iterations - done)
+        if done == coarse:              # not interrupted, nor out of views
+            done += self.train(iterations - coarse)
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done
