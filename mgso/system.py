@@ -34,8 +34,12 @@ of its own in real time), and the mapper gets the messages moved into the correc
 :class:`~mgso.messages.LoopCorrection` after each loop. The result's trajectories and point cloud are the
 corrected ones (the odometry's stay in ``SystemResult.odometry_trajectory``).
 
+**Without a map** (``System(..., with_map=False)``: the ``tracking`` and ``odometry`` stages of ``mgso run``) the
+same loop runs the odometry, the loop closer and the observers, and no mapper: a run of every stage is made and
+written the same way (:mod:`mgso.app.outputs`), the map's figures absent.
+
 After the last frame: ``odometry.finish()``, its messages to the mapper, the final refinement; the application
-(:mod:`mgso.app.full`) then writes the outputs. Ctrl-C (``KeyboardInterrupt``, also when raised by the frame source,
+(:mod:`mgso.app.outputs`) then writes the outputs. Ctrl-C (``KeyboardInterrupt``, also when raised by the frame source,
 and SIGTERM, which the application turns into one) stops cleanly in both modes: the odometry is finished, the mapper
 applies what is queued and stops without the final refinement, and the result says so
 (``SystemResult.interrupted``); a second one during ``finish`` or the refinement cuts those short. An error of the
@@ -139,6 +143,11 @@ class FrameLog:
     exposure_ms: list[float | None] = field(default_factory=list)
     is_keyframe: list[bool] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
+    segment: list[int] = field(default_factory=list)        # the tracking segment (0 for an odometry without)
+    # the odometry's time on the frame: DSO's tracking half and mapping half (``None``: the odometry does not say;
+    # ``track_ms`` is then its whole time on the frame)
+    track_ms: list[float] = field(default_factory=list)
+    map_ms: list[float | None] = field(default_factory=list)
 
     def add(self, r: OdometryFrame) -> None:
         self.index.append(int(r.index))
@@ -147,6 +156,13 @@ class FrameLog:
         self.exposure_ms.append(r.exposure_ms)
         self.is_keyframe.append(bool(r.is_keyframe))
         self.status.append(str(getattr(r.status, "value", r.status)))
+        self.segment.append(int(getattr(r, "segment", 0) or 0))
+        if hasattr(r, "time_track_s"):
+            self.track_ms.append(1000.0 * float(r.time_track_s))
+            self.map_ms.append(1000.0 * float(r.time_map_s))
+        else:
+            self.track_ms.append(1000.0 * float(getattr(r, "seconds", 0.0)))
+            self.map_ms.append(None)
 
     def __len__(self) -> int:
         return len(self.index)
@@ -177,7 +193,7 @@ class MarginalizedCloud:
 
 @dataclass
 class SystemResult:
-    """What :meth:`System.run` did (values; the application writes the outputs: :mod:`mgso.app.full`)."""
+    """What :meth:`System.run` did (values; the application writes the outputs: :mod:`mgso.app.outputs`)."""
 
     mode: str
     frames_read: int                    # frames the source delivered (played, in real time)
@@ -190,13 +206,16 @@ class SystemResult:
     keyframe_trajectory: Trajectory
     frame_log: FrameLog
     cloud: MarginalizedCloud
-    mapper: MapperStats
+    mapper: MapperStats                 # empty without a map (``with_map``)
     odometry_seconds: float             # sum of the odometry's per-frame times
     loop_seconds: float                 # wall time of the frame loop (first frame in -> last frame done)
     finish_seconds: float               # odometry.finish + the mapper's last messages and final refinement
     frames_lost: int = 0                # frames processed that have no pose in the final trajectory
     keyframe_frames: list = field(default_factory=list)   # frame index of every keyframe sent to the map
-    mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic), "thread" or "process"
+    mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic), "thread" or "process";
+    #                                     "none" without a map
+    with_map: bool = True               # False: the odometry alone (the tracking and odometry stages)
+    repeated_frames: int = 0            # frames that repeated the one before (the odometry gave them its pose)
     cpu_seconds: float = 0.0            # CPU time of this process over the run (all its threads)
     loop: LoopStats | None = None       # loop closure's counts (None: loop.enabled false)
     odometry_trajectory: Trajectory | None = None           # the odometry's own poses when a loop corrected them
@@ -213,7 +232,7 @@ class SystemResult:
         """The mapper's share of the CPU time of the run (real time): its process's over both processes', or its
         thread's over the process's; ``None`` in the deterministic mode."""
         m = self.mapper.cpu_seconds
-        if self.mapper_in == "caller" or m is None:
+        if self.mapper_in in ("caller", "none") or m is None:
             return None
         total = self.cpu_seconds + m if self.mapper_in == "process" else self.cpu_seconds
         return m / total if total > 0 else None
@@ -358,10 +377,11 @@ class Player:
 class System:
     """Odometry + mapper (see the module doc). ``odometry``: an :class:`OdometrySource`; ``config``: the full
     configuration (``system``, ``mapping``); ``device``: Warp device (initialised by the caller);
-    ``observer``: one observer or an :class:`~mgso.observers.ObserverList`."""
+    ``observer``: one observer or an :class:`~mgso.observers.ObserverList`; ``with_map``: ``False`` runs the odometry
+    (and the loop closer) without a mapper (``self.mapper`` is ``None``)."""
 
     def __init__(self, odometry: OdometrySource, config: Config, *, device: str | None = None,
-                 observer: Observer | None = None):
+                 observer: Observer | None = None, with_map: bool = True):
         self.odometry = odometry
         self.config = config
         self.observer = observer if observer is not None else ObserverList()
@@ -369,9 +389,12 @@ class System:
         sc = config.system
         self.odometry_threads: int | None = None
         self._share_pending = False      # real time: the odometry on every core until the first keyframe
-        if self.realtime and sc.mapper_process:
+        self.mapper: Mapper | MapperProcess | None = None
+        if not with_map:
+            pass
+        elif self.realtime and sc.mapper_process:
             self.odometry_threads, mapper_threads = split_threads(sc.odometry_threads, sc.mapper_threads)
-            self.mapper: Mapper | MapperProcess = MapperProcess(
+            self.mapper = MapperProcess(
                 config, device=device, observer=self.observer, threads=mapper_threads, nice=sc.mapper_nice,
                 idle=sc.mapper_sched_idle, image_slots=sc.image_slots)
         else:
@@ -408,12 +431,14 @@ class System:
             self.observer.on_points_marginalized(msg)
         else:
             raise TypeError(f"the odometry emitted {type(msg).__name__}, not a mapper message")
-        self.mapper.submit(msg)
+        if self.mapper is not None:
+            self.mapper.submit(msg)
 
     def _send_correction(self, corr) -> None:
         """A loop's correction (from ``LoopCloser.poll`` / ``finish``; ``None``: none) to the mapper and observers."""
         if corr is not None:
-            self.mapper.submit(corr)
+            if self.mapper is not None:
+                self.mapper.submit(corr)
             self.observer.on_loop_closed(corr)
 
     def _dispatch(self, messages) -> None:
@@ -421,7 +446,7 @@ class System:
             self._send(msg)
         if self.loop is not None:
             self._send_correction(self.loop.poll())
-        if not self.realtime:
+        if not self.realtime and self.mapper is not None:
             self.mapper.process_pending()
 
     def run(self, frames: Iterable, *, info: Any = None, hold: Callable[[], Any] | None = None,
@@ -434,7 +459,7 @@ class System:
         (the application's ``StopState.held``: frames.csv's rows and the count agree however the run is stopped).
 
         Real-time mode plays them through a :class:`Player` at ``system.playback_speed`` times their rate.
-        Returns a :class:`SystemResult` (:mod:`mgso.app.full` writes the files); raises :class:`SystemRunError` on an
+        Returns a :class:`SystemResult` (:mod:`mgso.app.outputs` writes the files); raises :class:`SystemRunError` on an
         error, with the result of what was done."""
         self.observer.on_sequence_start(info)
         self._cpu0 = time.process_time()
@@ -448,7 +473,8 @@ class System:
                 # and the initialiser's frames on one core dropped 2-4 camera frames each at 640x480
                 threads_before = runtime.cpu_threads_setting()
                 self._share_pending = True
-            self.mapper.start()
+            if self.mapper is not None:
+                self.mapper.start()
         else:
             source = frames
         try:
@@ -458,7 +484,7 @@ class System:
                 self.loop.close()
             if threads_before is not None:
                 runtime.set_cpu_threads(threads_before)
-            close = getattr(self.mapper, "close", None)
+            close = getattr(self.mapper, "close", None)     # (None without a map)
             if close is not None:               # a mapper process left by an unexpected exit: no orphan
                 close()
 
@@ -472,6 +498,8 @@ class System:
         try:
             if self.realtime:            # a compile would drop the first frames: done before the camera plays
                 for part in (self.odometry, self.mapper):     # (a mapper's process loads its own before "ready")
+                    if part is None:
+                        continue
                     load_kernels = getattr(part, "load_kernels", None)
                     if load_kernels is not None:
                         load_kernels()
@@ -523,7 +551,8 @@ class System:
                 self._dispatch_final(final, interrupted)
         except KeyboardInterrupt:      # a second Ctrl-C during the refinement: stop it, still write
             interrupted = True
-            self.mapper.stop(refine=False)
+            if self.mapper is not None:
+                self.mapper.stop(refine=False)
         finish_s = time.perf_counter() - t_fin
         if player is not None:
             read = player.read
@@ -547,10 +576,13 @@ class System:
                                       if getattr(self.odometry, "map_thread", False) else None),
             pose_updates=self._pose_updates, interrupted=interrupted,
             trajectory=traj, keyframe_trajectory=kf_traj, frame_log=self.frame_log, cloud=cloud,
-            mapper=self.mapper.stats, odometry_seconds=odo_s, loop_seconds=loop_s,
+            mapper=self.mapper.stats if self.mapper is not None else MapperStats(), odometry_seconds=odo_s,
+            loop_seconds=loop_s,
             finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames),
-            mapper_in=("process" if isinstance(self.mapper, MapperProcess) else "thread") if self.realtime
-            else "caller", cpu_seconds=time.process_time() - self._cpu0,
+            mapper_in=("none" if self.mapper is None else ("process" if isinstance(self.mapper, MapperProcess)
+                                                           else "thread") if self.realtime else "caller"),
+            with_map=self.mapper is not None, repeated_frames=int(getattr(self.odometry, "num_duplicates", 0)),
+            cpu_seconds=time.process_time() - self._cpu0,
             loop=None if self.loop is None else self.loop.stats, odometry_trajectory=odo_traj,
             odometry_keyframe_trajectory=odo_kf, tracking_losses=list(getattr(self.odometry, "losses", ())),
             segments=int(getattr(self.odometry, "segment", 0)) + 1)
@@ -563,6 +595,8 @@ class System:
         """The run failed: stop the mapping thread without training (its own failure, if any, is logged)."""
         if self.loop is not None:
             self.loop.close()
+        if self.mapper is None:
+            return
         try:
             self.mapper.stop(refine=False, timeout=60)
         except Exception:  # the original error is the one to raise
@@ -576,6 +610,8 @@ class System:
             if interrupted:
                 loop.close()              # the loops not yet solved are dropped; those found are kept
             self._send_correction(loop.finish())
+        if self.mapper is None:
+            return
         steps = self.config.mapping.mapper.final_iterations
         if not interrupted and steps > 0 and self._keyframes:    # minutes on a CPU: say what and how to cut it
             log.info("final refinement: %d mapping steps over the %d keyframes (Ctrl-C cuts it short; the outputs are "

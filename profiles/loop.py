@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "profiles"))
 
 def synthetic(args) -> dict:
     from mgso import synthetic as syn
-    from mgso.app.full import write_outputs
+    from mgso.app.outputs import write_outputs
     from mgso.config import load_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry

@@ -43,7 +43,7 @@ def _one(args) -> dict:
     from mgso.config import load_config, save_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
-    from mgso.app.full import write_outputs
+    from mgso.app.outputs import write_outputs
     from mgso.system import System
     from mgso_kernels import runtime
 

@@ -294,8 +294,8 @@ def test_results_csv_has_every_metrics_figure(first_bench):
     with open(out / "results.csv", newline="") as fh:
         header = next(csv.reader(fh))
     assert header[:3] == ["sequence", "variant", "seed"]
-    for col in ("metrics.num_gaussians", "metrics.tracking.ate_rmse_all_frames", "metrics.peak_memory_mb",
-                "metrics.frames.processed", "commit", "ray_version", "command"):
+    for col in ("metrics.num_gaussians", "metrics.tracking.points", "metrics.ate_all_frames_m",
+                "metrics.peak_memory_mb", "metrics.frames.processed", "commit", "ray_version", "command"):
         assert col in header, col
     full = _row(rows, "a", "full", 0)
     assert full["metrics.num_gaussians"] == full["gaussians"] and full["command"].startswith("mgso run ")

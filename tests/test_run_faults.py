@@ -91,14 +91,10 @@ def test_a_signal_mid_run_writes_what_was_done(room, tmp_path, stage, sig, code)
     metrics = json.loads((out / "metrics.json").read_text())
     for f in ("trajectory.txt", "keyframes.txt", "points.ply", "frames.csv"):
         assert (out / f).is_file(), f
-    if stage == "full":
-        assert metrics["interrupted"] is True and (out / "map.ply").is_file()
-        assert metrics["evaluation"] in ("done", "interrupted")
-        processed = metrics["frames"]["processed"]
-        assert processed == metrics["frames"]["without_pose"] + metrics["frames"]["in_trajectory"]
-    else:
-        assert metrics["tracking"]["interrupted"] is True
-        processed = metrics["tracking"]["frames"]
+    assert metrics["interrupted"] is True and metrics["evaluation"] in ("done", "interrupted")
+    assert (out / "map.ply").is_file() == (stage == "full")
+    processed = metrics["frames"]["processed"]
+    assert processed == metrics["frames"]["without_pose"] + metrics["frames"]["in_trajectory"]
     assert 12 <= processed < 40
     _check_consistent(out, processed)
 
@@ -137,12 +133,9 @@ def test_an_interrupted_run_exits_130_in_every_stage_and_counts_consistently(wp_
     err = capsys.readouterr().err
     assert "SIGINT: stopped after 20 frames" in err
     metrics = json.loads((out / "metrics.json").read_text())
-    if stage == "full":
-        fr = metrics["frames"]
-        assert fr["processed"] == 20 and fr["without_pose"] + fr["in_trajectory"] == 20
-        assert metrics["interrupted"] is True and metrics["evaluation"] == "done"
-    else:
-        assert metrics["tracking"]["frames"] == 20
+    fr = metrics["frames"]
+    assert fr["processed"] == 20 and fr["without_pose"] + fr["in_trajectory"] == 20
+    assert metrics["interrupted"] is True and metrics["evaluation"] == "done" and metrics["stage"] == stage
     _check_consistent(out, 20)
 
 
@@ -170,7 +163,7 @@ def test_a_run_where_no_frame_gets_a_pose_fails_in_every_stage(wp_device, room, 
 def test_a_second_signal_during_evaluation_keeps_metrics_json(wp_device, room, tmp_path):
     """Defect 4: a second Ctrl-C during the evaluation after an interrupt lost metrics.json. The evaluation is
     cut short by a KeyboardInterrupt where its progress bar starts; the negative control runs it whole."""
-    from mgso.app.full import write_full_outputs
+    from mgso.app.outputs import write_run_outputs
     from mgso.app.signals import StopState
     from mgso.app.writer import RunWriter
     from mgso.config import load_config
@@ -192,7 +185,7 @@ def test_a_second_signal_during_evaluation_keeps_metrics_json(wp_device, room, t
     for name, progress in (("cut", hurried), ("whole", None)):
         writer = RunWriter(tmp_path / name)
         state = StopState()
-        write_full_outputs(result, system.mapper, seq, cfg, writer, progress=progress, state=state)
+        write_run_outputs(result, system.mapper, seq, cfg, writer, progress=progress, state=state)
         m = json.loads((tmp_path / name / "metrics.json").read_text())
         assert m["ate_all_frames_m"] is not None and (tmp_path / name / "map.ply").is_file()
         if name == "cut":
@@ -252,10 +245,7 @@ def test_an_unreadable_frame_is_skipped_and_counted(wp_device, room, tmp_path, s
     rows = _rows(out / "frames.csv")
     assert [r["index"] for r in rows if r["status"] == "unreadable"] == ["15"] and len(rows) == 40
     metrics = json.loads((out / "metrics.json").read_text())
-    if stage == "full":
-        assert metrics["frames"]["unreadable"] == 1 and metrics["frames"]["processed"] == 39
-    else:
-        assert metrics["tracking"]["frames_unreadable"] == 1 and metrics["tracking"]["frames"] == 39
+    assert metrics["frames"]["unreadable"] == 1 and metrics["frames"]["processed"] == 39
     _check_consistent(out, 39)
 
 
@@ -270,9 +260,8 @@ def test_on_bad_frame_stop_ends_the_run_with_what_was_done(wp_device, room, tmp_
     assert "error:" in err and "not a readable image" in err and str(out) in err
     _check_consistent(out, 15)
     metrics = json.loads((out / "metrics.json").read_text())
-    assert "not a readable image" in (metrics["error"] if stage == "full" else metrics["tracking"]["error"])
-    if stage == "full":
-        assert (out / "map.ply").is_file()
+    assert "not a readable image" in metrics["error"]
+    assert (out / "map.ply").is_file() == (stage == "full")
 
 
 def test_a_truncated_jpeg_is_unreadable_not_gray(tmp_path):
@@ -539,26 +528,40 @@ def test_frames_csv_leaves_a_keyframe_request_answered_later_empty():
     assert row(True, -1) == ("", "flow")     # asked; the mapping thread decides later
 
 
-def test_every_stage_writes_the_shared_figures_under_the_same_keys_and_the_same_points_ply(room, tmp_path):
-    """Issue 44: the tracking and odometry stages wrote the ATE as tracking.ate_rmse_all_frames where the full stage
-    writes ate_all_frames_m, and points.ply had a keyframe column in the full stage only."""
+def _key_tree(d):
+    """The keys of a metrics.json, nested sections as their own key sets (``None`` for a value that is not a dict)."""
+    return {k: _key_tree(v) if isinstance(v, dict) else None for k, v in d.items()}
+
+
+def test_every_stage_is_made_and_written_by_one_path(room, tmp_path):
+    """Issue 44: the tracking and odometry stages were a loop and a writer of their own (``tracking.ate_rmse_*``
+    where the full stage wrote ``ate_all_frames_m``, points.ply without the keyframe column). Now every stage that
+    tracks runs the system (without a map for the first two) and writes through one writer: metrics.json has the
+    same keys, section by section, in every stage (the map's figures null without one), and the odometry stage's
+    trajectory, keyframes and points are the full stage's bit for bit (the map never changes the odometry)."""
     from mgso.io.ply import read_point_cloud_ply
 
-    keys = ("ate_all_frames_m", "ate_keyframes_m", "tracking_fps", "frames", "keyframes", "interrupted", "error",
-            "device", "image_size")
-    seen = {}
+    seen, trees = {}, {}
     for stage in ("tracking", "odometry", "full"):
         out = tmp_path / stage
         assert main(["run", str(room), "--out", str(out), "--stage", stage, "-q", *SMALL_MAP]) == 0
         m = json.loads((out / "metrics.json").read_text())
-        assert all(k in m for k in keys), [k for k in keys if k not in m]
-        assert 0 < m["ate_all_frames_m"] < 0.1 and m["tracking_fps"] > 0
+        assert m["stage"] == stage and 0 < m["ate_all_frames_m"] < 0.1 and m["tracking_fps"] > 0
         assert m["frames"]["processed"] == 40 == m["frames"]["in_trajectory"] + m["frames"]["without_pose"]
-        if stage != "full":
-            assert m["ate_all_frames_m"] == m["tracking"]["ate_rmse_all_frames"]    # the stage's own section kept
+        # a section that is null without a map has no keys to compare
+        trees[stage] = {k: v for k, v in _key_tree(m).items() if k not in ("mapper", "map_health")}
+        has_map = stage == "full"
+        assert (m["num_gaussians"] is not None) == has_map and (m["map_ready_s"] is not None) == has_map
+        assert (out / "map.ply").is_file() == has_map
         pts, _, extra = read_point_cloud_ply(out / "points.ply")
         hosts = np.asarray(extra["keyframe"])
         kfs = len((out / "keyframes.txt").read_text().splitlines())
-        assert len(hosts) == len(pts) > 100 and hosts.min() >= 0 and hosts.max() < kfs
+        assert len(hosts) == len(pts) == m["tracking"]["points"] > 100 and hosts.min() >= 0 and hosts.max() < kfs
         seen[stage] = m["ate_all_frames_m"]
+    assert trees["tracking"] == trees["odometry"] == trees["full"]
     assert seen["odometry"] < 0.05 and seen["full"] < 0.05
+    for name in ("trajectory.txt", "keyframes.txt", "points.ply"):
+        assert (tmp_path / "odometry" / name).read_bytes() == (tmp_path / "full" / name).read_bytes(), name
+    # the control: the tracking stage (another back end) is another odometry
+    tracking, full = ((tmp_path / stage / "trajectory.txt").read_bytes() for stage in ("tracking", "full"))
+    assert tracking != full

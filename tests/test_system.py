@@ -23,7 +23,7 @@ from mgso.io import open_sequence
 from mgso.io.ply import read_gaussians_ply, read_point_cloud_ply
 from mgso.io.trajectory import read_tum
 from mgso.oracle import OracleOdometry
-from mgso.app.full import METRICS_KEYS, write_outputs
+from mgso.app.outputs import METRICS_KEYS, write_outputs
 from mgso.system import System, SystemRunError
 
 from odometry_doubles import KeyframeRequestingOdometry, SlowOdometry
@@ -425,7 +425,7 @@ SIGINT_SCRIPT = textwrap.dedent("""
     from mgso.config import load_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
-    from mgso.app.full import write_outputs
+    from mgso.app.outputs import write_outputs
     from mgso.system import System
     from mgso_kernels import runtime
 

@@ -3,7 +3,7 @@
 - :mod:`mgso.app.cli`: the ``mgso`` command line (printing, progress bars, exit codes);
 - :mod:`mgso.app.stages`: the stages of ``mgso run`` (check, tracking, odometry, full), one path for every way a run
   ends;
-- :mod:`mgso.app.full`: the outputs and evaluation of a full run;
+- :mod:`mgso.app.outputs`: the outputs and evaluation of a full run;
 - :mod:`mgso.app.writer`: the run writer, the one owner of an output folder;
 - :mod:`mgso.app.signals`: Ctrl-C, SIGTERM and SIGHUP as one kind of interrupt, and the exit codes for them;
 - :mod:`mgso.app.export`: ``mgso export`` (COLMAP and nerfstudio from a run folder);

@@ -28,7 +28,8 @@ HEAD_COLUMNS = ("sequence", "variant", "seed", "stage", "status", "exit_code", "
                 "numpy_version", "num_cpus", "num_gpus", "command")
 
 #: The headline figures: column -> (label, the metrics.json keys that hold it, in order of preference, better).
-#: The odometry and tracking stages put their figures under ``tracking``; the full stage at the top.
+#: Every stage writes them at the top (one writer since issue 44); the ``tracking.*`` and ``dso.fps`` keys are
+#: read from the results of older odometry and tracking runs and from the reference DSO's tasks.
 FIGURES = {
     "ate_m": ("ATE all frames [m]", ("ate_all_frames_m", "tracking.ate_rmse_all_frames"), "lower"),
     "psnr_db": ("PSNR MonoGS [dB]", ("psnr_monogs_db",), "higher"),

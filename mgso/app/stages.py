@@ -14,17 +14,20 @@ way a run can end goes through it (docs/architecture.md "How a run ends"):
 Stages, in order of how far they go:
 
 - ``check``: decode and undistort every frame, check it, and describe the sequence (no tracking).
-- ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end):
-  a pose for every tracked frame (``trajectory.txt``), the keyframes (``keyframes.txt``), a per-frame log
-  (``frames.csv``), the marginalised points (``points.ply``), ``metrics.json`` (ATE with ground truth) and
-  ``trajectory.png``; with ``loop.enabled`` the loop closer (:mod:`mgso.loop.closer`) sees the odometry's messages
-  between frames and the outputs are corrected as the full stage's (``trajectory_odometry.txt`` keeps the odometry's
-  own poses, ``metrics.json`` a ``loop`` section).
-- ``odometry``: the same outputs with the back end ``window.backend`` names (default ``bundle``: DSO's sliding-window
+- ``tracking``: the DSO front end (:class:`mgso.odometry.Odometry` with the fixed-window depth refinement as back end)
+  in the system without a map: a pose for every tracked frame (``trajectory.txt``), the keyframes
+  (``keyframes.txt``), a per-frame log (``frames.csv``), DSO's points (``points.ply``), ``metrics.json`` (ATE with
+  ground truth), ``trajectory.png`` and ``report.png``; with ``loop.enabled`` the loop closer corrects them
+  (``trajectory_odometry.txt`` keeps the odometry's own poses, ``metrics.json`` a ``loop`` section).
+- ``odometry``: the same with the back end ``window.backend`` names (default ``bundle``: DSO's sliding-window
   bundle adjustment with marginalisation, docs/window.md).
 - ``full``: the whole MGSO system (:mod:`mgso.system`): the DSO odometry and the Gaussian mapper seeded from its
   points, in deterministic or real-time mode; every output of the odometry stage plus ``map.ply``, renders and
-  PSNR/SSIM (:mod:`mgso.app.full`, docs/mgso.md).
+  PSNR/SSIM.
+
+The three stages that track take one path (:func:`run_system`) and one writer (:mod:`mgso.app.outputs`): the same
+files and the same metrics.json keys (the map's ``null`` without one), in both modes (``system.mode: realtime``
+plays the frames at their rate to the odometry stages too).
 """
 
 from __future__ import annotations
@@ -34,7 +37,6 @@ import logging
 import signal
 import threading
 import time
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -198,136 +200,8 @@ def _record(state: StopState, exc: BaseException) -> None:
         state.record_exception(exc)
 
 
-# ------------------------------------------------------------------------------------- tracking, odometry
-def _run_tracking(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState) -> None:
-    from mgso.odometry import FrameStatus, Odometry, geometry_for
-    from mgso_kernels import runtime
-
-    device = runtime.init(cfg.runtime.device, threads=cfg.runtime.threads, blas_threads=cfg.runtime.blas_threads)
-    cam = seq.calibration.output
-    geo = geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg)
-    frame_log = writer.open_frame_log()
-    # loop closure (loop.enabled): the full stage's closer and pose graph on the odometry's messages, between
-    # frames (deterministic: the same loops on every run); the odometry's own poses and window are never changed
-    closer = None
-    if cfg.loop.enabled:
-        from mgso.loop.closer import LoopCloser
-
-        closer = LoopCloser(cfg, device=device)
-    odo = Odometry(geo, cfg, device=device, emit_messages=closer is not None)
-    bad = UnreadableFrames(cfg.input.on_bad_frame, writer, seq)
-    t0 = time.perf_counter()
-    n = 0
-    done: set[int] = set()
-    track_ms, map_ms = [], []   # of tracked frames (a FrameResult a frame would hold 2 KB: profiles/memory.py)
-    try:
-        with stop_signals(state, _end_input(seq)), progress(_total(seq), "track") as bar:
-            for frame in seq.frames(on_unreadable=bad):
-                r = odo.process(frame)
-                if closer is not None:
-                    _to_closer(closer, r.messages)
-                with state.held():        # a signal here would leave a row without its count
-                    frame_log.add(frame_row(r))
-                    done.add(r.index)
-                    if r.status == FrameStatus.TRACKED:
-                        track_ms.append(r.time_track_s * 1000)
-                        map_ms.append(r.time_map_s * 1000)
-                    n += 1
-                bar.update(1)
-    except KeyboardInterrupt as exc:
-        _record(state, exc)
-        log.warning("interrupted after %d frames: writing what was done", n)
-    except Exception as exc:  # noqa: BLE001 - the frames before it are written, the error reported
-        summary.error = _error_text(exc)
-        log.debug("tracking failed", exc_info=True)
-    wall = time.perf_counter() - t0
-    try:
-        with stop_signals(state):
-            final = odo.finish()
-            if closer is not None and state.signum is None:
-                _to_closer(closer, final, final=True)
-                closer.finish()
-    except KeyboardInterrupt as exc:  # a further signal: the poses stay as they are
-        _record(state, exc)
-    except Exception as exc:  # noqa: BLE001
-        if summary.error is None:
-            summary.error = _error_text(exc)
-
-    # a frame cut off mid-way by an interrupt is in no output
-    summary.frames = n
-    if closer is not None:
-        closer.close()                    # an interrupt drops the loops not yet solved; those found stay
-    with deferred_signals(state):
-        traj = odo.trajectory().at_times({float(f.timestamp) for f in odo.frames if f.index in done})
-        kfs = odo.keyframe_trajectory()
-        pts, cols, hosts = odo.point_cloud_world(with_hosts=True)
-        traj_odo = None                   # the odometry's own poses, when a loop corrected them
-        if closer is not None and closer.corrected:
-            traj_odo = traj
-            traj, kfs = closer.correct_trajectory(traj), closer.correct_keyframes(kfs)
-            pts = closer.correct_points(pts, hosts)
-            writer.write_trajectories(traj_odo, None, "tum", name="trajectory_odometry")
-        writer.write_trajectories(traj, kfs, cfg.output.trajectory_format)
-        # the full stage's layout: a keyframe column with each point's host keyframe id
-        writer.write_points(pts, cols, extra={"keyframe": hosts.astype(np.float32)})
-        records = [f for f in odo.frames if f.index in done]
-        counts = Counter(f.status.value for f in records)
-        tracked = len(traj)
-        summary.figures.update({
-            "frames": n, "frames_with_pose": tracked, "fraction_tracked": tracked / n if n else 0.0,
-            "frames_unreadable": len(bad), "keyframes": len(kfs), "segments": odo.segment + 1,
-            "tracking_lost": odo.num_lost, "repeated_frames": odo.num_duplicates, "status_counts": dict(counts),
-            "points": int(len(pts)), "wall_s": wall, "fps": n / wall if wall else 0.0,
-            "track_ms_median": float(np.median(track_ms)) if track_ms else None,
-            "map_ms_median": float(np.median(map_ms)) if map_ms else None,
-            "device": device, "image_size": [geo.width, geo.height], "pyramid_levels": geo.levels,
-            "interrupted": state.signum is not None, "error": summary.error,
-        })
-        ates = _tracking_ate(seq, odo, traj, kfs, summary, traj_odo)
-        f = summary.figures
-        # the figures the full stage also reports, under the full stage's keys (issue 44: one name for one figure;
-        # the "tracking" section keeps this stage's own detail)
-        shared = {"ate_all_frames_m": f.get("ate_rmse_all_frames"), "ate_keyframes_m": f.get("ate_rmse_keyframes"),
-                  "tracking_fps": f["fps"],
-                  "frames": {"processed": n, "unreadable": len(bad), "without_pose": n - tracked,
-                             "in_trajectory": tracked, "tracking_lost": odo.num_lost},
-                  "keyframes": {"in_trajectory": len(kfs)}, "interrupted": f["interrupted"], "error": f["error"],
-                  "device": device, "image_size": [geo.width, geo.height],
-                  "loop": None if closer is None else closer.stats.as_dict(),
-                  "ate_odometry_all_frames_m": f.get("ate_rmse_odometry_all_frames")}
-        writer.write_metrics(ate=ates, extra={"tracking": summary.figures, **shared})
-    lp = shared["loop"]
-    if lp:
-        summary.messages.append(_loop_line(lp))
-    repeats = f" ({odo.num_duplicates} repeated images: pose of the frame before)" if odo.num_duplicates else ""
-    unread = f", {len(bad)} unreadable frames skipped" if len(bad) else ""
-    summary.messages.insert(0, f"tracked {tracked}/{n} frames ({100.0 * tracked / max(n, 1):.1f}%){repeats}{unread}, "
-                               f"{len(kfs)} keyframes, {odo.num_lost} tracking losses, {len(pts)} points; "
-                               f"{n / wall if wall else 0:.2f} frames/s ({geo.width}x{geo.height}, {device})")
-    if ates and cfg.output.plot:
-        try:
-            with stop_signals(state):
-                writer.write_trajectory_plot(ates[0], seq.groundtruth, kfs.timestamps,
-                                             f"{seq.name}: DSO ({summary.stage} stage)")
-        except KeyboardInterrupt:
-            log.warning("the trajectory plot was cut short by a signal")
-    if tracked == 0 and n:
-        summary.messages.append("no frame got a pose: the odometry never initialised (a monocular start needs the "
-                                "camera to translate; see the log for the initialiser's reasons)")
-    summary.conclude(state, no_pose=(tracked == 0 and n > 0))
-
-
-def _to_closer(closer, messages, final: bool = False) -> None:
-    """The odometry's messages of a frame (or of its end) to the loop closer, then its correction collected (the
-    stage keeps none: its outputs are corrected at the end)."""
-    for msg in messages:
-        closer.observe(msg, final=final)
-        closer.correct(msg)
-    closer.poll()
-
-
 def _loop_line(lp: dict) -> str:
-    """The summary's loop closure line (the same for every stage)."""
+    """The summary's loop closure line."""
     why = ", ".join(f"{n} {r}" for r, n in lp["rejected"].items())
     return (f"loop closure: {lp['accepted']} loops accepted of {lp['candidates']} candidates verified"
             + (f" (rejected: {why})" if why else "") + f", {lp['seconds']:.1f} s"
@@ -335,46 +209,7 @@ def _loop_line(lp: dict) -> str:
             + ("; trajectory.txt is corrected, trajectory_odometry.txt the odometry's" if lp["accepted"] else ""))
 
 
-def _tracking_ate(seq, odo, traj, kfs, summary: RunSummary, traj_odo=None) -> list:
-    from mgso.eval import EvaluationError, compute_ate
-    from mgso.io.trajectory import Trajectory
-
-    gt = seq.groundtruth
-    ates: list = []
-    if gt is None or len(traj) < 3:
-        return ates
-    try:
-        ate = compute_ate(traj, gt, align="sim3", label="all frames")
-        ates.append(ate)
-        summary.messages.append(ate.summary() + " [all frames with a pose]")
-        summary.figures["ate_rmse_all_frames"] = ate.rmse
-        if len(kfs) >= 3:
-            ak = compute_ate(kfs, gt, align="sim3", label="keyframes")
-            ates.append(ak)
-            summary.messages.append(ak.summary() + " [keyframes]")
-            summary.figures["ate_rmse_keyframes"] = ak.rmse
-        if traj_odo is not None and len(traj_odo) >= 3:
-            ao = compute_ate(traj_odo, gt, align="sim3", label="all frames, the odometry's before loop closure")
-            ates.append(ao)
-            summary.messages.append(ao.summary() + " [the odometry's, before loop closure]")
-            summary.figures["ate_rmse_odometry_all_frames"] = ao.rmse
-        segs = {}
-        for s in range(odo.segment + 1):
-            fr = [f for f in odo.frames if f.pose_valid and f.segment == s]
-            if len(fr) >= 3 and odo.segment > 0:
-                st = Trajectory(np.array([f.timestamp for f in fr]),
-                                np.stack([odo.to_world(s, f.cam_to_world) for f in fr]))
-                a = compute_ate(st, gt, align="sim3", label=f"segment {s}")
-                segs[str(s)] = {"frames": len(fr), "ate_rmse": a.rmse}
-        if segs:
-            summary.figures["segments_ate"] = segs
-    except EvaluationError as exc:  # evaluation must not lose the run's outputs
-        log.warning("ATE not computed: %s", exc)
-        summary.messages.append(f"ATE not computed: {exc}")
-    return ates
-
-
-# ------------------------------------------------------------------------------------------------ full
+# --------------------------------------------------------------------------------------- tracking, odometry, full
 class _FrameBar(Observer):
     """Advances a progress bar per frame and shows keyframes and the map's size."""
 
@@ -398,22 +233,23 @@ class _FrameBar(Observer):
 def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: str = "",
                progress: Callable[[int, str], object] | None = None, summary: RunSummary | None = None,
                device: str | None = None, state: StopState | None = None,
-               observers: tuple = ()) -> RunSummary:
-    """Run the whole system (``odometry`` + the Gaussian mapper, :mod:`mgso.system`) over ``seq`` and write every
-    output of ``mgso run`` through ``writer`` (:mod:`mgso.app.full`). ``odometry``: an
+               observers: tuple = (), with_map: bool = True) -> RunSummary:
+    """Run the system (``odometry`` + the Gaussian mapper, :mod:`mgso.system`; ``with_map=False``: the odometry and
+    the loop closer alone) over ``seq`` and write every output of ``mgso run`` through ``writer``
+    (:mod:`mgso.app.outputs`, the same files and keys for every stage). ``odometry``: an
     :class:`mgso.system.OdometrySource`."""
     from mgso.system import System, SystemRunError
 
-    from .full import write_full_outputs
+    from .outputs import write_run_outputs
 
     progress = progress or no_progress
     state = state or StopState()
     summary = summary or RunSummary(stage="full", out_dir=writer.out)
     bad = UnreadableFrames(cfg.input.on_bad_frame, writer, seq)
-    bar = progress(_total(seq), f"{cfg.system.mode}")
+    bar = progress(_total(seq), f"{cfg.system.mode}" if with_map else "track")
     frame_bar = _FrameBar(bar)
-    system = System(odometry, cfg, device=device,
-                    observer=ObserverList([frame_bar, *observers]))
+    system = System(odometry, cfg, device=device, observer=ObserverList([frame_bar, *observers]),
+                    with_map=with_map)
     frame_log = writer.open_frame_log()
     frames = seq.frames(on_unreadable=bad)
     for obs in observers:      # a watcher (the live viewer) that asks the mapper for copies, sees the frames
@@ -433,8 +269,9 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
         bar.close()
     if result.interrupted and state.signum is None:
         state.record(signal.SIGINT)
-    metrics = write_full_outputs(result, system.mapper, seq, cfg, writer, odometry_name=odometry_name,
-                                 progress=progress, state=state, error=summary.error, frames_unreadable=len(bad))
+    metrics = write_run_outputs(result, system.mapper, seq, cfg, writer, odometry_name=odometry_name,
+                                progress=progress, state=state, error=summary.error, frames_unreadable=len(bad),
+                                stage=summary.stage, device=device)
     summary.frames = result.frames_processed
     summary.figures.update({k: metrics.get(k) for k in (
         "ate_all_frames_m", "ate_keyframes_m", "psnr_monogs_db", "ssim_monogs", "psnr_photo_slam_db",
@@ -447,15 +284,24 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     unread = f", {len(bad)} unreadable" if len(bad) else ""
     n_lost = len(result.tracking_losses)
     lost = f", {n_lost} tracking loss{'es' if n_lost != 1 else ''}" if n_lost else ""
+    tr = metrics["tracking"]
+    repeats = (f", {tr['repeated_frames']} repeated images (the pose of the frame before)"
+               if tr["repeated_frames"] else "")
+    size = "x".join(map(str, metrics["image_size"])) if metrics.get("image_size") else "?"
     m.append(f"{result.frames_processed} frames ({result.frames_dropped} dropped, {result.frames_lost} without "
-             f"pose{unread}{lost}), {result.keyframes} keyframes, {metrics['num_gaussians']} Gaussians "
-             f"({metrics['map_size_mb']:.1f} MB as PLY), peak memory {metrics['peak_memory_mb']:.0f} MB")
-    m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s; the map ready {metrics['map_ready_s']:.1f} s after "
-             f"the last frame; mapping {metrics['mapping_iterations_per_s']:.2f} it/s ({result.mapper.steps} steps, "
-             f"{result.mapper.steps_while_streaming} while the frames came); end to end "
-             f"{metrics['end_to_end_fps']:.2f} frames/s until the map was written ({cfg.system.mode})")
+             f"pose{unread}{lost}{repeats}), {result.keyframes} keyframes, {tr['points']} DSO points"
+             + (f", {metrics['num_gaussians']} Gaussians ({metrics['map_size_mb']:.1f} MB as PLY)" if with_map
+                else "") + f"; {size}, {metrics['device']}; peak memory {metrics['peak_memory_mb']:.0f} MB")
+    if with_map:
+        m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s; the map ready {metrics['map_ready_s']:.1f} s "
+                 f"after the last frame; mapping {metrics['mapping_iterations_per_s']:.2f} it/s "
+                 f"({result.mapper.steps} steps, {result.mapper.steps_while_streaming} while the frames came); end "
+                 f"to end {metrics['end_to_end_fps']:.2f} frames/s until the map was written ({cfg.system.mode})")
+    else:
+        m.append(f"tracking {metrics['tracking_fps']:.1f} frames/s; end to end {metrics['end_to_end_fps']:.2f} "
+                 f"frames/s ({cfg.system.mode}; no map: the {summary.stage} stage)")
     rt = metrics.get("realtime")
-    if rt:
+    if rt and with_map:
         share = rt["mapper_cpu_share"]
         m.append(f"real time: {result.frames_processed} of {result.frames_read} frames tracked "
                  f"({result.frames_dropped} dropped); mapper in a {rt['mapper_in']}"
@@ -479,6 +325,8 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     for a in metrics["ate"]:
         m.append(f"ATE {a['translation_m']['rmse']:.4f} m RMSE ({a['label']}, Sim(3) aligned, "
                  f"{a['num_pairs']} poses)")
+    for seg, a in sorted((tr["segments_ate"] or {}).items(), key=lambda kv: int(kv[0])):
+        m.append(f"ATE {a['ate_rmse']:.4f} m RMSE (segment {seg} alone, Sim(3) aligned, {a['frames']} poses)")
     for r in metrics["render"]:
         m.append(f"PSNR {r['mean_psnr_db']:.2f} dB, SSIM {r['mean_ssim']:.4f} ({r['protocol']}, "
                  f"{r['num_frames']} frames)")
@@ -486,8 +334,10 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     return summary.conclude(state, no_pose=no_pose)
 
 
-def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState,
-              observers: tuple = ()) -> None:
+def _run_dso(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress, state: StopState,
+             observers: tuple = (), with_map: bool = True) -> None:
+    """The tracking, odometry and full stages: DSO (:class:`mgso.odometry.Odometry`) in the system, with or without
+    the map; one path and one writer for all three."""
     from mgso.odometry import Odometry
     from mgso_kernels import runtime
 
@@ -497,8 +347,9 @@ def _run_full(seq, cfg: Config, writer: RunWriter, summary: RunSummary, progress
     split = cfg.system.mode == "realtime" and cfg.system.odometry_map_thread
     odometry = Odometry.for_camera(seq.calibration.output, cfg, device=odo_device, emit_messages=True,
                                    map_thread=split)
-    run_system(seq, cfg, writer, odometry, odometry_name="DSO (mgso.odometry)", progress=progress, summary=summary,
-               device=device, state=state, observers=observers)
+    name = "DSO (mgso.odometry)" if with_map else f"DSO (mgso.odometry, window.backend={cfg.window.backend})"
+    run_system(seq, cfg, writer, odometry, odometry_name=name, progress=progress, summary=summary,
+               device=device, state=state, observers=observers, with_map=with_map)
 
 
 # ------------------------------------------------------------------------------------------------ entry
@@ -525,11 +376,11 @@ def run_sequence(seq, cfg: Config, writer: RunWriter, *, stage: str | None = Non
     elif stage == "tracking":
         # the front end with the stand-in back end (poses fixed); the window optimisation is the odometry stage
         cfg_t = dataclasses.replace(cfg, window=dataclasses.replace(cfg.window, backend="fixed"))
-        _run_tracking(seq, cfg_t, writer, summary, progress, state)
+        _run_dso(seq, cfg_t, writer, summary, progress, state, observers, with_map=False)
     elif stage == "odometry":
-        _run_tracking(seq, cfg, writer, summary, progress, state)
+        _run_dso(seq, cfg, writer, summary, progress, state, observers, with_map=False)
     else:
-        _run_full(seq, cfg, writer, summary, progress, state, observers)
+        _run_dso(seq, cfg, writer, summary, progress, state, observers)
     if getattr(seq, "live", False):     # why a live source ended (docs/live.md)
         summary.messages.insert(0, seq.end_message())
     writer.close()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mgso import synthetic
-from mgso.app.full import write_outputs
+from mgso.app.outputs import write_outputs
 from mgso.config import load_config
 from mgso.io import open_sequence
 from mgso.io.ply import read_gaussians_ply

@@ -20,7 +20,7 @@ from mgso.mapping.mapper import Mapper
 from mgso.messages import KeyframeMessage, Stop
 from mgso.oracle import OracleOdometry
 from mgso.system import System
-from mgso.app.full import write_outputs
+from mgso.app.outputs import write_outputs
 
 # measured first (96x72, 40 frames, motion_scale 2, 15 steps a keyframe + 100 final): see the test's docstring
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=100", "output.plot=false",
@@ -89,7 +89,7 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     alone (80 %: medians 0.47-0.56, 9 of 19 keyframes trusted at 0.5, median opacity 0.065; 50 %: 0.34-0.41, every
     keyframe trusted) the map fogs: the threshold separates a handheld camera's depths from a moving camera's
     (7-Scenes: 0.02-0.2, a stretch to 0.6), not every noise level."""
-    from mgso.app.full import FOG_MEDIAN_OPACITY, map_warnings
+    from mgso.app.outputs import FOG_MEDIAN_OPACITY, map_warnings
     folder = synthetic.cached_sequence_folder(num_frames=40, width=96, height=72, seed=0, path="rotation",
                                               motion_scale=2.0)
     before = _run(folder, tmp_path / "before", *BEFORE)
@@ -104,12 +104,12 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
 
 @pytest.mark.parametrize("noise", [False, True])
 def test_the_summary_warns_when_the_map_does_not_fit_its_training_views(noise):
-    """Mapper.health renders the map's own training views after the final refinement; app.full.map_warnings turns
+    """Mapper.health renders the map's own training views after the final refinement; app.outputs.map_warnings turns
     a low PSNR there into the summary's warning. Six keyframes of the room, 60 steps: the map fits them (about
     25 dB measured, no warning); the control gives each keyframe an image of independent noise in place of the room,
     views no map can agree with (about 11 dB: the warning); and the trained map made nearly transparent (the
     other warning, fog's median opacity)."""
-    from mgso.app.full import FOG_MEDIAN_OPACITY, POOR_FIT_PSNR_DB, map_warnings
+    from mgso.app.outputs import FOG_MEDIAN_OPACITY, POOR_FIT_PSNR_DB, map_warnings
     seq = synthetic.make_sequence(seed=0, num_frames=6, width=80, height=60, motion_scale=1.0)
     k = seq.intrinsics
     cam = PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height)

@@ -24,8 +24,9 @@ def test_odometry_stage_writes_outputs(wp_device, folder, tmp_path):
     traj = read_tum(out / "trajectory.txt")
     kfs = read_tum(out / "keyframes.txt")
     metrics = json.loads((out / "metrics.json").read_text())
-    t = metrics["tracking"]
-    assert t["frames"] == 24 and t["frames_with_pose"] == len(traj) >= 12 and t["keyframes"] == len(kfs) >= 3
+    fr = metrics["frames"]
+    assert fr["processed"] == 24 and fr["in_trajectory"] == len(traj) >= 12
+    assert metrics["keyframes"]["in_trajectory"] == len(kfs) >= 3 and metrics["tracking"]["backend"] == "bundle"
     assert [a["label"] for a in metrics["ate"]] == ["all frames", "keyframes"]
     assert metrics["ate"][0]["translation_m"]["rmse"] < 0.01
     ply = PlyData.read(str(out / "points.ply"))

@@ -1,9 +1,12 @@
-"""The outputs of a full run (``mgso run --stage full``, ``mgso demo``): what :class:`mgso.system.System` did,
-written through the :class:`~mgso.app.writer.RunWriter` in two phases (docs/mgso.md lists every file and figure).
+"""The outputs of a run of every stage that tracks (``mgso run --stage tracking|odometry|full``, ``mgso demo``):
+what :class:`mgso.system.System` did, written through the :class:`~mgso.app.writer.RunWriter` in two phases, from
+this one place (as DSO sends all its outputs through one output wrapper; docs/mgso.md lists every file and figure).
+The ``tracking`` and ``odometry`` stages run the system without a map (``mapper`` is ``None``): the same files and the
+same keys, without ``map.ply``, the renders and the map's figures (``null``).
 
 1. **What must exist** (signals deferred): ``trajectory.txt`` (every frame with a pose, TUM; with
    ``output.trajectory_format: kitti`` also ``trajectory_kitti.txt`` and ``keyframes_kitti.txt``), ``keyframes.txt``,
-   ``map.ply`` (3DGS layout), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
+   ``map.ply`` (3DGS layout; with a map), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
    ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), ``trajectory_odometry.txt`` (the odometry's own
    poses, when loop closure corrected them: ``trajectory.txt`` and ``keyframes.txt`` are the corrected ones), and ``metrics.json`` with the ATE, the counts and
    the timings (``"evaluation": "pending"``).
@@ -18,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from contextlib import nullcontext
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -31,18 +36,19 @@ from mgso.system import SystemResult, peak_memory_mb
 from .signals import StopState, deferred_signals, stop_signals
 from .writer import RunWriter
 
-__all__ = ["METRICS_KEYS", "write_full_outputs", "write_outputs"]
+__all__ = ["METRICS_KEYS", "write_run_outputs", "write_outputs"]
 
 log = logging.getLogger(__name__)
 
-#: Every key of a full run's metrics.json (tests check them; docs/mgso.md explains each).
+#: Every key of a run's metrics.json, the same for every stage that tracks (tests check them; docs/mgso.md explains
+#: each).
 METRICS_KEYS = (
     "ate", "rpe", "render", "ate_all_frames_m", "ate_keyframes_m", "ate_refined_all_frames_m", "psnr_monogs_db",
     "ssim_monogs", "psnr_photo_slam_db", "ssim_photo_slam", "num_gaussians", "map_size_mb", "peak_memory_mb",
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
     "protocols", "loop", "ate_odometry_all_frames_m", "live", "segments", "tracking_losses", "map_health",
-    "map_ready_s", "frame_loop_fps",
+    "map_ready_s", "frame_loop_fps", "stage", "tracking",
 )
 
 #: A map whose median Gaussian is more transparent than this is fog: the fogged maps measured 0.10 (TUM
@@ -74,14 +80,17 @@ def map_warnings(health: dict) -> list[str]:
     return out
 
 
-def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, writer: RunWriter, *,
-                       odometry_name: str = "", progress: Callable[[int, str], Any] | None = None,
-                       state: StopState | None = None, error: str | None = None, frames_unreadable: int = 0) -> dict:
+def write_run_outputs(result: SystemResult, mapper: Mapper | None, seq, cfg: Config, writer: RunWriter, *,
+                      odometry_name: str = "", progress: Callable[[int, str], Any] | None = None,
+                      state: StopState | None = None, error: str | None = None, frames_unreadable: int = 0,
+                      stage: str = "full", device: str | None = None) -> dict:
     """Write the outputs of a run (the two phases of the module doc) and return the metrics as written.
 
-    ``seq``: the :class:`mgso.io.Sequence` the frames came from (images for evaluation, ground truth, camera; may be
-    ``None``: no evaluation). ``state``: the run's :class:`~mgso.app.signals.StopState` (``None``: no signal
-    handling, for library use). ``error``: the error that stopped the run, recorded in metrics.json."""
+    ``mapper``: the run's mapper, ``None`` for a run without a map (the tracking and odometry stages). ``seq``: the
+    :class:`mgso.io.Sequence` the frames came from (images for evaluation, ground truth, camera; may be ``None``: no
+    evaluation). ``state``: the run's :class:`~mgso.app.signals.StopState` (``None``: no signal handling, for
+    library use). ``error``: the error that stopped the run, recorded in metrics.json. ``stage``: the stage's name
+    in metrics.json; ``device``: the run's device (default: the mapper's)."""
     from mgso.eval import EvaluationError, compute_ate
 
     t_out = time.perf_counter()
@@ -91,18 +100,21 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
     gt = seq.groundtruth if seq is not None else None
     ate: dict[str, Any] = {}
 
+    run = _Run(result, mapper, seq, cfg, odometry_name, error, frames_unreadable, stage,
+               device if device is not None else (mapper.device if mapper is not None else None))
     with guard():
         writer.write_trajectories(traj, kf_traj, cfg.output.trajectory_format)
-        writer.write_gaussians(mapper.gmap.to_numpy())
-        # when the map was ready: after the last frame, the mapper's catch-up and final refinement (in the run's
-        # finish) and the writing of map.ply
-        map_ready_s = result.finish_seconds + (time.perf_counter() - t_out)
-        map_mb = writer.path("map.ply").stat().st_size / 1e6
+        if mapper is not None:
+            writer.write_gaussians(mapper.gmap.to_numpy())
+            run.map_mb = writer.path("map.ply").stat().st_size / 1e6
+        # when the outputs were ready: after the last frame, the mapper's catch-up and final refinement (in the run's
+        # finish) and the writing of map.ply (without a map: of trajectory.txt)
+        run.ready_s = result.finish_seconds + (time.perf_counter() - t_out)
         pts, cols, hosts = result.cloud.arrays()
         writer.write_points(pts, cols, extra={"keyframe": hosts.astype(np.float32)})
         # the map's refinement of the poses (mapping.train.refine_poses): the odometry's trajectory moved by the
         # keyframes' corrections; the map is in its frame
-        refined = mapper.refined_trajectory(traj) if mapper.refines_poses else None
+        refined = mapper.refined_trajectory(traj) if mapper is not None and mapper.refines_poses else None
         if refined is not None:
             writer.write_trajectories(refined, None, "tum", name="trajectory_refined")
         odo = result.odometry_trajectory         # before loop closure corrected it (None: nothing corrected)
@@ -117,8 +129,8 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
                 ate[key] = compute_ate(tr, gt, align="sim3", label=label, max_diff=0.01)
             except EvaluationError as exc:
                 log.warning("no ATE on %s: %s", label, exc)
-        figures = _figures(result, mapper, seq, cfg, ate, [], map_mb, odometry_name, error, frames_unreadable,
-                           map_ready_s)
+        run.segments_ate = _segment_ates(result, gt)
+        figures = _figures(run, ate, [])
         for line in (figures["map_health"] or {}).get("warnings", []):
             log.warning("%s", line)
         figures["evaluation"] = "pending"
@@ -132,8 +144,9 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
             if "all" in ate and cfg.output.plot:
                 writer.write_trajectory_plot(ate["all"], gt, kf_traj.timestamps,
                                              f"{seq.name}: {odometry_name}" if seq is not None else "")
-            renders = _evaluate_renders(result, mapper, seq, cfg, writer, refined if refined is not None else traj,
-                                        progress)
+            if mapper is not None:
+                renders = _evaluate_renders(result, mapper, seq, cfg, writer,
+                                            refined if refined is not None else traj, progress)
     except KeyboardInterrupt as exc:
         if state is not None and state.signum is None:   # not through a handler (raised by a callback)
             state.record_exception(exc)
@@ -147,8 +160,7 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
     if cfg.output.plot and status != "interrupted":
         try:
             with hurry():
-                figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error,
-                                   frames_unreadable, map_ready_s)
+                figures = _figures(run, ate, renders)
                 figures["evaluation"] = status
                 _write_report(writer, result, seq, cfg, ate, renders, figures, traj, kf_traj, gt, odometry_name)
         except KeyboardInterrupt as exc:
@@ -162,8 +174,7 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
             log.warning("no report.png: %s", exc, exc_info=log.isEnabledFor(logging.DEBUG))
 
     with guard():
-        figures = _figures(result, mapper, seq, cfg, ate, renders, map_mb, odometry_name, error, frames_unreadable,
-                           map_ready_s)
+        figures = _figures(run, ate, renders)
         figures["evaluation"] = status
         figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
         writer.write_metrics(ate=list(ate.values()), renders=renders, extra=figures)
@@ -176,9 +187,9 @@ def write_full_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, w
 
 def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_dir, *, odometry_name: str = "",
                   progress: Callable[[int, str], Any] | None = None) -> dict:
-    """:func:`write_full_outputs` into the folder ``out_dir`` (made if needed), without signal handling: for
+    """:func:`write_run_outputs` into the folder ``out_dir`` (made if needed), without signal handling: for
     scripts and profiles that run a :class:`mgso.system.System` themselves."""
-    return write_full_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
+    return write_run_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
                               progress=progress)
 
 
@@ -197,7 +208,9 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
     hist = np.array([(t_end if not np.isfinite(t) else t - t0, steps, n) for _, t, steps, n in result.mapper.history],
                     np.float64).reshape(-1, 3)
     sc = cfg.system
-    notes = {"psnr": ("rendering evaluation off (system.eval_monogs, system.eval_photo_slam)"
+    notes = {"psnr": (f"no map: the {figures['stage']} stage runs the odometry alone"
+                      if figures["num_gaussians"] is None
+                      else "rendering evaluation off (system.eval_monogs, system.eval_photo_slam)"
                       if not (sc.eval_monogs or sc.eval_photo_slam)
                       else f"no rendering evaluation (evaluation: {figures['evaluation']})"
                       if figures["evaluation"] != "done" else "no frame to evaluate (no map or no tracked frame)")}
@@ -216,7 +229,8 @@ def _headline(f: dict) -> list[str]:
 
     fr, kf = f["frames"], f["keyframes"]
     size = f"{f['image_size'][0]}x{f['image_size'][1]}" if f.get("image_size") else "?"
-    lines = [f"{f['odometry'] or 'odometry'} + map, {f['mode']} mode, {size}, device {f['device']}",
+    what = "+ map" if f["num_gaussians"] is not None else f"alone ({f['stage']} stage)"
+    lines = [f"{f['odometry'] or 'odometry'} {what}, {f['mode']} mode, {size}, device {f['device']}",
              f"frames: {fr['processed']} processed of {fr['read']} read, {fr['dropped']} dropped, "
              f"{fr['without_pose']} without pose"
              + (f", tracking lost {fr['tracking_lost']}x" if fr.get("tracking_lost") else "")
@@ -240,17 +254,25 @@ def _headline(f: dict) -> list[str]:
     if f["psnr_photo_slam_db"] is not None:
         psnr.append(f"Photo-SLAM protocol {f['psnr_photo_slam_db']:.2f} dB / SSIM {f['ssim_photo_slam']:.3f}")
     lines.append("PSNR: " + ("; ".join(psnr) if psnr else "not evaluated"))
-    lines.append(f"map: {f['num_gaussians']:,} Gaussians, {f['map_size_mb']:.2f} MB; peak memory "
-                 f"{num(f['peak_memory_mb'], '.0f')} MB")
+    if f["num_gaussians"] is None:
+        lines.append(f"map: none (the {f['stage']} stage: the odometry alone); peak memory "
+                     f"{num(f['peak_memory_mb'], '.0f')} MB")
+    else:
+        lines.append(f"map: {f['num_gaussians']:,} Gaussians, {f['map_size_mb']:.2f} MB; peak memory "
+                     f"{num(f['peak_memory_mb'], '.0f')} MB")
     h = f.get("map_health") or {}
     if h.get("median_opacity") is not None or h.get("training_view_psnr_db") is not None:
         lines.append(f"map health: median opacity {num(h.get('median_opacity'), '.2f')}, its training views "
                      f"{num(h.get('training_view_psnr_db'), '.1f')} dB"
                      + ("; WARNING: " + "; ".join(w.split(":")[0] for w in h["warnings"]) if h.get("warnings")
                         else ""))
-    lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s; the map ready {f['map_ready_s']:.1f} s after "
-                 f"the last frame; end to end {f['end_to_end_fps']:.2f} frames/s; mapping "
-                 f"{f['mapping_iterations_per_s']:.1f} steps/s")
+    if f["map_ready_s"] is None:
+        lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s; end to end {f['end_to_end_fps']:.2f} "
+                     "frames/s")
+    else:
+        lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s; the map ready {f['map_ready_s']:.1f} s "
+                     f"after the last frame; end to end {f['end_to_end_fps']:.2f} frames/s; mapping "
+                     f"{f['mapping_iterations_per_s']:.1f} steps/s")
     lines.append(f"interrupted: {'yes' if f['interrupted'] else 'no'}; evaluation: {f['evaluation']}"
                  + (f"; error: {f['error']}" if f.get("error") else ""))
     return lines
@@ -315,15 +337,73 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
             bar.close()
 
 
-def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, renders: list, map_mb: float,
-             odometry_name: str, error: str | None, frames_unreadable: int, map_ready_s: float) -> dict:
+@dataclass
+class _Run:
+    """What the figures of metrics.json are made from (the values of one run, gathered as the outputs are written)."""
+
+    result: SystemResult
+    mapper: Mapper | None
+    seq: Any
+    cfg: Config
+    odometry_name: str
+    error: str | None
+    frames_unreadable: int
+    stage: str
+    device: str | None
+    map_mb: float | None = None            # map.ply's size (None: no map)
+    ready_s: float = 0.0                   # seconds from the last frame until map.ply (else trajectory.txt) was written
+    segments_ate: dict | None = None
+
+
+def _segment_ates(result: SystemResult, gt) -> dict | None:
+    """The ATE of each tracking segment on its own (Sim(3) aligned: a segment after a loss has its own scale), on
+    the odometry's poses before loop closure; ``None`` for a run of one segment or without ground truth."""
+    from mgso.eval import EvaluationError, compute_ate
+
+    if gt is None or result.segments < 2:
+        return None
+    traj = result.odometry_trajectory if result.odometry_trajectory is not None else result.trajectory
+    log_ = result.frame_log
+    out = {}
+    for seg in range(result.segments):
+        stamps = {t for t, s in zip(log_.timestamp, log_.segment) if s == seg}
+        part = traj.at_times(stamps)
+        if len(part) < 3:
+            continue
+        try:
+            out[str(seg)] = {"frames": len(part), "ate_rmse": compute_ate(part, gt, align="sim3",
+                                                                          label=f"segment {seg}").rmse}
+        except EvaluationError as exc:
+            log.warning("no ATE on segment %d: %s", seg, exc)
+    return out or None
+
+
+def _tracking_figures(run: _Run) -> dict:
+    """The odometry's own figures, the same for every stage: how the frames went (the odometry's word for each),
+    its time a tracked frame, the point cloud's size and each segment's ATE."""
+    log_ = run.result.frame_log
+    tracked = [k for k, st in enumerate(log_.status) if st == "tracked"]
+    track = [log_.track_ms[k] for k in tracked]
+    mapping = [log_.map_ms[k] for k in tracked if log_.map_ms[k] is not None]
+    return {"status_counts": dict(Counter(log_.status)), "repeated_frames": run.result.repeated_frames,
+            "fraction_tracked": len(run.result.trajectory) / len(log_) if len(log_) else 0.0,
+            "track_ms_median": float(np.median(track)) if track else None,
+            "map_ms_median": float(np.median(mapping)) if mapping else None,
+            "points": len(run.result.cloud), "segments_ate": run.segments_ate,
+            "backend": run.cfg.window.backend}
+
+
+def _figures(run: _Run, ate: dict, renders: list) -> dict:
     from mgso.eval import MONOGS, PHOTO_SLAM
 
+    result, mapper, seq, cfg = run.result, run.mapper, run.seq, run.cfg
     by_key = {r.protocol_key: r for r in renders}
     st = result.mapper
     cam = seq.calibration.output if seq is not None else None
     sc = cfg.system
-    refined = "refined" in ate or mapper.refines_poses
+    has_map = mapper is not None
+    refined = "refined" in ate or (has_map and mapper.refines_poses)
+    map_ready_s = run.ready_s if has_map else None
     return {
         "ate_all_frames_m": ate["all"].rmse if "all" in ate else None,
         "ate_keyframes_m": ate["keyframes"].rmse if "keyframes" in ate else None,
@@ -333,17 +413,17 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
         "ssim_monogs": by_key["monogs"].mean_ssim if "monogs" in by_key else None,
         "psnr_photo_slam_db": by_key["photo-slam"].mean_psnr if "photo-slam" in by_key else None,
         "ssim_photo_slam": by_key["photo-slam"].mean_ssim if "photo-slam" in by_key else None,
-        "num_gaussians": int(mapper.gmap.n),
-        "map_size_mb": map_mb,
+        "num_gaussians": int(mapper.gmap.n) if has_map else None,
+        "map_size_mb": run.map_mb,
         "peak_memory_mb": peak_memory_mb(),
         "tracking_fps": result.tracking_fps,
-        "mapping_iterations_per_s": st.iterations_per_s,
-        "end_to_end_fps": (result.frames_processed / (result.loop_seconds + map_ready_s)
-                           if result.loop_seconds + map_ready_s > 0 else 0.0),
+        "mapping_iterations_per_s": st.iterations_per_s if has_map else None,
+        "end_to_end_fps": (result.frames_processed / (result.loop_seconds + run.ready_s)
+                           if result.loop_seconds + run.ready_s > 0 else 0.0),
         "frame_loop_fps": result.frame_loop_fps,
         "map_ready_s": map_ready_s,
         "frames": {"read": result.frames_read, "processed": result.frames_processed,
-                   "dropped": result.frames_dropped, "unreadable": int(frames_unreadable),
+                   "dropped": result.frames_dropped, "unreadable": int(run.frames_unreadable),
                    "without_pose": result.frames_lost, "in_trajectory": len(result.trajectory),
                    "tracking_lost": len(result.tracking_losses)},
         "segments": result.segments,
@@ -353,20 +433,24 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
                              "reason": getattr(e.reason, "value", str(e.reason)), "rmse": float(e.rmse),
                              "first_rmse": float(e.first_rmse), "inlier_ratio": float(e.inlier_ratio)}
                             for e in result.tracking_losses],
-        "keyframes": {"sent": result.keyframes, "in_map": len(mapper.views),
+        "keyframes": {"sent": result.keyframes, "in_map": len(mapper.views) if has_map else None,
                       "in_trajectory": len(result.keyframe_trajectory),
                       "requests_merged": result.keyframe_requests_merged},
+        "stage": run.stage,
         "mode": result.mode,
         "interrupted": result.interrupted,
-        "error": error,
-        "odometry": odometry_name,
-        "device": mapper.device,
+        "error": run.error,
+        "odometry": run.odometry_name,
+        "device": run.device,
         "image_size": None if cam is None else [cam.width, cam.height],
         "timing_s": {"odometry": result.odometry_seconds, "frame_loop": result.loop_seconds,
-                     "finish_and_final_refinement": result.finish_seconds, "mapping_train": st.train_seconds,
-                     "final_refinement": st.final_seconds, "seeding": st.seed_seconds,
+                     "finish_and_final_refinement": result.finish_seconds,
+                     "mapping_train": st.train_seconds if has_map else None,
+                     "final_refinement": st.final_seconds if has_map else None,
+                     "seeding": st.seed_seconds if has_map else None,
                      "outputs_and_evaluation": None},
-        "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"},
+        "tracking": _tracking_figures(run),
+        "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"} if has_map else None,
         "realtime": None if result.mode != "realtime" else {
             "mapper_in": result.mapper_in,
             "mapper_priority": st.priority or None,     # its process's, while the camera ran (SCHED_IDLE, nice +N)
@@ -387,7 +471,8 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "max_lag_ms": cfg.system.max_lag_ms,
             "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
                                     else None),
-            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None},
+            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None}
+        if has_map else _realtime_without_map(result, cfg),
         "loop": None if result.loop is None else result.loop.as_dict(),
         "map_health": None if not st.health else {**st.health, "warnings": map_warnings(st.health)},
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
@@ -411,9 +496,23 @@ def _figures(result: SystemResult, mapper: Mapper, seq, cfg: Config, ate: dict, 
             "mapping_iterations_per_s": "training steps / the mapper's time inside them (final refinement "
                                         "included)",
             "end_to_end_fps": "frames processed / wall time from the first frame until map.ply was written (the "
-                              "frame loop, then the mapper's catch-up and final refinement)",
+                              "frame loop, then the mapper's catch-up and final refinement; without a map: until "
+                              "trajectory.txt was written)",
             "frame_loop_fps": "frames processed / wall time of the frame loop alone (odometry and mapping while the "
                               "frames came; what end_to_end_fps was before 2026-12-05)",
             "map_ready_s": "seconds from the end of the frame loop (the last frame) until map.ply was written",
+            "segments_ate": "tracking.segments_ate: each segment's ATE on its own, Sim(3) aligned, on the odometry's "
+                            "poses before loop closure",
         },
     }
+
+
+def _realtime_without_map(result: SystemResult, cfg: Config) -> dict:
+    """metrics.json's ``realtime`` section of a run without a map: how the played frames went."""
+    return {"mapper_in": result.mapper_in,
+            "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
+                                        else None),
+            "max_lag_ms": cfg.system.max_lag_ms,
+            "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
+                                    else None),
+            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None}
