@@ -214,6 +214,8 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
                       if not (sc.eval_monogs or sc.eval_photo_slam)
                       else f"no rendering evaluation (evaluation: {figures['evaluation']})"
                       if figures["evaluation"] != "done" else "no frame to evaluate (no map or no tracked frame)")}
+    if figures["num_gaussians"] is None:
+        notes["map"] = notes["psnr"]
     if gt is not None and "all" not in ate:
         notes["error"] = "no trajectory error: the ATE could not be computed (see the log)"
     data = ReportData(title=f"{seq.name}: {odometry_name}" if seq is not None else odometry_name,
@@ -234,7 +236,7 @@ def _headline(f: dict) -> list[str]:
              f"frames: {fr['processed']} processed of {fr['read']} read, {fr['dropped']} dropped, "
              f"{fr['without_pose']} without pose"
              + (f", tracking lost {fr['tracking_lost']}x" if fr.get("tracking_lost") else "")
-             + f"; keyframes: {kf['sent']} ({kf['in_map']} in the map)"]
+             + f"; keyframes: {kf['sent']}" + (f" ({kf['in_map']} in the map)" if kf["in_map"] is not None else "")]
     if f["ate_all_frames_m"] is None:
         lines.append("ATE: no ground truth")
     else:

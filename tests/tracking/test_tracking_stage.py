@@ -38,3 +38,15 @@ def test_tracking_stage_writes_trajectory_and_ate(wp_device, folder, tmp_path, c
     lines = (out / "frames.csv").read_text().splitlines()
     assert lines[0].startswith("index,timestamp,status") and len(lines) == 31
     assert (out / "points.ply").is_file() and (out / "groundtruth.txt").is_file()
+    assert (out / "report.png").is_file() and (out / "trajectory.png").is_file()
+
+
+def test_the_report_of_a_run_without_a_map_says_so(wp_device, folder, tmp_path):
+    """report.png's text panel (one writer for every stage): no "None" where the map's figures would be."""
+    from mgso.app.outputs import _headline
+
+    out = tmp_path / "run"
+    assert main(["run", str(folder), "--out", str(out), "--stage", "tracking", "-q"]) == 0
+    text = "\n".join(_headline(json.loads((out / "metrics.json").read_text())))
+    assert "map: none (the tracking stage: the odometry alone)" in text and "None" not in text
+    assert "keyframes: " in text and "in the map" not in text
