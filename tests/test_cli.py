@@ -55,3 +55,6 @@ def test_eval_prints_evo_figures(data_dir, tmp_path, capsys):
     sim3 = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert abs(sim3["translation_m"]["rmse"] - 0.257379) < 1e-4
     assert (tmp_path / "metrics.json").is_file() and (tmp_path / "trajectory.png").is_file()
+    # the ground truth came from a dataset folder: what was read is written as a run writes it (issue 44)
+    assert json.loads((tmp_path / "sequence.json").read_text())["layout"] == "kitti"
+    assert (tmp_path / "groundtruth.txt").is_file()

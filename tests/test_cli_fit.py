@@ -8,6 +8,7 @@ held-out PSNR 29.47 dB, SSIM 0.863, loss 0.170 -> 0.047. The same run with the c
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -52,7 +53,7 @@ def _metrics(out) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
-def test_fit_reaches_the_pinned_psnr_on_held_out_frames(fitted):
+def test_fit_reaches_the_pinned_psnr_on_held_out_frames(fitted, scene_dir):
     assert _metrics(fitted)["interrupted"] is False and _metrics(fitted)["evaluation"] == "done"   # the control
     m = _metrics(fitted)
     render = m["render"][0]
@@ -72,6 +73,9 @@ def test_fit_reaches_the_pinned_psnr_on_held_out_frames(fitted):
         assert cv2.imread(str(fitted / "gt" / name)).shape == (H, W, 3)
     cfg = yaml.safe_load((fitted / "config.yaml").read_text())
     assert cfg["mapping"]["train"]["iterations"] == ITERATIONS
+    # what was read, as a run writes it (issue 44): the input found again from the folder alone
+    seq = json.loads((fitted / "sequence.json").read_text())
+    assert Path(seq["path_absolute"]) == Path(scene_dir).resolve() and seq["frames"] == FRAMES
 
 
 def test_broken_colour_gradient_does_not_reach_the_pinned_psnr(scene_dir, tmp_path, monkeypatch, wp_device):

@@ -155,6 +155,7 @@ def cmd_eval(args) -> int:
         check_out_dir(args.out)
     est = read_trajectory(args.estimate)
     gt_path = Path(args.gt)
+    seq = None
     if gt_path.is_dir():
         seq = _open(str(gt_path), args.calib, cfg, to_track=False)
         if seq.groundtruth is None:
@@ -172,6 +173,8 @@ def cmd_eval(args) -> int:
     _print(args, format_report(ate=ate, rpe=rpe))
     if writer is not None:
         writer.write_config(cfg)        # as every command that writes a folder (issue 44)
+        if seq is not None:             # the ground truth came from a dataset: what was read, as a run says it
+            writer.write_sequence(seq)
         writer.write_metrics(ate=ate, rpe=rpe)
         writer.write_trajectory_plot(ate, ref)
         _print(args, *(f"wrote {p}" for p in writer.written_paths()))
@@ -309,6 +312,7 @@ def cmd_fit(args) -> int:
         raise CliError(f"fit: --init {init}: no such file (give 'random' or a PLY file)")
     writer = RunWriter(args.out or Path("runs") / f"fit-{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
+    writer.write_sequence(seq)          # what was read, first, as a run writes it (sequence.json, groundtruth.txt)
     size = seq.calibration.output.size
     _print(args, f"mgso {__version__} fit: {seq.layout} sequence {seq.name!r}, {len(seq)} frames at "
                  f"{size[0]}x{size[1]}, {cfg.mapping.train.iterations} iterations, init {init} -> {writer.out}")
