@@ -143,11 +143,9 @@ class FrameLog:
     exposure_ms: list[float | None] = field(default_factory=list)
     is_keyframe: list[bool] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
-    segment: list[int] = field(default_factory=list)        # the tracking segment (0 for an odometry without)
-    # the odometry's time on the frame: DSO's tracking half and mapping half (``None``: the odometry does not say;
-    # ``track_ms`` is then its whole time on the frame)
-    track_ms: list[float] = field(default_factory=list)
-    map_ms: list[float | None] = field(default_factory=list)
+    # Kept to what evaluation needs: the per-frame figures of metrics.json's "tracking" section are read back from
+    # frames.csv at the end, not gathered here, since in real time the frame loop's work is part of the timing
+    # between the tracking thread and DSO's mapping thread (docs/mgso.md, "Two outcomes of the same real-time run").
 
     def add(self, r: OdometryFrame) -> None:
         self.index.append(int(r.index))
@@ -156,13 +154,6 @@ class FrameLog:
         self.exposure_ms.append(r.exposure_ms)
         self.is_keyframe.append(bool(r.is_keyframe))
         self.status.append(str(getattr(r.status, "value", r.status)))
-        self.segment.append(int(getattr(r, "segment", 0) or 0))
-        if hasattr(r, "time_track_s"):
-            self.track_ms.append(1000.0 * float(r.time_track_s))
-            self.map_ms.append(1000.0 * float(r.time_map_s))
-        else:
-            self.track_ms.append(1000.0 * float(getattr(r, "seconds", 0.0)))
-            self.map_ms.append(None)
 
     def __len__(self) -> int:
         return len(self.index)

@@ -510,6 +510,37 @@ def test_runner_writes_every_output_of_mgso_run(room, tmp_path):
     assert s.figures["num_gaussians"] > 0 and s.figures["psnr_monogs_db"] > 15
 
 
+@pytest.mark.parametrize("mode", ["deterministic", "realtime"])
+def test_the_system_without_a_map_runs_the_odometry_alone(room, tmp_path, mode):
+    """The tracking and odometry stages' path (issue 44: one path for every stage): ``System(with_map=False)`` runs
+    the odometry (played at its rate in real time), writes the full stage's files and keys without map.ply, the
+    map's figures null. The control: the same run with the map writes map.ply and counts Gaussians."""
+    from mgso.app.stages import run_system
+    from mgso.app.writer import RunWriter
+
+    cfg = load_config(None, [*BASE, f"system.mode={mode}", "system.playback_speed=4",
+                             "mapping.mapper.final_iterations=5", "mapping.mapper.iterations_per_keyframe=2",
+                             "system.eval_photo_slam=false"])
+    seq = open_sequence(str(room), config=cfg.input)
+    figs = {}
+    for with_map in (False, True):
+        out = tmp_path / f"{mode}-{with_map}"
+        s = run_system(seq, cfg, RunWriter(out), OracleOdometry.from_sequence(seq, **ORACLE), odometry_name="oracle",
+                       with_map=with_map)
+        m = json.loads((out / "metrics.json").read_text())
+        assert s.ok and set(METRICS_KEYS) <= set(m) and m["mode"] == mode
+        assert (out / "map.ply").is_file() == with_map and (out / "trajectory.txt").is_file()
+        assert m["frames"]["processed"] + m["frames"]["dropped"] == m["frames"]["read"] == 24
+        assert m["ate_all_frames_m"] < 0.05 and m["keyframes"]["sent"] >= 3
+        figs[with_map] = m
+    assert figs[False]["num_gaussians"] is None and figs[False]["mapper"] is None
+    assert figs[True]["num_gaussians"] > 0 and figs[True]["mapper"]["steps"] > 0
+    if mode == "realtime":
+        assert figs[False]["realtime"]["mapper_in"] == "none" and figs[True]["realtime"]["mapper_in"] == "process"
+    else:
+        assert figs[False]["realtime"] is None
+
+
 class _LateFirstKeyframe:
     """DSO announces its first keyframe (frame 0) only when the initialiser succeeds, frames later."""
 

@@ -23,7 +23,7 @@ import logging
 import time
 from collections import Counter
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -129,7 +129,8 @@ def write_run_outputs(result: SystemResult, mapper: Mapper | None, seq, cfg: Con
                 ate[key] = compute_ate(tr, gt, align="sim3", label=label, max_diff=0.01)
             except EvaluationError as exc:
                 log.warning("no ATE on %s: %s", label, exc)
-        run.segments_ate = _segment_ates(result, gt)
+        run.frame_rows = _frame_rows(writer)
+        run.segments_ate = _segment_ates(result, gt, run.frame_rows)
         figures = _figures(run, ate, [])
         for line in (figures["map_health"] or {}).get("warnings", []):
             log.warning("%s", line)
@@ -355,20 +356,34 @@ class _Run:
     map_mb: float | None = None            # map.ply's size (None: no map)
     ready_s: float = 0.0                   # seconds from the last frame until map.ply (else trajectory.txt) was written
     segments_ate: dict | None = None
+    frame_rows: list = field(default_factory=list)     # frames.csv read back at the end
 
 
-def _segment_ates(result: SystemResult, gt) -> dict | None:
+def _frame_rows(writer: RunWriter) -> list[dict]:
+    """``frames.csv`` as written (its rows as strings), read back at the end: the per-frame figures of the
+    ``tracking`` section come from it, not from more bookkeeping in the frame loop (see :class:`mgso.system.FrameLog`).
+    Empty for a run without one (:func:`write_outputs`)."""
+    import csv
+
+    log_ = writer.frame_log
+    if log_ is None or not log_.path.is_file():
+        return []
+    with open(log_.path, newline="", encoding="utf-8") as fh:
+        return [r for r in csv.DictReader(fh) if r.get("status") != "unreadable"]
+
+
+def _segment_ates(result: SystemResult, gt, rows: list[dict]) -> dict | None:
     """The ATE of each tracking segment on its own (Sim(3) aligned: a segment after a loss has its own scale), on
-    the odometry's poses before loop closure; ``None`` for a run of one segment or without ground truth."""
+    the odometry's poses before loop closure, the frames' segments from ``frames.csv``'s ``rows``; ``None`` for a
+    run of one segment or without ground truth."""
     from mgso.eval import EvaluationError, compute_ate
 
-    if gt is None or result.segments < 2:
+    if gt is None or result.segments < 2 or not rows:
         return None
     traj = result.odometry_trajectory if result.odometry_trajectory is not None else result.trajectory
-    log_ = result.frame_log
     out = {}
     for seg in range(result.segments):
-        stamps = {t for t, s in zip(log_.timestamp, log_.segment) if s == seg}
+        stamps = {float(r["timestamp"]) for r in rows if r.get("segment") == str(seg)}
         part = traj.at_times(stamps)
         if len(part) < 3:
             continue
@@ -380,17 +395,20 @@ def _segment_ates(result: SystemResult, gt) -> dict | None:
     return out or None
 
 
+def _median_of(rows: list[dict], column: str) -> float | None:
+    """The median of a ``frames.csv`` column over the tracked frames that have it (``None``: none has)."""
+    vals = [float(r[column]) for r in rows if r.get("status") == "tracked" and r.get(column)]
+    return float(np.median(vals)) if vals else None
+
+
 def _tracking_figures(run: _Run) -> dict:
     """The odometry's own figures, the same for every stage: how the frames went (the odometry's word for each),
-    its time a tracked frame, the point cloud's size and each segment's ATE."""
+    its time a tracked frame (from frames.csv), the point cloud's size and each segment's ATE."""
     log_ = run.result.frame_log
-    tracked = [k for k, st in enumerate(log_.status) if st == "tracked"]
-    track = [log_.track_ms[k] for k in tracked]
-    mapping = [log_.map_ms[k] for k in tracked if log_.map_ms[k] is not None]
     return {"status_counts": dict(Counter(log_.status)), "repeated_frames": run.result.repeated_frames,
             "fraction_tracked": len(run.result.trajectory) / len(log_) if len(log_) else 0.0,
-            "track_ms_median": float(np.median(track)) if track else None,
-            "map_ms_median": float(np.median(mapping)) if mapping else None,
+            "track_ms_median": _median_of(run.frame_rows, "track_ms"),
+            "map_ms_median": _median_of(run.frame_rows, "map_ms"),
             "points": len(run.result.cloud), "segments_ate": run.segments_ate,
             "backend": run.cfg.window.backend}
 

@@ -32,6 +32,10 @@ def test_tracking_stage_writes_trajectory_and_ate(wp_device, folder, tmp_path, c
     assert set(METRICS_KEYS) <= set(metrics)
     assert metrics["stage"] == "tracking" and metrics["tracking"]["backend"] == "fixed"
     assert metrics["num_gaussians"] is None and metrics["mapper"] is None and not (out / "map.ply").exists()
+    # the odometry's own figures, the per-frame ones read back from frames.csv
+    t = metrics["tracking"]
+    assert t["status_counts"]["tracked"] >= 10 and sum(t["status_counts"].values()) == 30
+    assert t["track_ms_median"] > 0 and t["map_ms_median"] >= 0 and t["points"] > 100
     labels = [a["label"] for a in metrics["ate"]]
     assert labels == ["all frames", "keyframes"]
     assert metrics["ate"][0]["align"] == "sim3" and metrics["ate"][0]["translation_m"]["rmse"] < 0.02
