@@ -729,9 +729,20 @@ class Mapper:
         return Trajectory(trajectory.timestamps.copy(), out)
 
     # ------------------------------------------------------------------------------------------ seeding
+    def coverage_downscale(self) -> int:
+        """``mapping.seeding.alpha_downscale``, its null resolved: 4 in real time (a mapping thread or process: the
+        seedings take most of the mapper's core while the camera runs, and a quarter-resolution coverage leaves it
+        a third more training steps), 2 in the deterministic mode."""
+        ds = self.mc.seeding.alpha_downscale
+        if ds is None:
+            ds = 4 if self._thread is not None else 2
+        return int(ds)
+
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
         t0 = time.perf_counter()
         step = self.trainer.step_count
+        if scfg.alpha_downscale is None:
+            scfg = dataclasses.replace(scfg, alpha_downscale=self.coverage_downscale())
         if self.cfg.init == "dso":
             res = seed_keyframe(self.gmap, self.trainer.train_step.rasterizer, seed_in, scfg, step)
         else:

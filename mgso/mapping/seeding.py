@@ -599,7 +599,9 @@ def map_seen_from(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     visible from the keyframe (neighbours for the scales). ``(None, None, None)`` for an empty map."""
     if gmap.n == 0:
         return None, None, None
-    cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, cfg.alpha_downscale,
+    # null: the deterministic mode's 2 (the mapper resolves its real-time 4 before: Mapper.coverage_downscale)
+    ds = 2 if cfg.alpha_downscale is None else cfg.alpha_downscale
+    cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, ds,
                           with_depth=cfg.depth_tolerance > 0, t_stop=cfg.coverage_stop)
     neighbours = gmap.means.numpy()[cov.visible] if cov.visible.any() else None
     return cov.alpha, cov.depth, neighbours

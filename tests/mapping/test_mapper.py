@@ -653,6 +653,41 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     assert set(seen[:-20]) <= {half}                                            # its steps while streaming
 
 
+def test_the_coverage_render_is_a_quarter_resolution_in_real_time(wp_device, seq, cam, monkeypatch):
+    """mapping.seeding.alpha_downscale null: the seedings' coverage renders at 1/4 resolution in real time (a
+    mapping thread or process: a third more training steps while the camera runs on 2 cores, docs/seeding.md) and at
+    1/2 in the deterministic mode; a number is taken as it is in both. Recorded at the coverage render itself."""
+    from mgso.mapping import seeding
+
+    render = seeding.render_coverage
+    seen = []
+
+    def recording(gmap, rasterizer, camera, world_to_cam, downscale=2, **kw):
+        seen.append(downscale)
+        return render(gmap, rasterizer, camera, world_to_cam, downscale, **kw)
+
+    monkeypatch.setattr(seeding, "render_coverage", recording)
+
+    def downscales(*over, realtime=False):
+        seen.clear()
+        mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=1", "mapping.mapper.final_iterations=0", *over),
+                    device=wp_device)
+        if realtime:
+            mp.start()
+        for i in (0, 4, 8):
+            mp.submit(_kf(seq, cam, i))
+            if not realtime:
+                mp.process_pending()
+        mp.stop()
+        assert mp.stats.keyframes == 3
+        return set(seen)
+
+    assert downscales() == {2}                                          # the default, deterministic
+    assert downscales(realtime=True) == {4}                             # the default in real time
+    assert downscales("mapping.seeding.alpha_downscale=3", realtime=True) == {3}     # a number as it is
+    assert downscales("mapping.seeding.alpha_downscale=3") == {3}
+
+
 def test_random_sampler_keeps_training_the_first_keyframes(wp_device, seq, cam):
     """mapping.mapper.sampler=random: the newest keyframe with newest_probability, otherwise any keyframe, so the
     first keyframe keeps being trained while later ones arrive. Negative control: least_used gives a new keyframe
