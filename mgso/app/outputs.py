@@ -8,8 +8,8 @@ same keys, without ``map.ply``, the renders and the map's figures (``null``).
    ``output.trajectory_format: kitti`` also ``trajectory_kitti.txt`` and ``keyframes_kitti.txt``), ``keyframes.txt``,
    ``map.ply`` (3DGS layout; with a map), ``points.ply`` (the DSO point cloud with a ``keyframe`` property),
    ``trajectory_refined.txt`` (with ``mapping.train.refine_poses``), ``trajectory_odometry.txt`` (the odometry's own
-   poses, when loop closure corrected them: ``trajectory.txt`` and ``keyframes.txt`` are the corrected ones), and ``metrics.json`` with the ATE, the counts and
-   the timings (``"evaluation": "pending"``).
+   poses, when loop closure corrected them: ``trajectory.txt`` and ``keyframes.txt`` are the corrected ones), and
+   ``metrics.json`` with the ATE, the counts and the timings (``"evaluation": "pending"``).
 2. **Evaluation** (a signal cuts it short): ``trajectory.png`` (``output.plot``, with ground truth), the renders of
    the evaluation frames (``renders/``, ``output.save_renders``) and their PSNR/SSIM, then ``report.png``
    (``output.plot``, with or without ground truth: :func:`mgso.eval.plot_report`; skipped when a signal cut the
@@ -191,7 +191,7 @@ def write_outputs(result: SystemResult, mapper: Mapper, seq, cfg: Config, out_di
     """:func:`write_run_outputs` into the folder ``out_dir`` (made if needed), without signal handling: for
     scripts and profiles that run a :class:`mgso.system.System` themselves."""
     return write_run_outputs(result, mapper, seq, cfg, RunWriter(out_dir), odometry_name=odometry_name,
-                              progress=progress)
+                             progress=progress)
 
 
 def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate: dict, renders: list, figures: dict,
