@@ -707,9 +707,10 @@ class SeedingConfig:
                                             "never skip")
     alpha_downscale: int | None = opt(None, "render the coverage alpha at 1/this resolution (a quarter of the "
                                             "blending work at 2); null = 4 in real time (7-Scenes at 640x480 on 2 "
-                                            "cores: the seeding 33-37 % cheaper, 34-44 % more training steps while "
-                                            "the camera ran, the PSNR the same or better), 2 in the deterministic "
-                                            "mode (at 4 the replays lose 0.02-0.11 dB; docs/seeding.md)")
+                                            "cores: the seeding 24-30 % cheaper, 41-44 % more training steps while "
+                                            "the camera ran, the PSNR within the runs' spread), 2 in the "
+                                            "deterministic mode (at 4 the replays lose 0.02-0.11 dB; "
+                                            "docs/seeding.md)")
     coverage_stop: float = opt(0.01, "the coverage render stops a pixel once its transmittance is below this: the "
                                      "alpha test stays exact below 1 - this, the expected depth misses at most this "
                                      "weight, and the blending on a dense map costs about 40 % less "

@@ -732,7 +732,7 @@ class Mapper:
     def coverage_downscale(self) -> int:
         """``mapping.seeding.alpha_downscale``, its null resolved: 4 in real time (a mapping thread or process: the
         seedings take most of the mapper's core while the camera runs, and a quarter-resolution coverage leaves it
-        a third more training steps), 2 in the deterministic mode."""
+        about 40 % more training steps; docs/seeding.md), 2 in the deterministic mode."""
         ds = self.mc.seeding.alpha_downscale
         if ds is None:
             ds = 4 if self._thread is not None else 2

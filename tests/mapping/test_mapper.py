@@ -655,7 +655,7 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
 
 def test_the_coverage_render_is_a_quarter_resolution_in_real_time(wp_device, seq, cam, monkeypatch):
     """mapping.seeding.alpha_downscale null: the seedings' coverage renders at 1/4 resolution in real time (a
-    mapping thread or process: a third more training steps while the camera runs on 2 cores, docs/seeding.md) and at
+    mapping thread or process: about 40 % more training steps while the camera runs on 2 cores, docs/seeding.md) and at
     1/2 in the deterministic mode; a number is taken as it is in both. Recorded at the coverage render itself."""
     from mgso.mapping import seeding
 
