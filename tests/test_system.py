@@ -537,6 +537,9 @@ def test_the_system_without_a_map_runs_the_odometry_alone(room, tmp_path, mode):
     assert figs[True]["num_gaussians"] > 0 and figs[True]["mapper"]["steps"] > 0
     if mode == "realtime":
         assert figs[False]["realtime"]["mapper_in"] == "none" and figs[True]["realtime"]["mapper_in"] == "process"
+        assert set(figs[False]["realtime"]) == set(figs[True]["realtime"])        # the same keys, the map's null
+        assert figs[False]["realtime"]["mapping_steps_running"] is None
+        assert figs[True]["realtime"]["mapping_steps_final"] == 5
     else:
         assert figs[False]["realtime"] is None
 

@@ -471,28 +471,7 @@ def _figures(run: _Run, ate: dict, renders: list) -> dict:
                      "outputs_and_evaluation": None},
         "tracking": _tracking_figures(run),
         "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"} if has_map else None,
-        "realtime": None if result.mode != "realtime" else {
-            "mapper_in": result.mapper_in,
-            "mapper_priority": st.priority or None,     # its process's, while the camera ran (SCHED_IDLE, nice +N)
-            "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
-                                        else None),
-            # steps before the stream ended; the others are catch-up steps (messages still queued) and final ones
-            "mapping_steps_running": st.steps_while_streaming, "mapping_steps_final": st.final_steps,
-            # of the steps while running: those taken while messages waited (the training share), and their level
-            "mapping_steps_while_behind": st.steps_while_behind, "running_level": st.running_level,
-            # messages still queued when the stream ended, and the seconds the mapper took to apply them (and to
-            # seed the points that waited) before its final refinement
-            "mapper_queue_at_end": st.stream_ended_at_depth if st.stream_ended_at_depth >= 0 else None,
-            "mapper_catch_up_seconds": st.catch_up_seconds,
-            "mapper_cpu_seconds": st.cpu_seconds, "main_process_cpu_seconds": result.cpu_seconds,
-            "mapper_cpu_share": result.mapper_cpu_share,
-            "queue_waits": st.queue_waits, "queue_wait_seconds": st.queue_wait_seconds,
-            # how long the frames taken waited after the camera (the player) released them: system.max_lag_ms
-            "max_lag_ms": cfg.system.max_lag_ms,
-            "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
-                                    else None),
-            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None}
-        if has_map else _realtime_without_map(result, cfg),
+        "realtime": None if result.mode != "realtime" else _realtime(result, cfg, st if has_map else None),
         "loop": None if result.loop is None else result.loop.as_dict(),
         "map_health": None if not st.health else {**st.health, "warnings": map_warnings(st.health)},
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
@@ -527,12 +506,29 @@ def _figures(run: _Run, ate: dict, renders: list) -> dict:
     }
 
 
-def _realtime_without_map(result: SystemResult, cfg: Config) -> dict:
-    """metrics.json's ``realtime`` section of a run without a map: how the played frames went."""
-    return {"mapper_in": result.mapper_in,
-            "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read
-                                        else None),
-            "max_lag_ms": cfg.system.max_lag_ms,
-            "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
-                                    else None),
-            "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None}
+def _realtime(result: SystemResult, cfg: Config, st) -> dict:
+    """metrics.json's ``realtime`` section: how the played frames went and what the mapper did meanwhile (``st``: its
+    :class:`~mgso.mapping.mapper.MapperStats`; ``None`` without a map, whose entries are then null: the same keys)."""
+    def m(name: str):
+        return None if st is None else getattr(st, name)
+
+    return {
+        "mapper_in": result.mapper_in,
+        "mapper_priority": m("priority") or None,   # its process's while the camera ran (SCHED_IDLE, nice +N)
+        "frames_tracked_fraction": (result.frames_processed / result.frames_read if result.frames_read else None),
+        # steps before the stream ended; the others are catch-up steps (messages still queued) and final ones
+        "mapping_steps_running": m("steps_while_streaming"), "mapping_steps_final": m("final_steps"),
+        # of the steps while running: those taken while messages waited (the training share), and their level
+        "mapping_steps_while_behind": m("steps_while_behind"), "running_level": m("running_level"),
+        # messages still queued when the stream ended, and the seconds the mapper took to apply them (and to seed the
+        # points that waited) before its final refinement
+        "mapper_queue_at_end": (None if st is None or st.stream_ended_at_depth < 0 else st.stream_ended_at_depth),
+        "mapper_catch_up_seconds": m("catch_up_seconds"),
+        "mapper_cpu_seconds": m("cpu_seconds"), "main_process_cpu_seconds": result.cpu_seconds,
+        "mapper_cpu_share": result.mapper_cpu_share,
+        "queue_waits": m("queue_waits"), "queue_wait_seconds": m("queue_wait_seconds"),
+        # how long the frames taken waited after the camera (the player) released them: system.max_lag_ms
+        "max_lag_ms": cfg.system.max_lag_ms,
+        "frame_lag_ms_median": (round(1000 * float(np.median(result.frame_lags)), 2) if result.frame_lags
+                                else None),
+        "frame_lag_ms_max": round(1000 * max(result.frame_lags), 2) if result.frame_lags else None}
