@@ -576,9 +576,10 @@ class DensifyConfig:
     split_scale_factor: float = opt(0.8, "children scales = parent / (factor x children) (3DGS 0.8 -> / 1.6)")
     grow_min_views: int = opt(1, "a Gaussian must be visible in this many views since the last refine to grow")
     prune_opacity: float = opt(0.005, "prune below this opacity (3DGS min_opacity, gsplat prune_opa)")
-    prune_scale3d: float = opt(0.1, "after the first reset, prune max scale above this x scene extent (3DGS, gsplat)")
-    prune_screen_px: float = opt(0.0, "after the first reset, prune screen radius above this many pixels; 0 = off "
-                                      "(3DGS's 20 px never fires, graphdeco issue #123; gsplat defaults it off)")
+    prune_scale3d: float = opt(0.1, "after the first opacity reset, prune max scale above this x scene extent (3DGS, "
+                                    "gsplat); without resets (reset_every 0, MGSO's mapper) never")
+    prune_screen_px: float = opt(0.0, "after the first opacity reset, prune screen radius above this many pixels; 0 = "
+                                      "off (3DGS's 20 px never fires, graphdeco issue #123; gsplat defaults it off)")
     max_aspect: float = opt(0.0, "at each refine, shorten axes longer than this x the Gaussian's shortest axis "
                                  "(needles that disagreeing views stretch become discs); 0 = off (3DGS)")
     prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")

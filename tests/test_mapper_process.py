@@ -126,14 +126,12 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     """Played at half its rate (15 frames/s, 67 ms a frame for an odometry that needs a few): every frame tracked,
     every keyframe and pose in the map, the map trained while the camera ran and after, and it renders the room."""
     # the odometry's poses as they are (no map refinement): the views must sit exactly at the poses delivered.
-    # The world-size prune off: against this small room's scene extent (the camera barely moves: the floor,
-    # mapping.train.min_scene_extent 1.0) it removed 400-450 of 750-1,070 seeds once the mapper had taken its
-    # 550-610 steps while the camera ran on a fast 2-core CPU, leaving 190-690 Gaussians and 13.7-25.7 dB (this
-    # view, five runs); without it 29.8-31.8 dB (five runs). A bug of the prune's extent (docs/mgso.md), not of
-    # what this test checks: delivery, training while the camera ran, a map that renders the room.
+    # Until the world-size prune waited for an opacity reset (which the mapper never makes), it removed 400-450 of
+    # 750-1,070 seeds here once the mapper had taken 550-610 steps while the camera ran on a fast 2-core CPU (the
+    # scene extent of a camera that barely moves is its floor, 1.0): 13.7-25.7 dB on this view (five runs), 29.8-31.8
+    # without it (docs/mapping.md, "The size prune needs a reset").
     system, seq, odo = _system(room, "system.mode=realtime", "system.playback_speed=0.5",
-                               f"system.mapper_process={str(in_process).lower()}", "mapping.train.refine_poses=false",
-                               "mapping.densify.prune_scale3d=1000")
+                               f"system.mapper_process={str(in_process).lower()}", "mapping.train.refine_poses=false")
     result = system.run(seq.frames())
     st = result.mapper
     assert result.mapper_in == ("process" if in_process else "thread")

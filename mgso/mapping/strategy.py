@@ -35,8 +35,11 @@ Rules (graphdeco 3DGS ``densify_and_prune`` / gsplat ``DefaultStrategy``; units 
 - If the map has no room for every candidate, the ones with the largest gradient (relative to their threshold) grow
   first; the rest are counted in ``RefineResult.skipped_capacity`` (grow the map with ``reserve`` to avoid it).
 - Prune opacity < ``prune_opacity``; after the first opacity reset interval (``step > reset_every``) also max scale >
-  ``prune_scale3d`` x scene extent and, if ``prune_screen_px > 0``, a screen radius above it [pixels]. Gaussians
-  younger than ``prune_min_age`` steps are kept.
+  ``prune_scale3d`` x scene extent and, if ``prune_screen_px > 0``, a screen radius above it [pixels]. Without
+  opacity resets (``reset_every = 0``: MGSO's mapper) there is no first reset, so no size prune: 3DGS prunes big
+  Gaussians once a reset has made them earn their opacity back, and the mapper's scene extent, taken from camera
+  centres that hardly move in a handheld recording, is no measure of the scene's size (docs/mapping.md, "The
+  size prune needs a reset"). Gaussians younger than ``prune_min_age`` steps are kept.
 - Statistics are reset after every refine. Every ``reset_every`` steps (while refining is on) opacities are clamped
   to ``reset_opacity_value`` and their Adam moments zeroed.
 """
@@ -214,7 +217,7 @@ class DefaultStrategy:
         low = 1.0 / (1.0 + np.exp(-logits)) < c.prune_opacity
         world = np.zeros_like(low)
         screen = np.zeros_like(low)
-        if step > c.reset_every:
+        if c.reset_every > 0 and step > c.reset_every:     # after the first opacity reset (3DGS, gsplat)
             world = np.exp(gmap.log_scales.numpy().astype(np.float64)).max(axis=1) > c.prune_scale3d * extent
             if c.prune_screen_px > 0:
                 screen = gmap.stats.max_radius_px.numpy() > c.prune_screen_px

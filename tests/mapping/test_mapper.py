@@ -591,6 +591,26 @@ def test_the_mappers_prune_threshold_replaces_densifys(wp_device, seq, cam):
     assert counts[0.05][1] > counts[0.0][1] and counts[0.05][0] < counts[0.0][0], counts
 
 
+def test_the_mapper_prunes_no_gaussian_for_its_size_without_opacity_resets(wp_device, seq, cam):
+    """The world-size prune waits for the first opacity reset (3DGS, gsplat), and the mapper makes none: with a
+    threshold every Gaussian exceeds, its refinements prune none for size. The control keeps the resets
+    (mapping.mapper.opacity_reset, every 5 steps): the same threshold then prunes after the first one."""
+    def run(*over):
+        mp = Mapper(_cfg("mapping.mapper.refine_every=10", "mapping.densify.refine_start_step=0",
+                         "mapping.mapper.iterations_per_keyframe=12", "mapping.densify.prune_scale3d=1e-6", *over),
+                    device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        mp.submit(_kf(seq, cam, 8))
+        mp.process_pending()
+        return mp.stats.densify
+
+    d = run()
+    assert d["refines"] >= 2 and d["pruned_world"] == 0 and d["opacity_resets"] == 0, d
+    control = run("mapping.mapper.opacity_reset=true", "mapping.densify.reset_every=5",
+                  "mapping.densify.reset_opacity_value=0.9")    # a reset that leaves them above the opacity prune
+    assert control["opacity_resets"] >= 1 and control["pruned_world"] > 0, control
+
+
 def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, seq, cam):
     """mapping.mapper.final_refine_after: a mapper that did not refine while the stream ran (real time on a small
     CPU) refines that many steps into its final refinement, and its untrained seeds are pruned there; the control

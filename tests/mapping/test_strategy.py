@@ -77,6 +77,22 @@ def test_no_size_pruning_before_first_reset_and_no_refine_off_schedule(wp_device
         assert not res.refined and gm.n == 7 and res.cloned == res.split == res.pruned == 0, step
 
 
+def test_no_size_pruning_without_opacity_resets(wp_device):
+    """Without resets (MGSO's mapper: reset_every 0) there is no first reset, so the world-size and screen-size
+    prunes never run; the opacity prune does. Control: the same rows with resets on are pruned for size."""
+    for reset_every, world in ((0, 0), (3000, 1)):
+        strat = DefaultStrategy(DensifyConfig(reset_every=reset_every, refine_stop_step=0, prune_screen_px=1.0))
+        for step in (600, 3100, 50_000):
+            gm = _map(wp_device, ROWS)
+            gm.stats.max_radius_px.assign(np.full(7, 5.0, np.float32))   # every row above 1 px on screen
+            res = strat.step_post_backward(gm, strat.initialize_state(), step)
+            after_reset = reset_every > 0 and step > reset_every
+            assert res.refined and res.pruned_opacity == 1, (reset_every, step)
+            assert res.pruned_world == (world if after_reset else 0), (reset_every, step)
+            # the rows the grow left with their radius (row 1 became two new children), less the opacity's and size's
+            assert res.pruned_screen == (6 - 1 - world if after_reset else 0), (reset_every, step)
+
+
 def test_opacity_reset(wp_device):
     strat = DefaultStrategy(DensifyConfig())
     gm = _map(wp_device, ROWS)
