@@ -66,8 +66,8 @@ from mgso.geometry import orthonormalize, se3_exp, se3_inverse, se3_log, sim3_to
 from mgso.mapping.gaussian_map import GaussianArrays, GaussianMap
 from mgso.messages import (KeyframeMessage, LoopCorrection, MapperMessage, PointsMessage, PoseUpdate, Stop,
                                    map_exposure, sim3_apply_to_pose)
-from mgso.mapping.seeding import (KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds, map_seen_from,
-                                  plan_seeds, seed_keyframe, seed_scales)
+from mgso.mapping.seeding import (COVERAGE_DOWNSCALE, KeyframeSeedInput, SeedResult, SeedStatus, gaussians_from_seeds,
+                                  map_seen_from, plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
 from mgso.mapping.trainer import StepResult, Trainer, TrainStep, masked_psnr, usable_level
@@ -735,7 +735,7 @@ class Mapper:
         about 40 % more training steps; docs/seeding.md), 2 in the deterministic mode."""
         ds = self.mc.seeding.alpha_downscale
         if ds is None:
-            ds = 4 if self._thread is not None else 2
+            ds = 4 if self._thread is not None else COVERAGE_DOWNSCALE
         return int(ds)
 
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:

@@ -48,6 +48,7 @@ __all__ = [
     "PointKind", "SeedStatus", "KeyframeSeedInput", "FillPoints", "SeedCandidates", "SeedResult", "SeedPlan",
     "Coverage", "sample_pattern_colors", "backproject", "delaunay_fill", "make_candidates", "sample_alpha",
     "seed_scales", "gaussians_from_seeds", "plan_seeds", "render_coverage", "map_seen_from", "seed_keyframe",
+    "COVERAGE_DOWNSCALE",
 ]
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,11 @@ log = logging.getLogger(__name__)
 # DSO's 8-pixel residual pattern (mgso_kernels.photometric.PATTERN_NP, DSO patternP = staticPattern[8]); kept here as
 # a copy so that importing this module does not import Warp kernels. tests/mapping/test_seeding.py checks equality.
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]], dtype=np.float64)
+
+
+# mapping.seeding.alpha_downscale null: the coverage render's downscale in the deterministic mode (and for callers
+# outside a mapper); a mapper with a thread or process of its own takes 4 instead (Mapper.coverage_downscale)
+COVERAGE_DOWNSCALE = 2
 
 
 class SeedStatus(enum.Enum):
@@ -599,8 +605,7 @@ def map_seen_from(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     visible from the keyframe (neighbours for the scales). ``(None, None, None)`` for an empty map."""
     if gmap.n == 0:
         return None, None, None
-    # null: the deterministic mode's 2 (the mapper resolves its real-time 4 before: Mapper.coverage_downscale)
-    ds = 2 if cfg.alpha_downscale is None else cfg.alpha_downscale
+    ds = COVERAGE_DOWNSCALE if cfg.alpha_downscale is None else cfg.alpha_downscale
     cov = render_coverage(gmap, rasterizer, msg.camera, msg.world_to_cam, ds,
                           with_depth=cfg.depth_tolerance > 0, t_stop=cfg.coverage_stop)
     neighbours = gmap.means.numpy()[cov.visible] if cov.visible.any() else None
