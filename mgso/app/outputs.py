@@ -48,7 +48,7 @@ METRICS_KEYS = (
     "tracking_fps", "mapping_iterations_per_s", "end_to_end_fps", "frames", "keyframes", "mode", "interrupted",
     "error", "evaluation", "odometry", "device", "image_size", "timing_s", "mapper", "realtime", "sequence",
     "protocols", "loop", "ate_odometry_all_frames_m", "live", "segments", "tracking_losses", "map_health",
-    "map_ready_s", "frame_loop_fps", "stage", "tracking",
+    "map_ready_s", "frame_loop_fps", "stage", "tracking", "trajectory_check",
 )
 
 #: A map whose median Gaussian is more transparent than this is fog: the fogged maps measured 0.10 (TUM
@@ -132,7 +132,8 @@ def write_run_outputs(result: SystemResult, mapper: Mapper | None, seq, cfg: Con
         run.frame_rows = _frame_rows(writer)
         run.segments_ate = _segment_ates(result, gt, run.frame_rows)
         figures = _figures(run, ate, [])
-        for line in (figures["map_health"] or {}).get("warnings", []):
+        for line in ((figures["trajectory_check"] or {}).get("warnings", [])
+                     + (figures["map_health"] or {}).get("warnings", [])):
             log.warning("%s", line)
         figures["evaluation"] = "pending"
         figures["timing_s"]["outputs_and_evaluation"] = time.perf_counter() - t_out
@@ -227,6 +228,7 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
 
 def _headline(f: dict) -> list[str]:
     """The text panel of report.png: the headline figures of metrics.json."""
+    from mgso.eval.ate import MOTIONLESS_SHARE, SCALE_DRIFT_WARN
     def num(v, fmt):
         return "n/a" if v is None else format(v, fmt)
 
@@ -247,6 +249,16 @@ def _headline(f: dict) -> list[str]:
                if f.get("ate_odometry_all_frames_m") is not None else "")
         lines.append(f"ATE RMSE (Sim(3)): all frames {f['ate_all_frames_m']:.4f} m, keyframes "
                      f"{num(f['ate_keyframes_m'], '.4f')} m{ref}{odo}")
+        tc = f.get("trajectory_check") or {}
+        if tc:
+            drift = tc.get("scale_drift")
+            share = 100 * f["ate_all_frames_m"] / tc["standing_still_m"] if tc["standing_still_m"] > 0 else None
+            lines.append(f"trajectory check: standing still {tc['standing_still_m']:.4f} m (the ATE "
+                         f"{num(share, '.0f')} % of it); scale drift {num(drift, '.3g')}x"
+                         + ("; WARNING: the positions are not estimated" if share is not None
+                            and share >= 100 * MOTIONLESS_SHARE else "")
+                         + ("; WARNING: the scale drifts" if drift is not None and drift > SCALE_DRIFT_WARN
+                            else ""))
     lp = f.get("loop")
     if lp is not None:
         lines.append(f"loop closure: {lp['accepted']} loops accepted, {lp['rejected_total']} candidates rejected "
@@ -413,6 +425,15 @@ def _tracking_figures(run: _Run) -> dict:
             "backend": run.cfg.window.backend}
 
 
+def _trajectory_check(ate) -> dict | None:
+    """What the all-frames ATE is worth (docs/evaluation.md, "What an ATE is worth"): the ATE a camera standing
+    still would get, each tenth's own scale over the whole's, their drift, and the warnings; None without it."""
+    if ate is None:
+        return None
+    return {"standing_still_m": ate.motionless_rmse, "local_scales": [float(x) for x in ate.local_scales],
+            "scale_drift": ate.scale_drift, "warnings": ate.warnings()}
+
+
 def _figures(run: _Run, ate: dict, renders: list) -> dict:
     from mgso.eval import MONOGS, PHOTO_SLAM
 
@@ -429,6 +450,7 @@ def _figures(run: _Run, ate: dict, renders: list) -> dict:
         "ate_keyframes_m": ate["keyframes"].rmse if "keyframes" in ate else None,
         "ate_refined_all_frames_m": ate["refined"].rmse if "refined" in ate else None,
         "ate_odometry_all_frames_m": ate["odometry"].rmse if "odometry" in ate else None,
+        "trajectory_check": _trajectory_check(ate.get("all")),
         "psnr_monogs_db": by_key["monogs"].mean_psnr if "monogs" in by_key else None,
         "ssim_monogs": by_key["monogs"].mean_ssim if "monogs" in by_key else None,
         "psnr_photo_slam_db": by_key["photo-slam"].mean_psnr if "photo-slam" in by_key else None,

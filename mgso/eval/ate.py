@@ -19,6 +19,13 @@ here is the number ``evo_ape`` / ``evo_rpe`` prints for the same files:
    Sim(3) alignment corrects the estimate's scale before relative translations are taken.
 4. **Statistics.** rmse, mean, median, std (population, as NumPy's default), min, max, sse: evo's
    ``get_all_statistics``.
+5. **What the ATE is worth** (not in evo). ``motionless_rmse``: the ATE an estimate that never moves would get (the
+   reference positions' RMS distance from their mean, what Sim(3) and SE(3) alignment leave of a constant estimate):
+   a monocular trajectory whose scale has collapsed gets about this, however small it looks (TUM freiburg1_rpy:
+   0.045 m against 0.047 standing still, the reference DSO 0.043 against 0.046; docs/evaluation.md).
+   ``local_scales``: the associated poses cut into ``SCALE_PARTS`` consecutive parts, each part's own Sim(3) scale
+   over the whole trajectory's; ``scale_drift`` is the largest over the smallest (1 for a trajectory whose scale
+   holds; parts whose reference moves less than ``SCALE_MIN_SPREAD_M`` are left out, their scale is noise).
 
 Units: metres and degrees. Results are values (dataclasses), never prints; ``summary()`` gives a one-line text.
 """
@@ -37,11 +44,20 @@ from ..io.trajectory import Trajectory, associate, read_trajectory
 
 __all__ = [
     "AlignMode", "ALIGN_MODES", "EvaluationError", "ErrorStats", "AteResult", "RpeResult",
-    "compute_ate", "compute_rpe", "compute_ate_files", "compute_rpe_files", "associate_checked",
+    "compute_ate", "compute_rpe", "compute_ate_files", "compute_rpe_files", "associate_checked", "local_scales",
+    "motionless_rmse", "SCALE_PARTS", "SCALE_MIN_SPREAD_M",
 ]
 
 AlignMode = Literal["sim3", "se3", "none"]
 ALIGN_MODES: tuple[str, ...] = ("sim3", "se3", "none")
+
+#: :func:`local_scales`: the parts a trajectory is cut into, and the least RMS spread (m) of a part's reference
+#: positions about their mean for its scale to count
+SCALE_PARTS = 10
+SCALE_MIN_SPREAD_M = 0.01
+#: AteResult.warnings: an ATE at least this share of the standing-still one, a scale drift above this many times
+MOTIONLESS_SHARE = 0.8
+SCALE_DRIFT_WARN = 3.0
 
 _ALIGN_TEXT = {"sim3": "Sim(3) Umeyama alignment", "se3": "SE(3) Umeyama alignment", "none": "not aligned"}
 
@@ -147,6 +163,38 @@ def _rotation_angles_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return _angle_deg(np.einsum("nji,njk->nik", A, B))
 
 
+def motionless_rmse(reference_positions) -> float:
+    """The ATE (m) of an estimate that stays at one point, under Sim(3) or SE(3) alignment: the RMS distance of the
+    reference positions from their mean."""
+    p = np.asarray(reference_positions, dtype=np.float64).reshape(-1, 3)
+    return float(np.sqrt(((p - p.mean(0)) ** 2).sum(1).mean()))
+
+
+def local_scales(estimate_positions, reference_positions, *, parts: int = SCALE_PARTS,
+                 min_spread: float = SCALE_MIN_SPREAD_M) -> np.ndarray:
+    """Each of ``parts`` consecutive parts' own Sim(3) scale (Umeyama, estimate onto reference) over the whole
+    trajectory's, (K,) for the K <= ``parts`` parts that count: at least 3 poses, the reference's RMS spread at least
+    ``min_spread`` metres and the estimate not at one point (a scale that collapsed to 0 gives inf). Positions (N, 3)
+    associated pose by pose. A trajectory whose scale holds gives values near 1; a monocular odometry whose scale
+    drifts gives values that fall or rise along the trajectory."""
+    est = np.asarray(estimate_positions, dtype=np.float64).reshape(-1, 3)
+    ref = np.asarray(reference_positions, dtype=np.float64).reshape(-1, 3)
+    if len(est) != len(ref):
+        raise EvaluationError(f"local_scales needs associated positions, got {len(est)} and {len(ref)}")
+    if len(est) < 3 or motionless_rmse(est) < 1e-12:
+        return np.zeros(0)
+    whole = umeyama_alignment(est, ref, with_scale=True).scale
+    out = []
+    for idx in np.array_split(np.arange(len(est)), max(int(parts), 1)):
+        if len(idx) < 3 or motionless_rmse(ref[idx]) < min_spread:
+            continue
+        if motionless_rmse(est[idx]) < 1e-12:
+            out.append(math.inf)
+            continue
+        out.append(umeyama_alignment(est[idx], ref[idx], with_scale=True).scale / whole)
+    return np.asarray(out, dtype=np.float64)
+
+
 # -------------------------------------------------------------------------------------------------------- ATE
 @dataclass(frozen=True)
 class AteResult:
@@ -170,6 +218,17 @@ class AteResult:
     num_estimate_poses: int = 0
     num_reference_poses: int = 0
     label: str = field(default="")
+    motionless_rmse: float = math.nan   # the ATE of an estimate standing still (module doc, 5.)
+    local_scales: np.ndarray = field(default_factory=lambda: np.zeros(0))   # each part's scale over the whole's
+
+    @property
+    def scale_drift(self) -> float | None:
+        """The largest local scale over the smallest (module doc, 5.); None with fewer than two parts that count."""
+        ls = self.local_scales
+        if len(ls) < 2:
+            return None
+        lo = float(ls.min())
+        return math.inf if lo <= 0 else float(ls.max()) / lo
 
     @property
     def rmse(self) -> float:
@@ -209,8 +268,28 @@ class AteResult:
     def summary(self) -> str:
         what = f" of {self.label}" if self.label else ""
         scale = f", scale {self.alignment.scale:.6g}" if self.align == "sim3" else ""
+        still = (f"; standing still {self.motionless_rmse:.6f} m" if self.align != "none"
+                 and math.isfinite(self.motionless_rmse) else "")
+        drift = self.scale_drift
+        drift = f"; the scale drifts {drift:.3g}x along it" if drift is not None else ""
         return (f"ATE RMSE{what} {self.rmse:.6f} m ({self.alignment_text}{scale}, {self.num_pairs} poses; "
-                f"mean {self.mean:.6f}, median {self.median:.6f}, max {self.max:.6f} m)")
+                f"mean {self.mean:.6f}, median {self.median:.6f}, max {self.max:.6f} m{still}{drift})")
+
+    def warnings(self) -> list[str]:
+        """What makes this ATE worth little, one line each: an error near what standing still would get
+        (``MOTIONLESS_SHARE``), a scale that drifts more than ``SCALE_DRIFT_WARN`` times along the trajectory."""
+        out = []
+        what = f" of {self.label}" if self.label else ""
+        if self.align != "none" and self.motionless_rmse > 0 and self.rmse >= MOTIONLESS_SHARE * self.motionless_rmse:
+            out.append(f"the ATE{what} ({self.rmse:.4f} m) is {100 * self.rmse / self.motionless_rmse:.0f} % of "
+                       f"what a camera standing still would get ({self.motionless_rmse:.4f} m): the positions are "
+                       "not estimated (docs/evaluation.md, \"What an ATE is worth\")")
+        drift = self.scale_drift
+        if drift is not None and drift > SCALE_DRIFT_WARN:
+            out.append(f"the scale{what} drifts {drift:.3g}x along the trajectory (each tenth's own Sim(3) scale, "
+                       f"{self.local_scales.min():.3g} to {self.local_scales.max():.3g} of the whole's): one "
+                       "alignment cannot fit it (docs/evaluation.md, \"What an ATE is worth\")")
+        return out
 
     def as_dict(self) -> dict:
         return {"metric": "ATE", "label": self.label, "align": self.align, "n_to_align": self.n_to_align,
@@ -218,7 +297,9 @@ class AteResult:
                 "num_estimate_poses": self.num_estimate_poses, "num_reference_poses": self.num_reference_poses,
                 "translation_m": self.stats.as_dict(), "rotation_deg": self.rotation_stats.as_dict(),
                 "alignment": {"rotation": self.alignment.rotation.tolist(),
-                              "translation": self.alignment.translation.tolist(), "scale": self.alignment.scale}}
+                              "translation": self.alignment.translation.tolist(), "scale": self.alignment.scale},
+                "motionless_rmse_m": self.motionless_rmse,
+                "local_scales": [float(x) for x in self.local_scales], "scale_drift": self.scale_drift}
 
 
 def compute_ate(estimate: Trajectory, reference: Trajectory, *, align: AlignMode = "sim3", max_diff: float = 0.01,
@@ -243,7 +324,8 @@ def compute_ate(estimate: Trajectory, reference: Trajectory, *, align: AlignMode
                      errors=errors, rotation_errors_deg=rot_err, num_pairs=len(est), align=align,
                      alignment=alignment, aligned_estimate=aligned, reference=ref, max_diff=max_diff,
                      n_to_align=n_to_align, num_estimate_poses=len(estimate), num_reference_poses=len(reference),
-                     label=label)
+                     label=label, motionless_rmse=motionless_rmse(ref.positions),
+                     local_scales=local_scales(est.positions, ref.positions))
 
 
 def compute_ate_files(estimate_path: str | Path, reference_path: str | Path, **kwargs) -> AteResult:

@@ -66,8 +66,9 @@ def write_metrics_json(path: str | Path, **kwargs) -> Path:
 
 
 def format_report(*, ate=None, rpe=None, renders=None) -> str:
-    """One line per result (their ``summary()``), ATE first."""
-    lines = [r.summary() for r in _listify(ate)]
+    """One line per result (their ``summary()``), ATE first; an ATE's warnings (``AteResult.warnings``) each on a
+    line of its own after it."""
+    lines = [line for r in _listify(ate) for line in [r.summary()] + [f"WARNING: {w}" for w in r.warnings()]]
     lines += [r.summary() for r in _listify(rpe)]
     lines += [r.summary() for r in _listify(renders)]
     return "\n".join(lines)

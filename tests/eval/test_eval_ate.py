@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mgso import geometry as g
-from mgso.eval.ate import EvaluationError, compute_ate, compute_ate_files, compute_rpe, compute_rpe_files
+from mgso.eval.ate import (SCALE_PARTS, EvaluationError, compute_ate, compute_ate_files, compute_rpe, compute_rpe_files,
+                           local_scales, motionless_rmse)
 from mgso.io.trajectory import Trajectory
 
 from eval_traj_helpers import random_traj
@@ -128,3 +129,56 @@ def test_rpe_options_are_checked():
     assert r.translation.max < 1e-15 and len(r.id_pairs) == 4 and "RPE" in r.summary()
     d = r.as_dict()
     assert d["num_deltas"] == 4 and d["translation_m"]["rmse"] < 1e-15
+
+
+# ---------------------------------------------------------------------------- what an ATE is worth (not in evo)
+def _scaled_path(ref: Trajectory, scales) -> Trajectory:
+    """``ref`` with each step's translation multiplied by ``scales[k]`` (a monocular odometry whose scale drifts)."""
+    T = ref.cam_to_world.copy()
+    steps = np.diff(ref.positions, axis=0) * np.asarray(scales, dtype=np.float64)[:, None]
+    T[1:, :3, 3] = ref.positions[0] + np.cumsum(steps, axis=0)
+    return Trajectory(ref.timestamps, T)
+
+
+def test_standing_still_is_the_ate_of_an_estimate_that_never_moves():
+    rng = np.random.default_rng(3)
+    ref = random_traj(rng, 60)
+    still = Trajectory(ref.timestamps, np.tile(np.eye(4), (60, 1, 1)))
+    # what SE(3) alignment leaves of a constant estimate is the reference's spread about its mean
+    r = compute_ate(still, ref, align="se3")
+    assert r.rmse == pytest.approx(r.motionless_rmse, rel=1e-9)
+    assert r.motionless_rmse == pytest.approx(motionless_rmse(ref.positions), rel=1e-12)
+    assert any("standing still" in w for w in r.warnings())
+    # an estimate whose positions are right is far below it, and says nothing
+    good = compute_ate(_scaled_path(ref, np.full(59, 0.3)), ref, align="sim3")
+    assert good.rmse < 1e-9 < 0.1 < good.motionless_rmse and good.warnings() == []
+    assert "standing still" in good.summary() and good.as_dict()["motionless_rmse_m"] == good.motionless_rmse
+    # a scale collapsed to a hundredth after the first tenth: the Sim(3) ATE is near what standing still gets
+    collapsed = compute_ate(_scaled_path(ref, np.r_[np.ones(6), np.full(53, 0.01)]), ref, align="sim3")
+    assert collapsed.rmse > 0.8 * collapsed.motionless_rmse
+
+
+def test_local_scales_follow_a_drifting_scale():
+    rng = np.random.default_rng(4)
+    ref = random_traj(rng, 200)
+    # held scale: every part's scale is the whole's
+    held = compute_ate(_scaled_path(ref, np.full(199, 0.25)), ref, align="sim3")
+    np.testing.assert_allclose(held.local_scales, 1.0, rtol=1e-9)
+    assert len(held.local_scales) == SCALE_PARTS and held.scale_drift == pytest.approx(1.0, rel=1e-9)
+    # the estimate's scale shrinks 16x along the way (a step's translation from 1 to 1/16): the parts' scales
+    # (reference over estimate) grow by about that, and the drift says so
+    decay = np.geomspace(1.0, 1 / 16, 199)
+    r = compute_ate(_scaled_path(ref, decay), ref, align="sim3")
+    assert np.all(np.diff(r.local_scales) > 0)
+    assert 8 < r.scale_drift < 16
+    assert any("drifts" in w for w in r.warnings()) and "drifts" in r.summary()
+    assert r.as_dict()["scale_drift"] == r.scale_drift and len(r.as_dict()["local_scales"]) == SCALE_PARTS
+    # parts whose reference hardly moves do not count: a reference at rest for its first half
+    T = ref.cam_to_world.copy()
+    T[:100, :3, 3] = T[100, :3, 3]
+    rest = Trajectory(ref.timestamps, T)
+    assert len(local_scales(_scaled_path(rest, np.full(199, 0.5)).positions, rest.positions)) == SCALE_PARTS // 2
+    # an estimate at one point in a part gives inf there, and an infinite drift
+    est = _scaled_path(ref, np.r_[np.ones(100), np.zeros(99)]).positions
+    s = local_scales(est, ref.positions)
+    assert np.isinf(s[-1]) and np.all(np.isfinite(s[:5]))

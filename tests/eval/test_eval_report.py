@@ -10,6 +10,8 @@ import pytest
 from mgso.eval import (PHOTO_SLAM, compute_ate, compute_rpe, evaluate_renders, format_report, metrics_report,
                        write_metrics_json)
 
+from mgso.io.trajectory import Trajectory
+
 from eval_traj_helpers import noisy_estimate, random_traj
 
 
@@ -36,3 +38,21 @@ def test_report_json_and_text(tmp_path):
     assert "keyframes" in lines[1] and lines[2].startswith("RPE") and "Photo-SLAM" in lines[3]
     with pytest.raises(ValueError, match="clash"):
         metrics_report(ate=ate_all, extra={"ate": 1})
+
+
+def test_the_report_warns_when_the_ate_is_worth_little(tmp_path):
+    """An estimate whose scale collapses to a hundredth after its first tenth (a monocular odometry on a rotating
+    camera, docs/evaluation.md): the report and metrics.json say that standing still would do about as well and that
+    the scale drifts; test_report_json_and_text's good estimate gets no such line (its 4 lines)."""
+    rng = np.random.default_rng(2)
+    ref = random_traj(rng, 100)
+    T = ref.cam_to_world.copy()
+    steps = np.diff(ref.positions, axis=0) * np.r_[np.ones(10), np.full(89, 0.01)][:, None]
+    T[1:, :3, 3] = ref.positions[0] + np.cumsum(steps, axis=0)
+    ate = compute_ate(Trajectory(ref.timestamps, T), ref, label="all frames")
+    lines = format_report(ate=ate).splitlines()
+    assert "standing still" in lines[0] and "drifts" in lines[0]
+    assert len(lines) == 3 and all(line.startswith("WARNING: ") for line in lines[1:])
+    assert "standing still" in lines[1] and "scale of all frames drifts" in lines[2]
+    d = json.loads(write_metrics_json(tmp_path / "metrics.json", ate=ate).read_text())
+    assert d["ate"][0]["scale_drift"] > 50 and d["ate"][0]["motionless_rmse_m"] == pytest.approx(ate.motionless_rmse)
