@@ -3,7 +3,8 @@ same frames mgso sees, on the same machine, so that ``profiles/odometry.py``'s f
 
     python profiles/dso_reference.py --dso /path/to/dso/build/bin/dso_dataset [--path P ...] [--nomt]
 
-For each sequence (default: ``kitti00_0-159`` and ``7scenes_redkitchen_0-499`` from the shared data folder) the
+For each sequence (default: ``kitti00_0-159``, ``7scenes_redkitchen_0-499`` and ``rgbd_dataset_freiburg1_rpy_0-359``
+from the shared data folder; one that is missing there is skipped) the
 frames are read with mgso's own reader (undistorted / cropped as mgso tracks them) and written as 8-bit grey PNGs
 into a temporary folder (cropped at the right and bottom to a width a multiple of 32 and a height of 16, which DSO
 needs: KITTI's 1232x368 becomes 1216x368) with DSO's ``times.txt`` and a ``camera.txt`` (pinhole, no distortion, no
@@ -16,7 +17,9 @@ frame (image decoding included, as in ``profiles/odometry.py``), the process's C
 ``profiles/odometry.py``'s ``cpu_ms_per_frame``), DSO's own "ms per frame (single core)" (``dso_cpu_ms_per_frame``:
 ``clock()``, restarted on every frame until DSO's initialiser succeeds, so its initialisation is left out: 6-8 % of
 the process's CPU on both excerpts, 2026-12-03), and the ATE (Sim(3), ``evo_ape -as`` as mgso computes it) of
-DSO's ``result.txt``, which holds only the keyframes DSO marginalised (``setting_onlyLogKFPoses``).
+DSO's ``result.txt``, which holds only the keyframes DSO marginalised (``setting_onlyLogKFPoses``), with what a camera
+standing still would score and the scale's drift along it (``standing_still_m``, ``scale_drift``: docs/evaluation.md).
+``--keep DIR`` keeps each sequence's DSO folder (its images, ``result.txt``) under DIR.
 
 Building DSO on Debian (no GUI): ``apt install libeigen3-dev libboost-thread-dev libsuitesparse-dev libopencv-dev``,
 then its CMake build; recent compilers need ``-std=c++14``, ``-DBOOST_BIND_GLOBAL_PLACEHOLDERS`` and OpenCV 4's
@@ -47,7 +50,7 @@ from mgso.io import open_sequence  # noqa: E402
 from mgso.io.paths import shared_data_dir  # noqa: E402
 from mgso.io.trajectory import read_tum  # noqa: E402
 
-DEFAULT = ("kitti00_0-159", "7scenes_redkitchen_0-499")
+DEFAULT = ("kitti00_0-159", "7scenes_redkitchen_0-499", "rgbd_dataset_freiburg1_rpy_0-359")
 
 
 def prepare(path: Path, out: Path) -> tuple[int, object]:
@@ -97,8 +100,12 @@ def run(dso: str, work: Path, frames: int, gt, nomt: bool) -> dict:
             tum = work / "result_tum.txt"
             tum.write_text("\n".join(" ".join(r) for r in rows) + "\n")
             traj = read_tum(tum)
-            out["ate_marginalized_keyframes_m"] = round(compute_ate(traj, gt, align="sim3").rmse, 4)
+            ate = compute_ate(traj, gt, align="sim3")
+            out["ate_marginalized_keyframes_m"] = round(ate.rmse, 4)
             out["marginalized_keyframes"] = len(rows)
+            # what the ATE is worth (docs/evaluation.md): a camera standing still's, and the scale's drift
+            out["standing_still_m"] = round(ate.motionless_rmse, 4)
+            out["scale_drift"] = None if ate.scale_drift is None else round(ate.scale_drift, 3)
     return out
 
 
@@ -107,6 +114,7 @@ def main() -> None:
     ap.add_argument("--dso", required=True, help="the dso_dataset binary")
     ap.add_argument("--path", action="append", help="sequence folder (repeatable)")
     ap.add_argument("--nomt", action="store_true", help="DSO without its worker threads (nomt=1)")
+    ap.add_argument("--keep", help="keep each sequence's DSO folder (images, result.txt) under this folder")
     args = ap.parse_args()
     if not os.access(args.dso, os.X_OK):
         sys.exit(f"{args.dso}: not an executable dso_dataset")
@@ -118,6 +126,16 @@ def main() -> None:
         paths = [base / d for d in DEFAULT]
     result = {"profile": "dso_reference", "load_avg_1min": round(os.getloadavg()[0], 2)}
     for path in paths:
+        if not path.is_dir():
+            print(f"{path}: not found, skipped", file=sys.stderr)
+            continue
+        if args.keep:
+            work = Path(args.keep) / path.name
+            if work.exists():
+                sys.exit(f"{work}: already exists (--keep writes a new folder per sequence)")
+            n, gt = prepare(path, work)
+            result[path.name] = run(args.dso, work, n, gt, args.nomt)
+            continue
         with tempfile.TemporaryDirectory(prefix="mgso-dso-") as tmp:
             n, gt = prepare(path, Path(tmp))
             result[path.name] = run(args.dso, Path(tmp), n, gt, args.nomt)
