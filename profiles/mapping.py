@@ -336,6 +336,10 @@ def _one(args) -> dict:
                       "added": int(sum(r.num_added for r in sr)),
                       "added_first_keyframe": int(sr[0].num_added) if sr else 0,
                       "untrusted": int(system.mapper.stats.keyframes_untrusted),
+                      # mapping.seeding.distrust_median: keyframes whose depths missed the map's 3x or more, and the
+                      # keyframe after which none was trusted (None: never)
+                      "scale_broken": int(system.mapper.stats.keyframes_scale_broken),
+                      "odometry_untrusted_at": system.mapper.stats.odometry_untrusted_at,
                       # each keyframe's median relative depth error against the map (the trust test's figure)
                       "depth_error_medians": [None if r.depth_error_median is None else round(r.depth_error_median, 3)
                                               for r in sr]}

@@ -196,6 +196,7 @@ BAD = {
     "mapping.seeding.visibility_threshold": [0, 1.01], "mapping.seeding.depth_tolerance": [-0.1],
     "mapping.seeding.alpha_downscale": [0], "mapping.seeding.coverage_stop": [-0.01, 0.6],
     "mapping.seeding.max_depth_factor": [-1, 0.5], "mapping.seeding.depth_rule_max_median": [-0.1],
+    "mapping.seeding.distrust_median": [-1],
     "mapping.seeding.min_new_gaussians": [-1],
     "mapping.seeding.init_opacity": [0, 1], "mapping.seeding.knn": [0], "mapping.seeding.scale_min_px": [0],
     "mapping.seeding.scale_max_px": [0.4],

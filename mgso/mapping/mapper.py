@@ -91,6 +91,10 @@ class MapperStats:
 
     keyframes: int = 0                      # keyframe messages applied (= training views)
     keyframes_untrusted: int = 0            # of them, depths mostly missing the map: no depth term, pose refined
+    # of them, depths three times the map's or more (mapping.seeding.distrust_median), and the keyframe after whose
+    # seeding the run's odometry was judged untrusted (None: never)
+    keyframes_scale_broken: int = 0
+    odometry_untrusted_at: int | None = None
     pose_updates: int = 0                   # PoseUpdate messages applied
     poses_applied: int = 0                  # keyframe poses moved by them
     poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
@@ -207,6 +211,10 @@ class Mapper:
     mapping thread in real time).
     """
 
+    #: mapping.seeding.distrust_median: keyframes whose depths miss the map's by more than it before the run's
+    #: odometry is judged untrusted (one could be a bad keyframe; freiburg1_rpy gives 180-220 such seedings)
+    DISTRUST_KEYFRAMES = 3
+
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
                  messages: "queue.Queue | None" = None, board: SnapshotBoard | None = None,
                  safe_point_hook: Callable[[], None] | None = None, drain_until_stop: bool = False,
@@ -215,6 +223,8 @@ class Mapper:
         # mapping.train.refine_poses null: the map refines the poses of the keyframes whose depths disagree with it
         # (the seeding's depth rule stood down), true: of every keyframe but the first, false: of none
         self._refine_untrusted_only = config.mapping.train.refine_poses is None
+        self._odometry_untrusted = False    # mapping.seeding.distrust_share: the run's odometry judged untrusted
+        self._first_kid: int | None = None  # the view that holds the map's gauge
         mc = dataclasses.replace(config.mapping, train=config.mapping.train.with_pose_refinement(True))
         self.mc = mc
         self.cfg = mc.mapper
@@ -571,10 +581,24 @@ class Mapper:
         # poor depths, or a pose the map disagrees with) is not trusted: no depth term, and its pose is refined
         untrusted = res is not None and res.depth_tolerance_used == math.inf
         self.stats.keyframes_untrusted += int(untrusted)
+        limit = self.mc.seeding.distrust_median
+        if limit > 0 and res is not None and res.depth_error_median is not None and res.depth_error_median > limit:
+            self.stats.keyframes_scale_broken += 1
+        if (limit > 0 and not self._odometry_untrusted
+                and self.stats.keyframes_scale_broken >= self.DISTRUST_KEYFRAMES):
+            # the odometry's scale broke: none of its keyframes is trusted, earlier ones included
+            self._odometry_untrusted = True
+            self.stats.odometry_untrusted_at = kid
+            for v in self.views:
+                v.depth_uv = v.depth_z = None
+                v.fixed_pose = v.view_id == self._first_kid
+        untrusted = untrusted or self._odometry_untrusted
         if self.mc.train.depth_weight > 0 and msg.num_points and not untrusted:
             view.set_depth_points(msg.points_uv, 1.0 / np.asarray(msg.idepths, np.float64))
         # the first keyframe holds the map's gauge
         view.fixed_pose = len(self.views) == 0 or (self._refine_untrusted_only and not untrusted)
+        if self._first_kid is None:
+            self._first_kid = kid
         self.views.add(view)
         self._odo_c2w[kid] = np.array(msg.cam_to_world, dtype=np.float64)
         self._latest_kid = kid

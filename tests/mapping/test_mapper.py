@@ -766,3 +766,39 @@ def test_a_keyframe_whose_depths_miss_the_map_is_not_trusted(wp_device, seq, cam
         assert mp.views[1].depth_z is not None and mp.views[2].depth_z is None
         assert [mp.views[k].fixed_pose for k in range(3)] == ([True, True, False] if refine == "null"
                                                                else [True, False, False])
+
+
+def test_a_run_whose_scale_broke_trusts_none_of_its_keyframes(wp_device, seq, cam):
+    """mapping.seeding.distrust_median: keyframe 0 seeds, keyframes 1 and 2 see the same place with their true depths
+    (trusted), then keyframes come with depths four times too near (median error 3 against the map, above 2: not
+    trusted). The third of them makes the run's odometry untrusted: the earlier trusted keyframes lose their depth term
+    and get their poses refined too, the first keeps the gauge, and later keyframes are not trusted either. The
+    control (0: each keyframe alone) keeps keyframes 1 and 2 trusted."""
+    over = ["mapping.mapper.iterations_per_keyframe=5", "mapping.mapper.final_iterations=0",
+            "mapping.capacity=20000", "mapping.mapper.exposure=odometry"]
+    for limit in (2.0, 0.0):
+        mp = Mapper(load_config(None, [*over, f"mapping.seeding.distrust_median={limit}"]), device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        mp.submit(_kf(seq, cam, 2, kid=1))
+        mp.submit(_kf(seq, cam, 2, kid=2))
+        near = _kf(seq, cam, 2, kid=3)
+        for kid in range(3, 6):
+            mp.submit(KeyframeMessage(kid, 2, near.timestamp, near.image, cam, near.cam_to_world, near.points_uv,
+                                      np.asarray(near.idepths) * 4.0))
+            mp.process_pending()
+            if kid == 4:    # two such keyframes: not yet
+                assert mp.views[1].depth_z is not None and mp.views[1].fixed_pose
+        res = {r.keyframe_id: r for r in mp.stats.seed_results}
+        assert all(res[k].depth_error_median > 2.5 for k in range(3, 6))
+        assert mp.stats.keyframes_untrusted == 3
+        if limit:
+            assert mp.stats.keyframes_scale_broken == 3 and mp.stats.odometry_untrusted_at == 5
+            assert [mp.views[k].fixed_pose for k in range(6)] == [True] + [False] * 5
+            assert all(mp.views[k].depth_z is None for k in range(6))
+            mp.submit(_kf(seq, cam, 2, kid=6))     # true depths again, after the break: not trusted
+            mp.process_pending()
+            assert not mp.views[6].fixed_pose and mp.views[6].depth_z is None
+        else:
+            assert mp.stats.keyframes_scale_broken == 0 and mp.stats.odometry_untrusted_at is None
+            assert [mp.views[k].fixed_pose for k in range(6)] == [True, True, True] + [False] * 3
+            assert mp.views[1].depth_z is not None and mp.views[2].depth_z is not None
