@@ -181,17 +181,22 @@ def local_scales(estimate_positions, reference_positions, *, parts: int = SCALE_
     ref = np.asarray(reference_positions, dtype=np.float64).reshape(-1, 3)
     if len(est) != len(ref):
         raise EvaluationError(f"local_scales needs associated positions, got {len(est)} and {len(ref)}")
-    if len(est) < 3 or motionless_rmse(est) < 1e-12:
+    if len(est) < 3:
         return np.zeros(0)
-    whole = umeyama_alignment(est, ref, with_scale=True).scale
+    try:
+        whole = umeyama_alignment(est, ref, with_scale=True).scale
+    except ValueError:          # the estimate at one point: no scale to compare the parts with
+        return np.zeros(0)
+    if not (math.isfinite(whole) and whole > 0):
+        return np.zeros(0)
     out = []
     for idx in np.array_split(np.arange(len(est)), max(int(parts), 1)):
         if len(idx) < 3 or motionless_rmse(ref[idx]) < min_spread:
             continue
-        if motionless_rmse(est[idx]) < 1e-12:
+        try:
+            out.append(umeyama_alignment(est[idx], ref[idx], with_scale=True).scale / whole)
+        except ValueError:      # this part's estimate at one point: its scale collapsed to nothing
             out.append(math.inf)
-            continue
-        out.append(umeyama_alignment(est[idx], ref[idx], with_scale=True).scale / whole)
     return np.asarray(out, dtype=np.float64)
 
 

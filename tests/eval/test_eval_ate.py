@@ -182,3 +182,10 @@ def test_local_scales_follow_a_drifting_scale():
     est = _scaled_path(ref, np.r_[np.ones(100), np.zeros(99)]).positions
     s = local_scales(est, ref.positions)
     assert np.isinf(s[-1]) and np.all(np.isfinite(s[:5]))
+    # ... and so does one that moves by less than the alignment can take (1e-7 m: Umeyama refuses it), as a run's
+    # second segment did on freiburg1_rpy; a wholly motionless estimate gives no parts, never an error
+    est[100:] += rng.normal(scale=1e-7, size=(100, 3))
+    r = compute_ate(_scaled_path(ref, np.r_[np.ones(100), np.full(99, 1e-8)]), ref, align="sim3")
+    assert np.isinf(r.local_scales[-1]) and np.isinf(r.scale_drift)
+    assert np.isinf(local_scales(est, ref.positions)[-1])
+    assert len(local_scales(np.zeros((200, 3)) + 1e-7 * rng.normal(size=(200, 3)), ref.positions)) == 0
