@@ -226,9 +226,28 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
     writer.write_with("report.png", lambda p: plot_report(p, data))
 
 
+def trajectory_check_line(f: dict) -> str | None:
+    """One line of ``metrics.json``'s ``trajectory_check`` (``f``: the metrics) for the run's summary and report.png:
+    what standing still would score, the ATE's share of it, the scale's drift and a short word per warning (the
+    warnings in full are in the log and metrics.json); None without ground truth."""
+    from mgso.eval.ate import MOTIONLESS_SHARE, SCALE_DRIFT_WARN
+
+    tc = f.get("trajectory_check") or {}
+    ate = f.get("ate_all_frames_m")
+    if not tc or ate is None:
+        return None
+    still, drift = tc["standing_still_m"], tc.get("scale_drift")
+    share = 100 * ate / still if still > 0 else None
+    return (f"trajectory check: standing still {still:.4f} m (the ATE "
+            + ("n/a" if share is None else f"{share:.0f} %") + " of it); scale drift "
+            + ("unmeasured" if drift is None else f"{drift:.3g}x")
+            + ("; WARNING: the positions are not estimated" if share is not None and share >= 100 * MOTIONLESS_SHARE
+               else "")
+            + ("; WARNING: the scale drifts" if drift is not None and drift > SCALE_DRIFT_WARN else ""))
+
+
 def _headline(f: dict) -> list[str]:
     """The text panel of report.png: the headline figures of metrics.json."""
-    from mgso.eval.ate import MOTIONLESS_SHARE, SCALE_DRIFT_WARN
     def num(v, fmt):
         return "n/a" if v is None else format(v, fmt)
 
@@ -249,16 +268,9 @@ def _headline(f: dict) -> list[str]:
                if f.get("ate_odometry_all_frames_m") is not None else "")
         lines.append(f"ATE RMSE (Sim(3)): all frames {f['ate_all_frames_m']:.4f} m, keyframes "
                      f"{num(f['ate_keyframes_m'], '.4f')} m{ref}{odo}")
-        tc = f.get("trajectory_check") or {}
-        if tc:
-            drift = tc.get("scale_drift")
-            share = 100 * f["ate_all_frames_m"] / tc["standing_still_m"] if tc["standing_still_m"] > 0 else None
-            lines.append(f"trajectory check: standing still {tc['standing_still_m']:.4f} m (the ATE "
-                         f"{num(share, '.0f')} % of it); scale drift {num(drift, '.3g')}x"
-                         + ("; WARNING: the positions are not estimated" if share is not None
-                            and share >= 100 * MOTIONLESS_SHARE else "")
-                         + ("; WARNING: the scale drifts" if drift is not None and drift > SCALE_DRIFT_WARN
-                            else ""))
+        line = trajectory_check_line(f)
+        if line:
+            lines.append(line)
     lp = f.get("loop")
     if lp is not None:
         lines.append(f"loop closure: {lp['accepted']} loops accepted, {lp['rejected_total']} candidates rejected "

@@ -240,7 +240,7 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     :class:`mgso.system.OdometrySource`."""
     from mgso.system import System, SystemRunError
 
-    from .outputs import write_run_outputs
+    from .outputs import trajectory_check_line, write_run_outputs
 
     progress = progress or no_progress
     state = state or StopState()
@@ -325,13 +325,9 @@ def run_system(seq, cfg: Config, writer: RunWriter, odometry, *, odometry_name: 
     for a in metrics["ate"]:
         m.append(f"ATE {a['translation_m']['rmse']:.4f} m RMSE ({a['label']}, Sim(3) aligned, "
                  f"{a['num_pairs']} poses)")
-    tc = metrics.get("trajectory_check")
-    if tc:
-        drift = tc["scale_drift"]
-        m.append(f"trajectory check: standing still would give {tc['standing_still_m']:.4f} m; "
-                 + (f"the scale drifts {drift:.3g}x along the trajectory" if drift is not None
-                    else "the scale's drift unmeasured (too little motion)")
-                 + "".join(f"; WARNING: {w}" for w in tc["warnings"]))
+    line = trajectory_check_line(metrics)
+    if line:
+        m.append(line)
     for seg, a in sorted((tr["segments_ate"] or {}).items(), key=lambda kv: int(kv[0])):
         m.append(f"ATE {a['ate_rmse']:.4f} m RMSE (segment {seg} alone, Sim(3) aligned, {a['frames']} poses)")
     for r in metrics["render"]:
