@@ -238,12 +238,12 @@ def trajectory_check_line(f: dict) -> str | None:
         return None
     still, drift = tc["standing_still_m"], tc.get("scale_drift")
     share = 100 * ate / still if still > 0 else None
+    words = ((["positions not estimated"] if share is not None and share >= 100 * MOTIONLESS_SHARE else [])
+             + (["scale drifts"] if drift is not None and drift > SCALE_DRIFT_WARN else []))
     return (f"trajectory check: standing still {still:.4f} m (the ATE "
             + ("n/a" if share is None else f"{share:.0f} %") + " of it); scale drift "
             + ("unmeasured" if drift is None else f"{drift:.3g}x")
-            + ("; WARNING: the positions are not estimated" if share is not None and share >= 100 * MOTIONLESS_SHARE
-               else "")
-            + ("; WARNING: the scale drifts" if drift is not None and drift > SCALE_DRIFT_WARN else ""))
+            + (f"; WARNING: {', '.join(words)}" if words else ""))
 
 
 def _headline(f: dict) -> list[str]:
