@@ -724,3 +724,16 @@ def test_the_trajectory_check_line_names_each_warning():
     still = {"ate_all_frames_m": 0.002, "trajectory_check": {"standing_still_m": 0.19, "scale_drift": None}}
     assert "scale drift unmeasured" in trajectory_check_line(still)
     assert trajectory_check_line({"ate_all_frames_m": None, "trajectory_check": None}) is None
+
+
+def test_the_map_health_line_names_each_warning():
+    """report.png's map health line: the fogged TUM map of before issue 41 (median opacity 0.10, training views
+    15.1 dB) gets both warnings in a few words, a good map none, a run without a map no line."""
+    from mgso.app.outputs import map_health_line
+
+    assert map_health_line({"median_opacity": 0.10, "training_view_psnr_db": 15.1}) == (
+        "map health: median opacity 0.10, its training views 15.1 dB; WARNING: mostly transparent, its training "
+        "views not fitted")
+    assert map_health_line({"median_opacity": 0.32, "training_view_psnr_db": 20.4}) == (
+        "map health: median opacity 0.32, its training views 20.4 dB")
+    assert map_health_line({}) is None

@@ -226,6 +226,18 @@ def _write_report(writer: RunWriter, result: SystemResult, seq, cfg: Config, ate
     writer.write_with("report.png", lambda p: plot_report(p, data))
 
 
+def map_health_line(h: dict) -> str | None:
+    """report.png's line of ``metrics.json``'s ``map_health``: the median opacity, the training views' PSNR and a few
+    words per warning (:func:`map_warnings` in full in the log and metrics.json); None without a map."""
+    med, fit = h.get("median_opacity"), h.get("training_view_psnr_db")
+    if med is None and fit is None:
+        return None
+    words = ((["mostly transparent"] if med is not None and med < FOG_MEDIAN_OPACITY else [])
+             + (["its training views not fitted"] if fit is not None and fit < POOR_FIT_PSNR_DB else []))
+    return (f"map health: median opacity {'n/a' if med is None else format(med, '.2f')}, its training views "
+            f"{'n/a' if fit is None else format(fit, '.1f')} dB" + (f"; WARNING: {', '.join(words)}" if words else ""))
+
+
 def trajectory_check_line(f: dict) -> str | None:
     """One line of ``metrics.json``'s ``trajectory_check`` (``f``: the metrics) for the run's summary and report.png:
     what standing still would score, the ATE's share of it, the scale's drift and a short word per warning (the
@@ -287,12 +299,9 @@ def _headline(f: dict) -> list[str]:
     else:
         lines.append(f"map: {f['num_gaussians']:,} Gaussians, {f['map_size_mb']:.2f} MB; peak memory "
                      f"{num(f['peak_memory_mb'], '.0f')} MB")
-    h = f.get("map_health") or {}
-    if h.get("median_opacity") is not None or h.get("training_view_psnr_db") is not None:
-        lines.append(f"map health: median opacity {num(h.get('median_opacity'), '.2f')}, its training views "
-                     f"{num(h.get('training_view_psnr_db'), '.1f')} dB"
-                     + ("; WARNING: " + "; ".join(w.split(":")[0] for w in h["warnings"]) if h.get("warnings")
-                        else ""))
+    line = map_health_line(f.get("map_health") or {})
+    if line:
+        lines.append(line)
     if f["map_ready_s"] is None:
         lines.append(f"speed: tracking {f['tracking_fps']:.2f} frames/s; end to end {f['end_to_end_fps']:.2f} "
                      "frames/s")
