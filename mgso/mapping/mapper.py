@@ -91,8 +91,8 @@ class MapperStats:
 
     keyframes: int = 0                      # keyframe messages applied (= training views)
     keyframes_untrusted: int = 0            # of them, depths mostly missing the map: no depth term, pose refined
-    # of them, depths three times the map's or more (mapping.seeding.distrust_median), and the keyframe after whose
-    # seeding the run's odometry was judged untrusted (None: never)
+    # of them, where the map's depths were three times theirs or more (mapping.seeding.distrust_median), and the
+    # keyframe after whose seeding the run's odometry was judged untrusted (None: never)
     keyframes_scale_broken: int = 0
     odometry_untrusted_at: int | None = None
     pose_updates: int = 0                   # PoseUpdate messages applied
@@ -211,7 +211,7 @@ class Mapper:
     mapping thread in real time).
     """
 
-    #: mapping.seeding.distrust_median: keyframes whose depths miss the map's by more than it before the run's
+    #: mapping.seeding.distrust_median: keyframes whose median relative depth error passes it before the run's
     #: odometry is judged untrusted (one could be a bad keyframe; freiburg1_rpy gives 180-220 such seedings)
     DISTRUST_KEYFRAMES = 3
 
@@ -223,7 +223,7 @@ class Mapper:
         # mapping.train.refine_poses null: the map refines the poses of the keyframes whose depths disagree with it
         # (the seeding's depth rule stood down), true: of every keyframe but the first, false: of none
         self._refine_untrusted_only = config.mapping.train.refine_poses is None
-        self._odometry_untrusted = False    # mapping.seeding.distrust_share: the run's odometry judged untrusted
+        self._odometry_untrusted = False    # mapping.seeding.distrust_median: the run's odometry judged untrusted
         self._first_kid: int | None = None  # the view that holds the map's gauge
         mc = dataclasses.replace(config.mapping, train=config.mapping.train.with_pose_refinement(True))
         self.mc = mc
