@@ -706,13 +706,14 @@ class SeedingConfig:
                                             "docs/mapping.md, \"Handheld camera\"); such a keyframe is not trusted: "
                                             "no depth term, its pose refined (mapping.train.refine_poses null); 0 = "
                                             "never skip")
-    distrust_median: float = opt(2.0, "once DISTRUST_KEYFRAMES (3) keyframes' median relative depth error against "
-                                       "the map is above this (the map's depths three times the odometry's or more: "
-                                       "its scale broke, as a handheld camera's does), the run's odometry is not "
-                                       "trusted: every keyframe, earlier ones included, has its pose refined and no "
-                                       "depth term (TUM freiburg1_rpy: medians up to 4,000, +0.3-0.6 dB; 7-Scenes, "
-                                       "KITTI and the out-and-back never above 0.92; docs/mapping.md); 0 = judge "
-                                       "each keyframe alone")
+    distrust_median: float = opt(2.0, "once three keyframes' median relative depth error against the map "
+                                       "(Mapper.DISTRUST_KEYFRAMES) is above this (the map's depths three times the "
+                                       "odometry's or more: its scale broke, as a handheld camera's does), the run's "
+                                       "odometry is not trusted: every keyframe, earlier ones included, has its pose "
+                                       "refined and no depth term (TUM freiburg1_rpy: medians up to 4,000, the "
+                                       "deterministic map +0.4 and +2.5 dB with two odometry seeds; 7-Scenes, KITTI "
+                                       "and the out-and-back never above 0.92; docs/mapping.md, \"A broken scale\"); "
+                                       "0 = judge each keyframe alone")
     alpha_downscale: int | None = opt(None, "render the coverage alpha at 1/this resolution (a quarter of the "
                                             "blending work at 2); null = 4 in real time (7-Scenes at 640x480 on 2 "
                                             "cores: the seeding 24-30 % cheaper, 41-44 % more training steps while "
