@@ -32,6 +32,9 @@ HEAD_COLUMNS = ("sequence", "variant", "seed", "stage", "status", "exit_code", "
 #: read from the results of older odometry and tracking runs and from the reference DSO's tasks.
 FIGURES = {
     "ate_m": ("ATE all frames [m]", ("ate_all_frames_m", "tracking.ate_rmse_all_frames"), "lower"),
+    # what the ATE is worth (docs/evaluation.md): the trajectory's scale drift (the reference DSO's on its
+    # marginalised keyframes)
+    "scale_drift": ("scale drift [x]", ("trajectory_check.scale_drift", "dso.scale_drift"), "lower"),
     "psnr_db": ("PSNR MonoGS [dB]", ("psnr_monogs_db",), "higher"),
     "ssim": ("SSIM MonoGS", ("ssim_monogs",), "higher"),
     "gaussians": ("Gaussians", ("num_gaussians",), "lower"),
@@ -149,7 +152,8 @@ def _fmt(x: float, col: str) -> str:
 
 def summary_markdown(rows: list[dict], title: str = "") -> str:
     """Per sequence and variant: the median with min-max of each headline figure over the finished tasks, the
-    variant whose median wins each column in bold (lower ATE, Gaussians and MB; higher PSNR, SSIM and frames/s),
+    variant whose median wins each column in bold (lower ATE, scale drift, Gaussians and MB; higher PSNR, SSIM and
+    frames/s),
     and how many tasks finished, failed or were not run."""
     groups = group_figures(rows)
     status: dict = {}
@@ -157,7 +161,7 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         status.setdefault((r["sequence"], r["variant"]), []).append(r.get("status", ""))
     lines = [f"# mgso bench: {title}" if title else "# mgso bench", ""]
     lines.append("Median (min-max) over the finished runs of each sequence and variant; **bold**: the variant whose "
-                 "median wins the column on that sequence (lower ATE, Gaussians and MB; higher PSNR, SSIM and "
+                 "median wins the column on that sequence (lower ATE, scale drift, Gaussians and MB; higher PSNR, SSIM and "
                  "frames/s). The rows of results.csv hold every figure of every run.")
     lines.append("")
     cols = [c for c in FIGURES if any(g[c] for g in groups.values())]
