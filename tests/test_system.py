@@ -712,7 +712,8 @@ def test_dso_keyframe_messages_carry_the_frames_valid_mask(wp_device):
 
 def test_the_trajectory_check_line_names_each_warning():
     """The summary's and report.png's line of metrics.json's trajectory_check: freiburg1_rpy's figures (a run of
-    2026-12-06) get both warnings, test_full_stage_runs_dso_and_the_mapper_end_to_end's none, no ground truth no line."""
+    2026-12-06) get both warnings, test_full_stage_runs_dso_and_the_mapper_end_to_end's none, no ground truth no
+    line."""
     from mgso.app.outputs import trajectory_check_line
 
     tum = {"ate_all_frames_m": 0.0453, "trajectory_check": {"standing_still_m": 0.0471, "scale_drift": 70.7}}

@@ -161,8 +161,8 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         status.setdefault((r["sequence"], r["variant"]), []).append(r.get("status", ""))
     lines = [f"# mgso bench: {title}" if title else "# mgso bench", ""]
     lines.append("Median (min-max) over the finished runs of each sequence and variant; **bold**: the variant whose "
-                 "median wins the column on that sequence (lower ATE, scale drift, Gaussians and MB; higher PSNR, SSIM and "
-                 "frames/s). The rows of results.csv hold every figure of every run.")
+                 "median wins the column on that sequence (lower ATE, scale drift, Gaussians and MB; higher PSNR, "
+                 "SSIM and frames/s). The rows of results.csv hold every figure of every run.")
     lines.append("")
     cols = [c for c in FIGURES if any(g[c] for g in groups.values())]
     head = ["sequence", "variant", "runs"] + [FIGURES[c][0] for c in cols]
