@@ -9,7 +9,6 @@ import pytest
 
 from mgso.eval import (PHOTO_SLAM, compute_ate, compute_rpe, evaluate_renders, format_report, metrics_report,
                        write_metrics_json)
-
 from mgso.io.trajectory import Trajectory
 
 from eval_traj_helpers import noisy_estimate, random_traj
