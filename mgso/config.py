@@ -824,6 +824,12 @@ class MapperConfig:
     refine_every: int = opt(300, "the mapper's densification interval in steps, in place of mapping.densify."
                                  "refine_every (3DGS's 100, what `mgso fit` uses): keyframes that disagree make "
                                  "densification every 100 steps grow floaters (docs/mapping.md); 0 = mapping.densify's")
+    loop_moves_untrusted: bool = opt(False, "loop closure's corrections move the map's keyframes and Gaussians also "
+                                            "once the run's odometry is not trusted (mapping.seeding."
+                                            "distrust_median); false: the map, which then refines every pose "
+                                            "itself, holds them and only the odometry's poses move (TUM "
+                                            "freiburg1_rpy, 27 loops: 19.70 dB moving the map, 20.30 holding it, "
+                                            "20.36 without loop closure; docs/loop.md)")
     prune_opacity: float = opt(0.05, "the mapper's prune threshold at each refinement, in place of mapping."
                                      "densify.prune_opacity (3DGS's 0.005, what `mgso fit` uses): views that disagree "
                                      "leave many faint Gaussians in a SLAM map; 0.05 halves the 7-Scenes map (6.14 -> "

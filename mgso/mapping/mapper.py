@@ -95,6 +95,8 @@ class MapperStats:
     # keyframe after whose seeding the run's odometry was judged untrusted (None: never)
     keyframes_scale_broken: int = 0
     odometry_untrusted_at: int | None = None
+    # loop corrections that moved only the odometry's poses, the map held (mapping.mapper.loop_moves_untrusted)
+    loop_corrections_held: int = 0
     pose_updates: int = 0                   # PoseUpdate messages applied
     poses_applied: int = 0                  # keyframe poses moved by them
     poses_unknown: int = 0                  # poses for keyframes the map does not have (ignored)
@@ -633,6 +635,15 @@ class Mapper:
         """Loop closure moved keyframes: each view (and the odometry pose it follows) moves by its keyframe's Sim(3),
         its depth points scale with it, and the Gaussians anchored to it move with it."""
         self.stats.loop_corrections += 1
+        if self._odometry_untrusted and not self.cfg.loop_moves_untrusted:
+            # the map refines every keyframe's pose itself (the odometry's scale broke): it holds its keyframes and
+            # Gaussians where the images put them, and only the odometry's poses it follows move, so that its
+            # corrections (map pose = W @ odometry pose) absorb the loop's
+            for kid, S in msg.transforms.items():
+                if kid in self._odo_c2w:
+                    self._odo_c2w[kid] = sim3_apply_to_pose(S, self._odo_c2w[kid])
+            self.stats.loop_corrections_held += 1
+            return
         for kid, S in msg.transforms.items():
             if kid not in self.views:
                 continue

@@ -802,3 +802,40 @@ def test_a_run_whose_scale_broke_trusts_none_of_its_keyframes(wp_device, seq, ca
             assert mp.stats.keyframes_scale_broken == 0 and mp.stats.odometry_untrusted_at is None
             assert [mp.views[k].fixed_pose for k in range(6)] == [True, True, True] + [False] * 3
             assert mp.views[1].depth_z is not None and mp.views[2].depth_z is not None
+
+
+def test_a_map_that_refines_every_pose_holds_its_keyframes_on_a_loop(wp_device, seq, cam):
+    """Once the run's odometry is not trusted (mapping.seeding.distrust_median fired: the map refines every pose), a
+    LoopCorrection moves the odometry's poses the map follows, not the map: the views and Gaussians stay, and the
+    map's correction of the keyframe (map pose = W @ odometry pose) absorbs the loop's Sim(3), so a frame the
+    odometry puts at the corrected pose renders from where the map holds it. The control
+    (mapping.mapper.loop_moves_untrusted=true) moves the view as test_loop_correction_moves_views_depths_and_anchored_
+    gaussians does."""
+    from mgso.geometry import sim3_from_parts, so3_exp
+    from mgso.messages import LoopCorrection, sim3_apply_to_pose
+
+    over = ["mapping.mapper.iterations_per_keyframe=2", "mapping.mapper.final_iterations=0",
+            "mapping.capacity=20000", "mapping.mapper.exposure=odometry"]
+    S = sim3_from_parts(so3_exp([0.05, -0.1, 0.02]), np.array([0.3, 0.1, -0.2]), 1.4)
+    for moves in (False, True):
+        mp = Mapper(load_config(None, [*over, f"mapping.mapper.loop_moves_untrusted={moves}"]), device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        near = _kf(seq, cam, 2, kid=1)
+        for kid in range(1, 4):     # three keyframes whose depths are a quarter of the truth: the rule fires
+            mp.submit(KeyframeMessage(kid, 2, near.timestamp, near.image, cam, near.cam_to_world, near.points_uv,
+                                      np.asarray(near.idepths) * 4.0))
+        mp.process_pending()
+        assert mp.stats.odometry_untrusted_at == 3
+        c2w3, odo3 = mp.views[3].cam_to_world.copy(), mp._odo_c2w[3].copy()
+        before = mp.gmap.to_numpy()
+        mp.submit(LoopCorrection({0: S, 3: S}, loop=1))    # keyframe 0 holds the seeds
+        mp.process_pending()
+        np.testing.assert_allclose(mp._odo_c2w[3], sim3_apply_to_pose(S, odo3), atol=1e-12)
+        if not moves:
+            assert mp.stats.loop_corrections_held == 1 and mp.stats.gaussians_moved == 0
+            np.testing.assert_array_equal(mp.views[3].cam_to_world, c2w3)
+            np.testing.assert_array_equal(mp.gmap.to_numpy().means, before.means)
+            np.testing.assert_allclose(mp.correction(3) @ sim3_apply_to_pose(S, odo3), c2w3, atol=1e-9)
+        else:
+            assert mp.stats.loop_corrections_held == 0 and mp.stats.gaussians_moved > 0
+            np.testing.assert_allclose(mp.views[3].cam_to_world, sim3_apply_to_pose(S, c2w3), atol=1e-9)
