@@ -827,7 +827,8 @@ class MapperConfig:
     loop_moves_untrusted: bool = opt(False, "loop closure's corrections move the map's keyframes and Gaussians also "
                                             "once the run's odometry is not trusted (mapping.seeding."
                                             "distrust_median); false: the map, which then refines every pose "
-                                            "itself, holds them and only the odometry's poses move (TUM "
+                                            "itself (mapping.train.refine_poses not false), holds them and only the "
+                                            "odometry's poses move (TUM "
                                             "freiburg1_rpy, 27 loops: 19.70 dB moving the map, 20.30 holding it, "
                                             "20.36 without loop closure; docs/loop.md)")
     prune_opacity: float = opt(0.05, "the mapper's prune threshold at each refinement, in place of mapping."

@@ -635,7 +635,7 @@ class Mapper:
         """Loop closure moved keyframes: each view (and the odometry pose it follows) moves by its keyframe's Sim(3),
         its depth points scale with it, and the Gaussians anchored to it move with it."""
         self.stats.loop_corrections += 1
-        if self._odometry_untrusted and not self.cfg.loop_moves_untrusted:
+        if self._odometry_untrusted and self.refines_poses and not self.cfg.loop_moves_untrusted:
             # the map refines every keyframe's pose itself (the odometry's scale broke): it holds its keyframes and
             # Gaussians where the images put them, and only the odometry's poses it follows move, so that its
             # corrections (map pose = W @ odometry pose) absorb the loop's

@@ -839,3 +839,16 @@ def test_a_map_that_refines_every_pose_holds_its_keyframes_on_a_loop(wp_device, 
         else:
             assert mp.stats.loop_corrections_held == 0 and mp.stats.gaussians_moved > 0
             np.testing.assert_allclose(mp.views[3].cam_to_world, sim3_apply_to_pose(S, c2w3), atol=1e-9)
+    # a map that refines no pose (mapping.train.refine_poses=false) cannot hold itself against the odometry: it moves
+    mp = Mapper(load_config(None, [*over, "mapping.train.refine_poses=false"]), device=wp_device)
+    mp.submit(_kf(seq, cam, 0))
+    for kid in range(1, 4):
+        mp.submit(KeyframeMessage(kid, 2, near.timestamp, near.image, cam, near.cam_to_world, near.points_uv,
+                                  np.asarray(near.idepths) * 4.0))
+    mp.process_pending()
+    assert mp.stats.odometry_untrusted_at == 3
+    c2w3 = mp.views[3].cam_to_world.copy()
+    mp.submit(LoopCorrection({0: S, 3: S}, loop=1))
+    mp.process_pending()
+    assert mp.stats.loop_corrections_held == 0
+    np.testing.assert_allclose(mp.views[3].cam_to_world, sim3_apply_to_pose(S, c2w3), atol=1e-9)
