@@ -38,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import cv2
@@ -125,20 +126,18 @@ def main() -> None:
             sys.exit("no --path and no shared data folder (set MGSO_DATA)")
         paths = [base / d for d in DEFAULT]
     result = {"profile": "dso_reference", "load_avg_1min": round(os.getloadavg()[0], 2)}
+    if args.keep:                       # before any work: a folder --keep would overwrite
+        for path in paths:
+            if (Path(args.keep) / path.name).exists():
+                sys.exit(f"{Path(args.keep) / path.name}: already exists (--keep writes a new folder per sequence)")
     for path in paths:
         if not path.is_dir():
             print(f"{path}: not found, skipped", file=sys.stderr)
             continue
-        if args.keep:
-            work = Path(args.keep) / path.name
-            if work.exists():
-                sys.exit(f"{work}: already exists (--keep writes a new folder per sequence)")
-            n, gt = prepare(path, work)
-            result[path.name] = run(args.dso, work, n, gt, args.nomt)
-            continue
-        with tempfile.TemporaryDirectory(prefix="mgso-dso-") as tmp:
-            n, gt = prepare(path, Path(tmp))
-            result[path.name] = run(args.dso, Path(tmp), n, gt, args.nomt)
+        with (nullcontext(str(Path(args.keep) / path.name)) if args.keep
+              else tempfile.TemporaryDirectory(prefix="mgso-dso-")) as work:
+            n, gt = prepare(path, Path(work))
+            result[path.name] = run(args.dso, Path(work), n, gt, args.nomt)
     result["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps(result))
 

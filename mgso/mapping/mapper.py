@@ -225,7 +225,6 @@ class Mapper:
         # mapping.train.refine_poses null: the map refines the poses of the keyframes whose depths disagree with it
         # (the seeding's depth rule stood down), true: of every keyframe but the first, false: of none
         self._refine_untrusted_only = config.mapping.train.refine_poses is None
-        self._odometry_untrusted = False    # mapping.seeding.distrust_median: the run's odometry judged untrusted
         self._first_kid: int | None = None  # the view that holds the map's gauge
         mc = dataclasses.replace(config.mapping, train=config.mapping.train.with_pose_refinement(True))
         self.mc = mc
@@ -586,15 +585,14 @@ class Mapper:
         limit = self.mc.seeding.distrust_median
         if limit > 0 and res is not None and res.depth_error_median is not None and res.depth_error_median > limit:
             self.stats.keyframes_scale_broken += 1
-        if (limit > 0 and not self._odometry_untrusted
+        if (limit > 0 and not self.odometry_untrusted
                 and self.stats.keyframes_scale_broken >= self.DISTRUST_KEYFRAMES):
             # the odometry's scale broke: none of its keyframes is trusted, earlier ones included
-            self._odometry_untrusted = True
             self.stats.odometry_untrusted_at = kid
             for v in self.views:
                 v.depth_uv = v.depth_z = None
                 v.fixed_pose = v.view_id == self._first_kid
-        untrusted = untrusted or self._odometry_untrusted
+        untrusted = untrusted or self.odometry_untrusted
         if self.mc.train.depth_weight > 0 and msg.num_points and not untrusted:
             view.set_depth_points(msg.points_uv, 1.0 / np.asarray(msg.idepths, np.float64))
         # the first keyframe holds the map's gauge
@@ -635,7 +633,7 @@ class Mapper:
         """Loop closure moved keyframes: each view (and the odometry pose it follows) moves by its keyframe's Sim(3),
         its depth points scale with it, and the Gaussians anchored to it move with it."""
         self.stats.loop_corrections += 1
-        if self._odometry_untrusted and self.refines_poses and not self.cfg.loop_moves_untrusted:
+        if self.odometry_untrusted and self.refines_poses and not self.cfg.loop_moves_untrusted:
             # the map refines every keyframe's pose itself (the odometry's scale broke): it holds its keyframes and
             # Gaussians where the images put them, and only the odometry's poses it follows move, so that its
             # corrections (map pose = W @ odometry pose) absorb the loop's
@@ -731,6 +729,11 @@ class Mapper:
     def refines_poses(self) -> bool:
         """Whether the map corrects the odometry's keyframe poses (``mapping.train.refine_poses``)."""
         return bool(self.mc.train.refine_poses)
+
+    @property
+    def odometry_untrusted(self) -> bool:
+        """Whether the run's odometry was judged untrusted (``mapping.seeding.distrust_median``: its scale broke)."""
+        return self.stats.odometry_untrusted_at is not None
 
     def correction(self, keyframe_id: int) -> np.ndarray:
         """The map's correction of a keyframe's pose: the rigid ``W`` with ``map pose = W @ odometry pose``
