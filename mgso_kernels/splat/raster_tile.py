@@ -54,7 +54,7 @@ wp.set_module_options({
     "cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -mllvm -slp-schedule-budget=1000000",
 })
 
-__all__ = ["TILE_PIXELS", "use_native", "native_flag", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
+__all__ = ["TILE_PIXELS", "use_native", "native_flag", "native_lanes", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
            "rasterize_backward_tile", "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE  # ``pixels_per_thread`` value that selects these kernels
@@ -93,6 +93,25 @@ def status_buffer(dim: int, device) -> wp.array:
     if key not in _status:
         _status[key] = wp.zeros(int(dim), dtype=wp.int32, device=device)
     return _status[key]
+
+
+@wp.func_native(raster_tile_cpp.lanes_probe())
+def _lanes_cpp() -> int:
+    """The lane width this module's tile snippets compiled at (16 or 8; 0 where they do not run: CUDA)."""
+    ...
+
+
+@wp.kernel
+def _lanes_kernel(out: wp.array(dtype=wp.int32)):
+    out[0] = _lanes_cpp()
+
+
+def native_lanes(device="cpu") -> int:
+    """The lane width of the tile snippets as compiled on ``device``: 16 (a whole tile row in an AVX-512 vector), 8
+    (half a row, AVX2 or the portable vector code), 0 where the snippets do not run (CUDA)."""
+    out = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(_lanes_kernel, dim=1, inputs=[out], device=device)
+    return int(out.numpy()[0])
 
 
 @wp.func_native("""

@@ -8,14 +8,19 @@ row after the other. These snippets compute the same thing in another order of w
 
 - **Per Gaussian, the lane constants once**: ``dx = x0 + k - mean_x`` and ``-0.5 a dx^2`` for the 16 columns (the
   same products, in the same order, as :func:`~mgso_kernels.splat.raster_tile.lane_power` makes per row).
-- **Spans first, then the blend**: the rows the Gaussian reaches are turned into a compact list of the half rows
-  (8 pixels, one AVX2 vector) that have a live pixel inside its ellipse, without a branch per half; then the list is
-  blended, each entry in place on the tile's state, with no branch inside an entry. Entries are independent (a pixel
-  belongs to one), so the core overlaps them.
+- **Spans first, then the blend**: the rows the Gaussian reaches are turned into a compact list of the lane rows
+  that have a live pixel inside its ellipse, without a branch per row; then the list is blended, each entry in place
+  on the tile's state, with no branch inside an entry. Entries are independent (a pixel belongs to one), so the core
+  overlaps them. A lane row is a whole tile row (16 pixels, one AVX-512 vector) where the compiler targets AVX-512,
+  half of one (8 pixels, one AVX2 vector) elsewhere: the same arithmetic per pixel and the same order of every lane's
+  sums, so the two widths give the same outputs bit for bit (tested); a Gaussian that covers both halves of a row
+  costs one entry instead of two (640x480 on a real 7-Scenes map, one Zen 5 thread: forward blend 41-42 -> 30-31 ms,
+  backward blend 63-74 -> 51-56 ms; docs/rasteriser.md). ``MGSO_TILE_LANES=8`` in the environment keeps 8 lanes
+  (read at import; for the test and profiles that compare the two).
 - No select on a value just loaded from the same place (``T = Tk * (took ? 1 - alpha : 1)`` instead of
   ``took ? Tn : Tk``): LLVM makes such a select a masked store, slow on Zen 3 and not forwarded to the next load.
-- The backward lists half rows the same way, the left halves and the right ones in two blocks, and does a block in
-  two passes: the first blends back to front and keeps each entry's ``v_pow`` and ``w``, the second sums what the
+- The backward lists lane rows the same way (with 8 lanes the left halves and the right ones in two blocks) and
+  does a block in two passes: the first blends back to front and keeps each entry's ``v_pow`` and ``w``, the second sums what the
   gradients need per lane, each sum in a register (one pass reading and writing eight sums through memory every
   entry took 112-119 against 102 ms a backward blend, 640x480, 50k Gaussians, one Zen 3 thread; docs/rasteriser.md).
   The lane sums are those of one pass in list order, bit for bit, reduced by the Warp kernel's tree.
@@ -34,9 +39,11 @@ where it does not apply (CUDA, or arrays that are not contiguous) and the Warp c
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill"]
+__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill", "lanes", "lanes_probe"]
 
 
 def _f32(x: float) -> str:
@@ -44,78 +51,87 @@ def _f32(x: float) -> str:
     return repr(float(np.float32(x))) + "f"
 
 
-# shared by the snippets: the blend's constants and exp_lane's polynomial (raster_tile.exp_lane, the same operations)
+# shared by the snippets: the blend's constants and exp_lane's polynomial (raster_tile.exp_lane, the same operations).
+# The lanes are @W@ pixels of a tile row: 8 (a half row, one AVX2 register) or 16 (a whole row, one AVX-512
+# register); the rows' spans are computed 8 rows a vector either way
 _PRELUDE = r"""
 const float AMAX = @ALPHA_MAX@, AMIN = @ALPHA_MIN@, TMIN = @T_MIN@;
 const float LOG2E_ = @LOG2E@, LN2HI = @LN2_HI@, LN2LO = @LN2_LO@;
-typedef float v8f __attribute__((ext_vector_type(8)));
+typedef float v8f __attribute__((ext_vector_type(8)));     // 8 rows (the spans)
 typedef int v8i __attribute__((ext_vector_type(8)));
-const v8i LANE = {0, 1, 2, 3, 4, 5, 6, 7};
-const v8i BIT = {1, 2, 4, 8, 16, 32, 64, 128};
+typedef float vf __attribute__((ext_vector_type(@W@)));    // the lanes: @W@ pixels of a tile row
+typedef int vi __attribute__((ext_vector_type(@W@)));
+const v8i ROWS8 = {0, 1, 2, 3, 4, 5, 6, 7};
+const vi LANE = {@LANES@};
+// the state's lane rows (a tile row is QPR of them: row r's pixels W k .. W k + W - 1 at QPR r + k)
+const int NQ = 256 / @W@, QPR = 16 / @W@;
 // 8 ints from anywhere (a v8i pointer must be 32-byte aligned)
 auto ldi = [](const int* p) -> v8i { v8i v; __builtin_memcpy(&v, p, sizeof v); return v; };
 // a ? b : c per lane, bit for bit (a: a comparison's all-ones / zero lanes)
-auto sel = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
+auto sel8 = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
+auto sel = [](vi a, vf b, vf c) -> vf { return (vf)((a & (vi)b) | (~a & (vi)c)); };
 // wp::min(k, v) as Warp's CPU code has it (C fmin: a NaN v gives k); on x86 one vminps(v, k), which returns its
 // second operand where either is NaN or they are equal (the same value), v where v < k: the same result; LLVM made
 // fmin's NaN rule a compare, a second compare and two blends
-auto vmin = [&](v8f k, v8f v) -> v8f {
-#if defined(__AVX__)
+auto vmin = [&](vf k, vf v) -> vf {
+#if @W@ == 16 && defined(__AVX512F__)
+    return __builtin_ia32_minps512(v, k, 4);
+#elif @W@ == 8 && defined(__AVX__)
     return __builtin_ia32_minps256(v, k);
 #else
     return sel(k <= v, k, sel(v == v, v, k));
 #endif
 };
 // max(a, b) of lanes that are never NaN (vmaxps on x86; __builtin_elementwise_max adds fmax's NaN rule)
-auto vmax = [](v8f a, v8f b) -> v8f {
-#if defined(__AVX__)
+auto vmax = [](vf a, vf b) -> vf {
+#if @W@ == 16 && defined(__AVX512F__)
+    return __builtin_ia32_maxps512(a, b, 4);
+#elif @W@ == 8 && defined(__AVX__)
     return __builtin_ia32_maxps256(a, b);
 #else
     return __builtin_elementwise_max(a, b);
 #endif
 };
-// the lanes of a comparison (all-ones / zero) as 8 bits, lane k at bit k (vmovmskps on x86: one instruction where
-// OR-reducing the lanes' bits took eight)
-auto bits8 = [&](v8i c) -> int {
-#if defined(__AVX__)
-    return __builtin_ia32_movmskps256((v8f)c);
+// the lanes of a comparison (all-ones / zero) as bits, lane k at bit k (vmovmskps / vpmovd2m on x86: one
+// instruction where OR-reducing the lanes' bits took eight)
+auto lane_bits = [&](vi c) -> int {
+#if @W@ == 16 && defined(__AVX512DQ__)
+    return (int)(unsigned short)__builtin_ia32_cvtd2mask512(c);
+#elif @W@ == 8 && defined(__AVX__)
+    return __builtin_ia32_movmskps256((vf)c);
 #else
-    return __builtin_reduce_or(c & BIT);
+    return __builtin_reduce_or(c & ((vi)1 << LANE));
 #endif
 };
 // a b + c rounded once (an FMA instruction; the snippets say where they want one, contraction stays off)
-auto fma8 = [](v8f a, v8f b, v8f c) -> v8f { return __builtin_elementwise_fma(a, b, c); };
+auto fmav = [](vf a, vf b, vf c) -> vf { return __builtin_elementwise_fma(a, b, c); };
 // vexp's constants and the blend's thresholds as vectors in a stack array that the compiler cannot fold back into
 // constants (the empty asm statement tells it the array may have changed): the loops read them as memory operands,
 // where LLVM rematerialised each from the constant pool on every list entry (a movabs and a broadcast, under Warp's
 // large code model: 26 of an entry's 100 instructions). The same values, so the same results bit for bit
 enum { KX_MIN, K_LOG2E, K_HALF, K_NLN2HI, K_NLN2LO, K_P3, K_P5, K_P4, K_P7, K_P6, K_AMAX, K_AMIN, K_TMIN, K_N };
-alignas(32) float KV[K_N][8];
+alignas(64) float KV[K_N][@W@];
 {
     const float k1[K_N] = {-87.0f, LOG2E_, 0.5f, -LN2HI, -LN2LO, 0.16666667f, 0.008333334f, 0.041666668f,
                            0.0001984127f, 0.0013888889f, AMAX, AMIN, TMIN};
     for (int i = 0; i < K_N; ++i)
-        for (int k = 0; k < 8; ++k) KV[i][k] = k1[i];
+        for (int k = 0; k < @W@; ++k) KV[i][k] = k1[i];
 }
 asm volatile("" : : "r"(&KV[0][0]) : "memory");
-auto kv = [&](int i) -> v8f { return *(const v8f*)KV[i]; };
+auto kv = [&](int i) -> vf { return *(const vf*)KV[i]; };
 // exp(x) per lane: exp_lane's range reduction and polynomial with FMAs, the polynomial in Estrin's form (three
 // dependent steps after f instead of Horner's seven); within float rounding of exp_lane (the images and gradients
 // against the Warp kernels', tests/kernels/test_splat_tile.py)
-auto vexp = [&](v8f x) -> v8f {
-#if defined(__AVX__)
-    x = __builtin_ia32_maxps256(x, kv(KX_MIN));     // vmaxps(x, k): k where x is NaN, as the select below
-#else
-    x = sel(x >= kv(KX_MIN), x, kv(KX_MIN));
-#endif
-    const v8f nf = __builtin_elementwise_floor(fma8(x, kv(K_LOG2E), kv(K_HALF)));
-    const v8f f = fma8(nf, kv(K_NLN2LO), fma8(nf, kv(K_NLN2HI), x));
-    const v8f f2 = f * f, f4 = f2 * f2;
-    const v8f p01 = 1.0f + f, p23 = fma8(f, kv(K_P3), kv(K_HALF));
-    const v8f p45 = fma8(f, kv(K_P5), kv(K_P4));
-    const v8f p67 = fma8(f, kv(K_P7), kv(K_P6));
-    const v8f p = fma8(f4, fma8(f2, p67, p45), fma8(f2, p23, p01));
-    return p * (v8f)((__builtin_convertvector(nf, v8i) + 127) << 23);
+auto vexp = [&](vf x) -> vf {
+    x = vmax(x, kv(KX_MIN));     // vmaxps(x, k): k where x is NaN
+    const vf nf = __builtin_elementwise_floor(fmav(x, kv(K_LOG2E), kv(K_HALF)));
+    const vf f = fmav(nf, kv(K_NLN2LO), fmav(nf, kv(K_NLN2HI), x));
+    const vf f2 = f * f, f4 = f2 * f2;
+    const vf p01 = 1.0f + f, p23 = fmav(f, kv(K_P3), kv(K_HALF));
+    const vf p45 = fmav(f, kv(K_P5), kv(K_P4));
+    const vf p67 = fmav(f, kv(K_P7), kv(K_P6));
+    const vf p = fmav(f4, fmav(f2, p67, p45), fmav(f2, p23, p01));
+    return p * (vf)((__builtin_convertvector(nf, vi) + 127) << 23);
 };
 if (splats.strides[0] != 32 || splat_rgbz.strides[0] != 16) return 0;
 const float* sp = (const float*)splats.data;
@@ -136,11 +152,12 @@ auto load_splat = [&](int j) -> Splat {
     g.hi = hi0 < ny - 1 ? hi0 : ny - 1;
     return g;
 };
-// list_halves(g, done, rmax, i): per row r in [lo, hi] (8 rows a vector) the span of the row inside the cut-off
+// list_rows(g, done, rmax, i): per row r in [lo, hi] (8 rows a vector) the span of the row inside the cut-off
 // ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none where rmax[r] <= i; then
-// the half rows (q = 2 r + 0 / 1) with a bit left, listed in hq / hm (their 8 bits) with the row's -0.5 c dy^2,
-// b dy and dy in hc, hb, hd: the left halves (q even) at 0, 1, ..., the right ones at 16, 17, ..., each block in
-// row order. Sets nl and nr to their numbers. done and rmax hold 32 rows (16 and a vector's overhang).
+// the lane rows with a bit left, listed in hq (their index q in the state) and hm (their W bits) with the row's
+// -0.5 c dy^2, b dy and dy in hc, hb, hd. With 8 lanes: the left halves (q = 2 r) at 0, 1, ..., the right ones
+// (q = 2 r + 1) at 16, 17, ..., each block in row order; with 16: the rows at 0, 1, ... Sets nl and nr to the
+// blocks' sizes (nr = 0 with 16 lanes). done and rmax hold 32 rows (16 and a vector's overhang).
 alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
 for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
 alignas(32) int mrow[16];
@@ -148,14 +165,14 @@ alignas(32) float dyr[16], cyyr[16], bdyr[16];
 int hq[32], hm[32];
 float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
-auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) {
+auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
     const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
     for (int r8 = 0; r8 < nrows; r8 += 8) {
-        const v8i rr = (v8i)(lo + r8) + LANE;
+        const v8i rr = (v8i)(lo + r8) + ROWS8;
         const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - g.my;
         const v8f disc = ar2 - g.det * dy * dy;
-        const v8f half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (v8f)0.0f, disc)) * g.inv_a;
+        const v8f half = __builtin_elementwise_sqrt(sel8(disc < 0.0f, (v8f)0.0f, disc)) * g.inv_a;
         const v8f xc = g.mx - g.b * dy * g.inv_a;
         const v8i lm = __builtin_elementwise_max(
             __builtin_convertvector(__builtin_elementwise_ceil(xc - half), v8i) - x0, (v8i)0);
@@ -171,6 +188,7 @@ auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) 
         *(v8f*)(cyyr + r8) = hc_ * dy * dy;
         *(v8f*)(bdyr + r8) = g.b * dy;
     }
+#if @W@ == 8
     int a = 0, b = 16;
     for (int t = 0; t < nrows; ++t) {
         const int m = mrow[t], q = 2 * (lo + t);
@@ -180,7 +198,19 @@ auto list_halves = [&](const Splat& g, const int* done, const int* rmax, int i) 
     }
     nl = a;
     nr = b - 16;
+#else
+    int a = 0;
+    for (int t = 0; t < nrows; ++t) {
+        const int m = mrow[t];
+        hq[a] = lo + t; hm[a] = m; hc[a] = cyyr[t]; hb[a] = bdyr[t]; hd[a] = dyr[t]; a += m != 0;
+    }
+    nl = a;
+    nr = 0;
+#endif
 };
+// the list's entries in order: the left block [0, nl), then the right one [16, 16 + nr)
+auto first_entry = [&]() -> int { return nl > 0 ? 0 : 16; };
+auto next_entry = [&](int e) -> int { return e + 1 == nl ? 16 : e + 1; };
 // per column k of the tile: dx = x0 + k - mean_x and -0.5 a dx^2 (lane_power's first product)
 alignas(64) float dxl[16], pa[16];
 auto lane_constants = [&](const Splat& g) {
@@ -192,40 +222,42 @@ auto lane_constants = [&](const Splat& g) {
         pa[k] = ha * dx * dx;
     }
 };
-// the forward and the coverage: the stopped pixels nh (8 bits) of half row q join row_done; a row that is full
+// the first column of lane row q
+auto col0 = [](int q) -> int { return @W@ * (q % QPR); };
+// the forward and the coverage: the stopped pixels nh (W bits) of lane row q join row_done; a row that is full
 // now counts off rows_left
-auto mark_done = [](int* row_done, int full, int& rows_left, int q, int nh) {
+auto mark_done = [&](int* row_done, int full, int& rows_left, int q, int nh) {
     if (nh != 0) {
-        const int r = q >> 1;
+        const int r = q / QPR;
         const int old = row_done[r];
-        const int now = old | (nh << (8 * (q & 1)));
+        const int now = old | (nh << col0(q));
         row_done[r] = now;
         if (now == full && old != full) --rows_left;
     }
 };
-// the power -0.5 (a dx^2 + c dy^2) - b dx dy of list entry e's 8 pixels: one expression for the forward, the
+// the power -0.5 (a dx^2 + c dy^2) - b dx dy of list entry e's W pixels: one expression for the forward, the
 // coverage and the backward, so that they compute each alpha alike
-auto entry_power = [&](int e) -> v8f {
-    const int off = 8 * (hq[e] & 1);
-    return fma8(-(v8f)hb[e], *(const v8f*)(dxl + off), *(const v8f*)(pa + off) + (v8f)hc[e]);
+auto entry_power = [&](int e) -> vf {
+    const int off = col0(hq[e]);
+    return fmav(-(vf)hb[e], *(const vf*)(dxl + off), *(const vf*)(pa + off) + (vf)hc[e]);
 };
 // the forward's and the coverage's step for entry e of a Gaussian of opacity vop: its alpha, the transmittance
-// before (Tk) and after (Tn), the pixels it stops (stop) and those that take it (acc, 0/1); the half row's T is
+// before (Tk) and after (Tn), the pixels it stops (stop) and those that take it (acc, 0/1); the lane row's T is
 // updated to took ? Tn : Tk without a select on what was loaded from the same place (LLVM makes that a masked store,
 // which Zen 3 runs slowly and cannot forward to the next Gaussian's load): Tk * 1 is Tk
-struct Step { v8f al, Tk, Tn, stop, acc; };
-typedef float HalfRow[8];   // a tile state's half row (a pointer to float[8]: Warp defines a macro float(x))
-auto front_step = [&](int e, HalfRow* T, v8f vop) -> Step {
+struct Step { vf al, Tk, Tn, stop, acc; };
+typedef float LaneRow[@W@];   // a tile state's lane row (a pointer to float[W]: Warp defines a macro float(x))
+auto front_step = [&](int e, LaneRow* T, vf vop) -> Step {
     const int q = hq[e];
     Step s;
     s.al = vmin(kv(K_AMAX), vop * vexp(entry_power(e)));
-    const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-    const v8f ok = sel(s.al >= kv(K_AMIN), bit, (v8f)0.0f);
-    s.Tk = *(v8f*)T[q];
+    const vf bit = __builtin_convertvector(((vi)hm[e] >> LANE) & 1, vf);
+    const vf ok = sel(s.al >= kv(K_AMIN), bit, (vf)0.0f);
+    s.Tk = *(vf*)T[q];
     s.Tn = s.Tk * (1.0f - s.al);
-    s.stop = sel(s.Tn < kv(K_TMIN), ok, (v8f)0.0f);
+    s.stop = sel(s.Tn < kv(K_TMIN), ok, (vf)0.0f);
     s.acc = ok - s.stop;
-    *(v8f*)T[q] = s.Tk * sel(s.acc > 0.0f, 1.0f - s.al, (v8f)1.0f);
+    *(vf*)T[q] = s.Tk * sel(s.acc > 0.0f, 1.0f - s.al, (vf)1.0f);
     return s;
 };
 """
@@ -233,10 +265,10 @@ auto front_step = [&](int e, HalfRow* T, v8f vop) -> Step {
 FORWARD = r"""
 const int start = wp::index(ranges, tile, 0);
 const int end = wp::index(ranges, tile, 1);
-// the tile's state as 32 half rows of 8 pixels: row r's pixels 0-7 at 2r, 8-15 at 2r + 1
-alignas(64) float T[32][8], CR[32][8], CG[32][8], CB[32][8], DD[32][8], LL[32][8];
-for (int q = 0; q < 32; ++q)
-    for (int k = 0; k < 8; ++k) {
+// the tile's state as NQ lane rows of W pixels (see the prelude)
+alignas(64) float T[NQ][@W@], CR[NQ][@W@], CG[NQ][@W@], CB[NQ][@W@], DD[NQ][@W@], LL[NQ][@W@];
+for (int q = 0; q < NQ; ++q)
+    for (int k = 0; k < @W@; ++k) {
         T[q][k] = 1.0f; CR[q][k] = 0.0f; CG[q][k] = 0.0f; CB[q][k] = 0.0f; DD[q][k] = 0.0f; LL[q][k] = 0.0f;
     }
 alignas(32) int row_done[32];   // 16 rows and a vector's overhang
@@ -245,22 +277,22 @@ const int full = (1 << nx) - 1;
 int rows_left = ny;
 for (int j = start; j < end; ++j) {
     const Splat g = load_splat(j);
-    list_halves(g, row_done, all_rows, 0);
+    list_rows(g, row_done, all_rows, 0);
     if (nl + nr == 0) continue;
     lane_constants(g);
     const float* col = cp + 4L * j;
-    const v8f vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
-    for (int e = nl > 0 ? 0 : 16; e < 16 + nr; e = e + 1 == nl ? 16 : e + 1) {   // the left block, the right one
+    const vf vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
+    for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
-        const v8f w = st.acc * st.al * st.Tk;
-        *(v8f*)CR[q] = fma8(w, vc0, *(v8f*)CR[q]);
-        *(v8f*)CG[q] = fma8(w, vc1, *(v8f*)CG[q]);
-        *(v8f*)CB[q] = fma8(w, vc2, *(v8f*)CB[q]);
-        *(v8f*)DD[q] = fma8(w, vc3, *(v8f*)DD[q]);
+        const vf w = st.acc * st.al * st.Tk;
+        *(vf*)CR[q] = fmav(w, vc0, *(vf*)CR[q]);
+        *(vf*)CG[q] = fmav(w, vc1, *(vf*)CG[q]);
+        *(vf*)CB[q] = fmav(w, vc2, *(vf*)CB[q]);
+        *(vf*)DD[q] = fmav(w, vc3, *(vf*)DD[q]);
         // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
-        *(v8f*)LL[q] = vmax(*(v8f*)LL[q], sel(st.acc > 0.0f, vpos, (v8f)0.0f));
-        const int nh = bits8(st.stop > 0.0f);
+        *(vf*)LL[q] = vmax(*(vf*)LL[q], sel(st.acc > 0.0f, vpos, (vf)0.0f));
+        const int nh = lane_bits(st.stop > 0.0f);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
@@ -268,7 +300,7 @@ for (int j = start; j < end; ++j) {
 for (int r = 0; r < ny; ++r) {
     const int y = y0 + r;
     for (int k = 0; k < nx; ++k) {
-        const int x = x0 + k, q = 2 * r + (k >> 3), kk = k & 7;
+        const int x = x0 + k, q = QPR * r + k / @W@, kk = k % @W@;
         const float Tk = T[q][kk];
         wp::index(rgb, y, x, 0) = CR[q][kk] + Tk * background[0];
         wp::index(rgb, y, x, 1) = CG[q][kk] + Tk * background[1];
@@ -285,33 +317,33 @@ return 1;
 ALPHA = r"""
 const int start = wp::index(ranges, tile, 0);
 const int end = wp::index(ranges, tile, 1);
-alignas(64) float T[32][8], DD[32][8];
-for (int q = 0; q < 32; ++q)
-    for (int k = 0; k < 8; ++k) { T[q][k] = 1.0f; DD[q][k] = 0.0f; }
+alignas(64) float T[NQ][@W@], DD[NQ][@W@];
+for (int q = 0; q < NQ; ++q)
+    for (int k = 0; k < @W@; ++k) { T[q][k] = 1.0f; DD[q][k] = 0.0f; }
 alignas(32) int row_done[32];   // 16 rows and a vector's overhang
 for (int r = 0; r < 32; ++r) row_done[r] = 0;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
-const v8f vts = t_stop;
+const vf vts = t_stop;
 for (int j = start; j < end; ++j) {
     const Splat g = load_splat(j);
-    list_halves(g, row_done, all_rows, 0);
+    list_rows(g, row_done, all_rows, 0);
     if (nl + nr == 0) continue;
     lane_constants(g);
-    const v8f vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
-    for (int e = nl > 0 ? 0 : 16; e < 16 + nr; e = e + 1 == nl ? 16 : e + 1) {   // the left block, the right one
+    const vf vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
+    for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
-        if (@DEPTH@) *(v8f*)DD[q] = fma8(st.acc * st.al * st.Tk, vz, *(v8f*)DD[q]);
-        const v8f covered = sel(st.Tn < vts, st.acc, (v8f)0.0f);
-        const int nh = bits8(st.stop + covered > 0.0f);
+        if (@DEPTH@) *(vf*)DD[q] = fmav(st.acc * st.al * st.Tk, vz, *(vf*)DD[q]);
+        const vf covered = sel(st.Tn < vts, st.acc, (vf)0.0f);
+        const int nh = lane_bits(st.stop + covered > 0.0f);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
 }
 for (int r = 0; r < ny; ++r)
     for (int k = 0; k < nx; ++k) {
-        const int q = 2 * r + (k >> 3), kk = k & 7;
+        const int q = QPR * r + k / @W@, kk = k % @W@;
         wp::index(alpha, y0 + r, x0 + k) = 1.0f - T[q][kk];
         if (@DEPTH@) wp::index(depth, y0 + r, x0 + k) = DD[q][kk];
     }
@@ -320,11 +352,11 @@ return 1;
 
 BACKWARD = r"""
 const int start = wp::index(ranges, tile, 0);
-// per pixel, half rows as in the forward: T (rebuilt back to front from T_final), S (what lies behind), the upstream
+// per pixel, lane rows as in the forward: T (rebuilt back to front from T_final), S (what lies behind), the upstream
 // gradients, n_contrib; lanes outside the image stay 0 (n_contrib 0: never blended)
-alignas(64) float T[32][8], S[32][8], GR[32][8], GG[32][8], GB[32][8], VD[32][8], NC[32][8];
-for (int q = 0; q < 32; ++q)
-    for (int k = 0; k < 8; ++k) {
+alignas(64) float T[NQ][@W@], S[NQ][@W@], GR[NQ][@W@], GG[NQ][@W@], GB[NQ][@W@], VD[NQ][@W@], NC[NQ][@W@];
+for (int q = 0; q < NQ; ++q)
+    for (int k = 0; k < @W@; ++k) {
         T[q][k] = 0.0f; S[q][k] = 0.0f; GR[q][k] = 0.0f; GG[q][k] = 0.0f; GB[q][k] = 0.0f; VD[q][k] = 0.0f;
         NC[q][k] = 0.0f;
     }
@@ -335,7 +367,7 @@ for (int r = 0; r < ny; ++r) {
     const int y = y0 + r;
     int rm = 0;
     for (int k = 0; k < nx; ++k) {
-        const int x = x0 + k, q = 2 * r + (k >> 3), kk = k & 7;
+        const int x = x0 + k, q = QPR * r + k / @W@, kk = k % @W@;
         const float Tf = wp::index(T_final, y, x);
         T[q][kk] = Tf;
         const float gr = wp::index(v_rgb, y, x, 0), gg = wp::index(v_rgb, y, x, 1), gb = wp::index(v_rgb, y, x, 2);
@@ -354,113 +386,154 @@ for (int r = 0; r < ny; ++r) {
 if (slots.strides[0] != 4 || pair_grads.strides[0] != 48) return 0;
 const int* slot_p = (const int*)slots.data;
 float* grads = (float*)pair_grads.data;
-// one Gaussian's running sums over the tile, per lane (0-7 the left half, 8-15 the right): 0 v_pow, 1 dy v_pow,
-// 2 dy^2 v_pow, 3 v_alpha_raw E, 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums
+// one Gaussian's running sums over the tile, per column (0-15): 0 v_pow, 1 dy v_pow, 2 dy^2 v_pow, 3 v_alpha_raw E,
+// 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums
 alignas(64) float ACC[10][16];
+typedef float v16f __attribute__((ext_vector_type(16)));
+typedef float v4f __attribute__((ext_vector_type(4)));
+typedef float v2f __attribute__((ext_vector_type(2)));
+auto tree16 = [](v16f v) -> float {
+    const v8f h = __builtin_shufflevector(v, v, 0, 1, 2, 3, 4, 5, 6, 7)
+                  + __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15);
+    const v4f q = __builtin_shufflevector(h, h, 0, 1, 2, 3) + __builtin_shufflevector(h, h, 4, 5, 6, 7);
+    const v2f r = __builtin_shufflevector(q, q, 0, 1) + __builtin_shufflevector(q, q, 2, 3);
+    return r[0] + r[1];
+};
 for (int jj = 0; jj < n_max; ++jj) {
     const int i = n_max - 1 - jj;
     const float fi = (float)i;
     const int j = start + i;
     const Splat g = load_splat(j);
-    list_halves(g, no_rows, row_max, i);
+    list_rows(g, no_rows, row_max, i);
     if (nl + nr == 0) continue;
     lane_constants(g);
     const float a = g.a, b = g.b, c = g.c;
     const float* col = cp + 4L * j;
     const float c0 = col[0], c1 = col[1], c2 = col[2], c3 = col[3];
-    const v8f vop = g.op;
-    // the entries [e0, e1) of one block (off 0: the left halves, 8: the right ones) in two passes: the first
-    // blends back to front, sums v_raw E and keeps each entry's v_pow and w ok (VP, WK); the second sums those per
-    // lane, each sum in a register (the same lane sums in the same order as one loop over both blocks that adds to
-    // ACC[.][off] as it goes), stored in ACC[.][off .. off + 7] at the end
-    alignas(64) float VP[32][8], WK[32][8];
+    const vf vop = g.op;
+    // the entries [e0, e1) of one block (off: its first column, 0, or 8 for 8 lanes' right halves) in two passes:
+    // the first blends back to front, sums v_raw E and keeps each entry's v_pow and w ok (VP, WK); the second sums
+    // those per lane, each sum in a register (the same lane sums in the same order as one loop over the list that
+    // adds to ACC[.][column] as it goes), stored in ACC[.][off .. off + W - 1] at the end
+    alignas(64) float VP[32][@W@], WK[32][@W@];
     auto blend_block = [&](const int off, const int e0, const int e1) __attribute__((always_inline)) {
-        v8f s3 = 0.0f;
-        for (int e = e0; e < e1; ++e) {
-            const int q = hq[e];
-            const v8f ev = vexp(entry_power(e));
-            const v8f raw = vop * ev;
-            const v8f al = vmin(kv(K_AMAX), raw);
-            const v8f bit = __builtin_convertvector(((v8i)hm[e] >> LANE) & 1, v8f);
-            const v8f ok = sel(*(const v8f*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (v8f)0.0f), (v8f)0.0f);
-            const v8f inv = 1.0f / (1.0f - al);
-            const v8f Tq = *(const v8f*)T[q];
-            const v8f Sq = *(const v8f*)S[q];
-            const v8f gR = *(const v8f*)GR[q], gG = *(const v8f*)GG[q], gB = *(const v8f*)GB[q];
-            const v8f vD = *(const v8f*)VD[q];
-            const v8f Tk = Tq * inv;
-            const v8f w = al * Tk;
-            const v8f gi = fma8((v8f)c3, vD, fma8((v8f)c2, gB, fma8((v8f)c1, gG, c0 * gR)));
-            const v8f v_al = fma8(Tk, gi, -(Sq * inv));
-            const v8i okb = ok > 0.0f;
-            // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
-            // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
-            *(v8f*)T[q] = Tq * sel(okb, inv, (v8f)1.0f);
-            *(v8f*)S[q] = Sq + sel(okb, w * gi, (v8f)-0.0f);
-            const v8f v_raw = sel(raw <= kv(K_AMAX), v_al, (v8f)0.0f) * ok;
-            *(v8f*)VP[e] = v_raw * raw;
-            s3 = fma8(v_raw, ev, s3);
-            *(v8f*)WK[e] = w * ok;
-        }
-        const v8f dx = *(const v8f*)(dxl + off);
-        v8f s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s4 = 0.0f, s5 = 0.0f, s6 = 0.0f, s7 = 0.0f, s8 = 0.0f,
+        const vf dx = *(const vf*)(dxl + off);
+        vf s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f, s4 = 0.0f, s5 = 0.0f, s6 = 0.0f, s7 = 0.0f, s8 = 0.0f,
             s9 = 0.0f;
         for (int e = e0; e < e1; ++e) {
             const int q = hq[e];
+            const vf ev = vexp(entry_power(e));
+            const vf raw = vop * ev;
+            const vf al = vmin(kv(K_AMAX), raw);
+            const vf bit = __builtin_convertvector(((vi)hm[e] >> LANE) & 1, vf);
+            const vf ok = sel(*(const vf*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (vf)0.0f), (vf)0.0f);
+            const vf inv = 1.0f / (1.0f - al);
+            const vf Tq = *(const vf*)T[q];
+            const vf Sq = *(const vf*)S[q];
+            const vf gR = *(const vf*)GR[q], gG = *(const vf*)GG[q], gB = *(const vf*)GB[q];
+            const vf vD = *(const vf*)VD[q];
+            const vf Tk = Tq * inv;
+            const vf w = al * Tk;
+            const vf gi = fmav((vf)c3, vD, fmav((vf)c2, gB, fmav((vf)c1, gG, c0 * gR)));
+            const vf v_al = fmav(Tk, gi, -(Sq * inv));
+            const vi okb = ok > 0.0f;
+            // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
+            // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
+            *(vf*)T[q] = Tq * sel(okb, inv, (vf)1.0f);
+            *(vf*)S[q] = Sq + sel(okb, w * gi, (vf)-0.0f);
+            const vf v_raw = sel(raw <= kv(K_AMAX), v_al, (vf)0.0f) * ok;
+            s3 = fmav(v_raw, ev, s3);
+            *(vf*)VP[e] = v_raw * raw;
+            *(vf*)WK[e] = w * ok;
+        }
+        for (int e = e0; e < e1; ++e) {
+            const int q = hq[e];
             const float dy = hd[e], bdy = hb[e];
-            const v8f v_pow = *(const v8f*)VP[e], wk = *(const v8f*)WK[e];
+            const vf v_pow = *(const vf*)VP[e], wk = *(const vf*)WK[e];
             s0 = s0 + v_pow;
-            s1 = fma8((v8f)dy, v_pow, s1);
-            s2 = fma8((v8f)(dy * dy), v_pow, s2);
-            s4 = fma8(wk, *(const v8f*)GR[q], s4);
-            s5 = fma8(wk, *(const v8f*)GG[q], s5);
-            s6 = fma8(wk, *(const v8f*)GB[q], s6);
-            s7 = fma8(wk, *(const v8f*)VD[q], s7);
+            s1 = fmav((vf)dy, v_pow, s1);
+            s2 = fmav((vf)(dy * dy), v_pow, s2);
+            s4 = fmav(wk, *(const vf*)GR[q], s4);
+            s5 = fmav(wk, *(const vf*)GG[q], s5);
+            s6 = fmav(wk, *(const vf*)GB[q], s6);
+            s7 = fmav(wk, *(const vf*)VD[q], s7);
             if (@ABSGRAD@) {
-                const v8f mp = __builtin_elementwise_abs(v_pow);
-                s8 = fma8(__builtin_elementwise_abs(fma8((v8f)a, dx, (v8f)bdy)), mp, s8);
-                s9 = fma8(__builtin_elementwise_abs(fma8((v8f)b, dx, (v8f)(c * dy))), mp, s9);
+                const vf mp = __builtin_elementwise_abs(v_pow);
+                s8 = fmav(__builtin_elementwise_abs(fmav((vf)a, dx, (vf)bdy)), mp, s8);
+                s9 = fmav(__builtin_elementwise_abs(fmav((vf)b, dx, (vf)(c * dy))), mp, s9);
             }
         }
-        *(v8f*)(ACC[0] + off) = s0; *(v8f*)(ACC[1] + off) = s1; *(v8f*)(ACC[2] + off) = s2;
-        *(v8f*)(ACC[3] + off) = s3; *(v8f*)(ACC[4] + off) = s4; *(v8f*)(ACC[5] + off) = s5;
-        *(v8f*)(ACC[6] + off) = s6; *(v8f*)(ACC[7] + off) = s7; *(v8f*)(ACC[8] + off) = s8;
-        *(v8f*)(ACC[9] + off) = s9;
+        *(vf*)(ACC[0] + off) = s0; *(vf*)(ACC[1] + off) = s1; *(vf*)(ACC[2] + off) = s2;
+        *(vf*)(ACC[3] + off) = s3; *(vf*)(ACC[4] + off) = s4; *(vf*)(ACC[5] + off) = s5;
+        *(vf*)(ACC[6] + off) = s6; *(vf*)(ACC[7] + off) = s7; *(vf*)(ACC[8] + off) = s8;
+        *(vf*)(ACC[9] + off) = s9;
     };
+#if @W@ == 8
     blend_block(0, 0, nl);
     blend_block(8, 16, 16 + nr);
-    // sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow (dx is the lane's constant), each lane sum as raster_tile's
-    auto lane_sum = [](const float* v) -> float {
-        float h[8], q4[4];
-        for (int k = 0; k < 8; ++k) h[k] = v[k] + v[k + 8];
-        for (int k = 0; k < 4; ++k) q4[k] = h[k] + h[k + 4];
-        return (q4[0] + q4[2]) + (q4[1] + q4[3]);
-    };
-    alignas(64) float t1[16], t2[16], t3[16];
-    for (int k = 0; k < 16; ++k) {
-        t1[k] = dxl[k] * ACC[0][k];
-        t2[k] = dxl[k] * dxl[k] * ACC[0][k];
-        t3[k] = dxl[k] * ACC[1][k];
-    }
-    const float P1 = lane_sum(t1), P2 = lane_sum(t2), Q1 = lane_sum(ACC[1]), Q2 = lane_sum(t3), Q3 = lane_sum(ACC[2]);
+#else
+    blend_block(0, 0, nl);
+#endif
+    // sum_px dx v_pow, sum dx^2 v_pow, sum dx dy v_pow (dx is the column's constant) and the other sums over the
+    // 16 columns, each by raster_tile's tree (v[k] + v[k + 8], then + 4, then (0 + 2) + (1 + 3)) as vector halves
+    // added, where 13 scalar trees of 15 additions each took a sixth of the backward blend
+    const v16f dx16 = *(const v16f*)dxl, a0 = *(const v16f*)ACC[0], a1 = *(const v16f*)ACC[1];
+    const float P1 = tree16(dx16 * a0), P2 = tree16(dx16 * dx16 * a0), Q1 = tree16(a1), Q2 = tree16(dx16 * a1);
+    const float Q3 = tree16(*(const v16f*)ACC[2]);
     float* pg = grads + 12L * slot_p[j];
     pg[0] = pg[0] + (a * P1 + b * Q1);
     pg[1] = pg[1] + (b * P1 + c * Q1);
     pg[2] = pg[2] + -0.5f * P2;
     pg[3] = pg[3] + -Q2;
     pg[4] = pg[4] + -0.5f * Q3;
-    for (int t = 3; t < 10; ++t) pg[t + 2] = pg[t + 2] + lane_sum(ACC[t]);
+    for (int t = 3; t < 10; ++t) pg[t + 2] = pg[t + 2] + tree16(*(const v16f*)ACC[t]);
 }
 return 1;
 """
 
 
+def lanes() -> int:
+    """The lane width the snippets ask for where the CPU has AVX-512: 16 (a whole tile row a vector), or 8 when the
+    environment sets ``MGSO_TILE_LANES=8`` (read once, at import: for tests and profiles that compare the two). Where
+    the compiler targets no AVX-512 the snippets use 8 lanes either way."""
+    return _LANES
+
+
+def lanes_probe() -> str:
+    """A snippet that returns the lane width :func:`fill`'s snippets compile at in the same module (16 or 8), 0 where
+    they do not run (CUDA)."""
+    wide = "#if defined(__AVX512F__)\nreturn 16;\n#else\nreturn 8;\n#endif\n" if _LANES == 16 else "return 8;\n"
+    return "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n" + wide + "#else\nreturn 0;\n#endif\n"
+
+
+def _lanes_from_env() -> int:
+    value = os.environ.get("MGSO_TILE_LANES", "16").strip()
+    if value not in ("8", "16"):
+        raise ValueError(f"MGSO_TILE_LANES={value!r}: the tile snippets' lane width is 8 or 16")
+    return int(value)
+
+
+_LANES = _lanes_from_env()
+
+
+def _with_lanes(text: str, width: int) -> str:
+    return (text.replace("@W@", str(width))
+            .replace("@LANES@", ", ".join(str(k) for k in range(width))))
+
+
 def fill(body: str, consts: dict[str, float | int]) -> str:
-    """The snippet: CPU only (clang), no contraction into FMAs but the snippet's own ``fma8`` (so the forward and
+    """The snippet: CPU only (clang), no contraction into FMAs but the snippet's own ``fmav`` (so the forward and
     the backward compute each alpha the same way), the prelude and ``body`` with the constants filled in (a float as
-    a float32 literal, an int as itself)."""
-    text = ("#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
-            + _PRELUDE + body + "\n}\n#else\nreturn 0;\n#endif\n")
+    a float32 literal, an int as itself), at 16 lanes where the compiler targets AVX-512 (and :func:`lanes` is 16),
+    at 8 otherwise."""
+    code = _PRELUDE + body
+    wide = _with_lanes(code, 16) if _LANES == 16 else None
+    text = "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
+    if wide is not None:
+        text += "#if defined(__AVX512F__)\n" + wide + "\n#else\n" + _with_lanes(code, 8) + "\n#endif\n"
+    else:
+        text += _with_lanes(code, 8)
+    text += "\n}\n#else\nreturn 0;\n#endif\n"
     for name, value in consts.items():
         text = text.replace(f"@{name}@", str(value) if isinstance(value, int) else _f32(value))
     if "@" in text:

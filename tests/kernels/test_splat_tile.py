@@ -309,3 +309,57 @@ def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
         np.testing.assert_array_equal(got_k, want_k)
         np.testing.assert_array_equal(got_v, want_v)
         assert ran == (1 if native and str(wp_device).startswith("cpu") else 0)
+
+
+_LANE_CASES = [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True), ((70, 41), 1500, False)]
+
+
+def _snippet_outputs(device) -> dict:
+    """Everything the C++ snippets compute on the lane cases' scenes (images, coverage, gradients), by name."""
+    out = {}
+    for c, (size, n, absgrad) in enumerate(_LANE_CASES):
+        rng, scene, cam = _scene(20 + c, n, *size)
+        w, h = size
+        ups = [rng.normal(size=s).astype(np.float32) for s in ((h, w, 3), (h, w), (h, w))]
+        cpp, _ = _render_both_ways(device, scene, cam, ups, absgrad)
+        out.update({f"{c}_{k}": v for k, v in cpp.items()})
+    return out
+
+
+def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_path):
+    # Where the CPU has AVX-512 the snippets blend a whole tile row (16 pixels) a vector instead of half of one:
+    # each pixel's arithmetic and the order of every lane's sums are those of the 8 lanes, so the images, coverage,
+    # n_contrib and gradients are equal bit for bit. The 8 lanes run in a second process (MGSO_TILE_LANES=8 is read
+    # at import); both processes report the width they compiled at, so the comparison is between two code paths.
+    import os
+    import subprocess
+    import sys
+
+    if not wp.get_device(wp_device).is_cpu:
+        pytest.skip("the C++ snippets run on the CPU only")
+    lanes = raster_tile.native_lanes(wp_device)
+    if lanes != 16:
+        pytest.skip(f"this CPU compiles the snippets at {lanes} lanes only (no AVX-512)")
+    dump = tmp_path / "lanes8.npz"
+    env = dict(os.environ, MGSO_TILE_LANES="8")
+    proc = subprocess.run([sys.executable, __file__, str(dump)], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    narrow = dict(np.load(dump))
+    assert int(narrow.pop("lanes")) == 8
+    wide = _snippet_outputs(wp_device)
+    assert sorted(wide) == sorted(narrow)
+    for key, value in wide.items():
+        if key.split("_", 1)[1].startswith("status"):
+            assert (value == 1).all() and (narrow[key] == 1).all(), key
+        else:
+            assert np.array_equal(value, narrow[key]), key
+
+
+if __name__ == "__main__":   # the 8-lane half of the test above, in its own process
+    import sys
+
+    from mgso_kernels import runtime
+
+    device = runtime.init("cpu")
+    np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), **_snippet_outputs(device))
