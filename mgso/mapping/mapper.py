@@ -70,7 +70,7 @@ from mgso.mapping.seeding import (COVERAGE_DOWNSCALE, KeyframeSeedInput, SeedRes
                                   map_seen_from, plan_seeds, seed_keyframe, seed_scales)
 from mgso.mapping.snapshot import MapSnapshot, SnapshotBoard, snapshot_of
 from mgso.mapping.strategy import DefaultStrategy
-from mgso.mapping.trainer import StepResult, Trainer, TrainStep, masked_psnr, usable_level
+from mgso.mapping.trainer import STAGES, StepResult, Trainer, TrainStep, masked_psnr, usable_level
 from mgso.mapping.views import LeastUsedSampler, NewestOrRandomSampler, TrainView, ViewSet
 from mgso.observers import Observer
 
@@ -110,6 +110,10 @@ class MapperStats:
     points_too_far: int = 0                 # DSO points not seeded: deeper than max_depth_factor x their median
     steps: int = 0                          # training steps, all of them
     train_seconds: float = 0.0              # wall time inside training steps
+    # of it, the seconds of each stage of the steps (trainer.STAGES: render, loss, backward, adam, strategy), and
+    # the (tile, Gaussian) pairs the steps' renders listed, summed: where a step's time goes on this run's map
+    stage_seconds: dict = field(default_factory=lambda: {name: 0.0 for name in STAGES})
+    pairs: int = 0
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_coarse_steps: int = 0             # of them at the coarser level (mapping.mapper.final_coarse_share)
     final_seconds: float = 0.0
@@ -840,6 +844,9 @@ class Mapper:
             self.stats.running_level = level
         self.stats.train_seconds += time.perf_counter() - t0
         self.stats.steps += 1
+        for name, seconds in r.times.items():
+            self.stats.stage_seconds[name] = self.stats.stage_seconds.get(name, 0.0) + seconds
+        self.stats.pairs += r.num_pairs
         self.stats.steps_while_streaming += int(not self.stream_ended.is_set())
         self._last_step = r
         f = r.refine

@@ -53,22 +53,19 @@ def _f32(x: float) -> str:
 
 # shared by the snippets: the blend's constants and exp_lane's polynomial (raster_tile.exp_lane, the same operations).
 # The lanes are @W@ pixels of a tile row: 8 (a half row, one AVX2 register) or 16 (a whole row, one AVX-512
-# register); the rows' spans are computed 8 rows a vector either way
+# register); the rows' spans are computed W rows a vector
 _PRELUDE = r"""
 const float AMAX = @ALPHA_MAX@, AMIN = @ALPHA_MIN@, TMIN = @T_MIN@;
 const float LOG2E_ = @LOG2E@, LN2HI = @LN2_HI@, LN2LO = @LN2_LO@;
-typedef float v8f __attribute__((ext_vector_type(8)));     // 8 rows (the spans)
-typedef int v8i __attribute__((ext_vector_type(8)));
-typedef float vf __attribute__((ext_vector_type(@W@)));    // the lanes: @W@ pixels of a tile row
+typedef float v8f __attribute__((ext_vector_type(8)));
+typedef float vf __attribute__((ext_vector_type(@W@)));    // the lanes: @W@ pixels of a tile row, or @W@ rows
 typedef int vi __attribute__((ext_vector_type(@W@)));
-const v8i ROWS8 = {0, 1, 2, 3, 4, 5, 6, 7};
 const vi LANE = {@LANES@};
 // the state's lane rows (a tile row is QPR of them: row r's pixels W k .. W k + W - 1 at QPR r + k)
 const int NQ = 256 / @W@, QPR = 16 / @W@;
-// 8 ints from anywhere (a v8i pointer must be 32-byte aligned)
-auto ldi = [](const int* p) -> v8i { v8i v; __builtin_memcpy(&v, p, sizeof v); return v; };
+// W ints from anywhere (a vi pointer must be aligned to its size)
+auto ldi = [](const int* p) -> vi { vi v; __builtin_memcpy(&v, p, sizeof v); return v; };
 // a ? b : c per lane, bit for bit (a: a comparison's all-ones / zero lanes)
-auto sel8 = [](v8i a, v8f b, v8f c) -> v8f { return (v8f)((a & (v8i)b) | (~a & (v8i)c)); };
 auto sel = [](vi a, vf b, vf c) -> vf { return (vf)((a & (vi)b) | (~a & (vi)c)); };
 // wp::min(k, v) as Warp's CPU code has it (C fmin: a NaN v gives k); on x86 one vminps(v, k), which returns its
 // second operand where either is NaN or they are equal (the same value), v where v < k: the same result; LLVM made
@@ -152,7 +149,7 @@ auto load_splat = [&](int j) -> Splat {
     g.hi = hi0 < ny - 1 ? hi0 : ny - 1;
     return g;
 };
-// list_rows(g, done, rmax, i): per row r in [lo, hi] (8 rows a vector) the span of the row inside the cut-off
+// list_rows(g, done, rmax, i): per row r in [lo, hi] (W rows a vector) the span of the row inside the cut-off
 // ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none where rmax[r] <= i; then
 // the lane rows with a bit left, listed in hq (their index q in the state) and hm (their W bits) with the row's
 // -0.5 c dy^2, b dy and dy in hc, hb, hd. With 8 lanes: the left halves (q = 2 r) at 0, 1, ..., the right ones
@@ -160,33 +157,33 @@ auto load_splat = [&](int j) -> Splat {
 // blocks' sizes (nr = 0 with 16 lanes). done and rmax hold 32 rows (16 and a vector's overhang).
 alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
 for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
-alignas(32) int mrow[16];
-alignas(32) float dyr[16], cyyr[16], bdyr[16];
+alignas(64) int mrow[16];
+alignas(64) float dyr[16], cyyr[16], bdyr[16];
 int hq[32], hm[32];
 float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
 auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
     const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
-    for (int r8 = 0; r8 < nrows; r8 += 8) {
-        const v8i rr = (v8i)(lo + r8) + ROWS8;
-        const v8f dy = ((v8f)fy0 + __builtin_convertvector(rr, v8f)) - g.my;
-        const v8f disc = ar2 - g.det * dy * dy;
-        const v8f half = __builtin_elementwise_sqrt(sel8(disc < 0.0f, (v8f)0.0f, disc)) * g.inv_a;
-        const v8f xc = g.mx - g.b * dy * g.inv_a;
-        const v8i lm = __builtin_elementwise_max(
-            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), v8i) - x0, (v8i)0);
-        const v8i h = __builtin_elementwise_min(
-            __builtin_convertvector(__builtin_elementwise_floor(xc + half), v8i) - x0, (v8i)(nx - 1));
-        const v8i live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo + r8) > i);
+    for (int r8 = 0; r8 < nrows; r8 += @W@) {
+        const vi rr = (vi)(lo + r8) + LANE;
+        const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
+        const vf disc = ar2 - g.det * dy * dy;
+        const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
+        const vf xc = g.mx - g.b * dy * g.inv_a;
+        const vi lm = __builtin_elementwise_max(
+            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
+        const vi h = __builtin_elementwise_min(
+            __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
+        const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo + r8) > i);
         // shift counts kept in [0, 16] where the row is not live (a vector shift by 32 or more is undefined)
-        const v8i l = __builtin_elementwise_min(lm, (v8i)15);
-        const v8i len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (v8i)0), (v8i)16);
-        const v8i span = (((v8i)1 << len) - 1) << l;
-        *(v8i*)(mrow + r8) = span & ~ldi(done + lo + r8) & live;
-        *(v8f*)(dyr + r8) = dy;
-        *(v8f*)(cyyr + r8) = hc_ * dy * dy;
-        *(v8f*)(bdyr + r8) = g.b * dy;
+        const vi l = __builtin_elementwise_min(lm, (vi)15);
+        const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
+        const vi span = (((vi)1 << len) - 1) << l;
+        *(vi*)(mrow + r8) = span & ~ldi(done + lo + r8) & live;
+        *(vf*)(dyr + r8) = dy;
+        *(vf*)(cyyr + r8) = hc_ * dy * dy;
+        *(vf*)(bdyr + r8) = g.b * dy;
     }
 #if @W@ == 8
     int a = 0, b = 16;
