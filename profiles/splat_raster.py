@@ -15,7 +15,8 @@ width; opacities sigmoid(N(1, 1.5)), median 0.73; SH degree 0 colours unless --d
 
 ``--run DIR`` profiles a real run's map instead: ``DIR/map.ply`` rendered at the run's image size and intrinsics
 (``sequence.json``) from ``--views`` poses spread evenly over ``DIR/trajectory.txt``; ``--sizes`` and ``--counts``
-are ignored and the row's ``count`` is the map's size (medians over views and repeats).
+are ignored and the row's ``count`` is the map's size (medians over views and repeats); ``--downscale 2`` renders it
+at half that size (the real-time mapper's coarse steps).
 
 Per size and count: medians over ``--repeats`` (after one warm-up) of each stage in milliseconds: forward
 ``project``, ``bin_count`` (tile counting + prefix scan + reading the pair count), ``bin_keys`` (key emission),
@@ -144,8 +145,9 @@ def volume_scene(rng: np.random.Generator, n: int, width: int, height: int, degr
     return scene, make_camera(f, f, cx, cy, width, height, np.eye(4))
 
 
-def run_scene(run: str, views: int, device: str):
-    """A finished run's map (parameters as Warp arrays) and ``views`` cameras along its trajectory."""
+def run_scene(run: str, views: int, device: str, downscale: int = 1):
+    """A finished run's map (parameters as Warp arrays) and ``views`` cameras along its trajectory, at the run's
+    image size divided by ``downscale`` (a pyramid level's camera: the real-time mapper's coarse steps)."""
     import json as _json
     from pathlib import Path
 
@@ -164,7 +166,13 @@ def run_scene(run: str, views: int, device: str):
     params = [wp.array(np.ascontiguousarray(a, np.float32), device=device)
               for a in (g.means, g.log_scales, g.quats, g.opacity_logits, sh)]
     idx = np.linspace(0, len(traj) - 1, views + 2).round().astype(int)[1:-1]
-    cams = [make_camera(k["fx"], k["fy"], k["cx"], k["cy"], width, height, np.linalg.inv(traj.cam_to_world[i]))
+    from mgso.camera import PinholeCamera
+
+    cam = PinholeCamera(k["fx"], k["fy"], k["cx"], k["cy"], width, height)
+    if downscale > 1:
+        cam = cam.scaled(1.0 / downscale)
+        width, height = cam.width, cam.height
+    cams = [make_camera(cam.fx, cam.fy, cam.cx, cam.cy, width, height, np.linalg.inv(traj.cam_to_world[i]))
             for i in idx]
     return params, cams, width, height, len(g.means), int(round(np.sqrt(sh.shape[1]))) - 1
 
@@ -179,6 +187,8 @@ def main(argv=None) -> int:
     ap.add_argument("--degree", type=int, default=0)
     ap.add_argument("--scene", choices=("room", "volume"), default="room")
     ap.add_argument("--run", help="profile this finished run's map.ply along its trajectory (see above)")
+    ap.add_argument("--downscale", type=int, default=1, help="--run: render at the run's size / this (2: the "
+                    "real-time mapper's 320x240 steps of a 640x480 run)")
     ap.add_argument("--views", type=int, default=4, help="--run: poses along the trajectory")
     ap.add_argument("--no-stages", action="store_true",
                     help="totals only: no synchronisation between stages (on a GPU the per-stage timing adds a "
@@ -191,7 +201,7 @@ def main(argv=None) -> int:
     cases = []
     degree = args.degree
     if args.run:
-        params, cams, width, height, count, degree = run_scene(args.run, args.views, device)
+        params, cams, width, height, count, degree = run_scene(args.run, args.views, device, args.downscale)
         cases.append((params, cams, width, height, count))
     else:
         for size in args.sizes.split(","):
