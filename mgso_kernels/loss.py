@@ -450,7 +450,8 @@ class L1SSIMLoss:
         H, W, d = self.height, self.width, self.device
         self._nch = -(-3 * W // CHUNK)
         self._in_place = (3 * W) % CHUNK == 0       # rows are whole chunks: read and write the images in place
-        self._band = BAND_CPU if wp.get_device(d).is_cpu else BAND_GPU
+        self._cpu = wp.get_device(d).is_cpu
+        self._band = BAND_CPU if self._cpu else BAND_GPU
         self._nthreads = -(-H // self._band) * self._nch
         cshape = (H, self._nch)
         self._adj = AdjointChunks()
@@ -461,6 +462,9 @@ class L1SSIMLoss:
             self._staged_x = wp.zeros(cshape, dtype=vec16, device=d)
             self._staged_y = wp.zeros(cshape, dtype=vec16, device=d)
         self._staged_w: wp.array | None = None   # made on the first call with a mask
+        # on the CPU, a copy of the mask last staged into _staged_w: a call with equal weights (a camera's
+        # undistortion mask, the same for every view) skips staging them again, which cost a third of a masked call
+        self._staged_w_src: np.ndarray | None = None
         self._sums = wp.zeros(self._nthreads, dtype=wp.vec3, device=d)
         self._nblocks = -(-self._nthreads // REDUCE_BLOCK)
         self._partials = wp.zeros(self._nblocks, dtype=wp.vec3d, device=d)
@@ -546,14 +550,24 @@ class L1SSIMLoss:
             ci.x, ci.y = self._staged_x, self._staged_y
             ci.gain, ci.bias = 1.0, 0.0   # staged with the exposure applied
         ci.weight = self._dummy_chunks
+        stage_weight = 0
         if img.use_weight:
             if self._staged_w is None:
                 self._staged_w = wp.zeros((H, self._nch), dtype=vec16, device=d)
             ci.weight = self._staged_w
-        if not in_place or img.use_weight:
+            stage_weight = 1
+            if self._cpu:
+                w = img.weight.numpy()
+                if self._staged_w_src is not None and np.array_equal(w, self._staged_w_src):
+                    stage_weight = 0
+                else:
+                    self._staged_w_src = None   # until staged
+        if not in_place or stage_weight:
             runtime.launch_split(stage_chunks, H * self._nch,
-                                 [img.rendered, img.target, img.weight, img.use_weight, img.gain, img.bias,
+                                 [img.rendered, img.target, img.weight, stage_weight, img.gain, img.bias,
                                   self._nch, int(not in_place), ci.x, ci.y, ci.weight], d, min_chunk=1024)
+            if stage_weight and self._cpu:
+                self._staged_w_src = np.array(img.weight.numpy(), copy=True)
         sums = self._sums.reshape((self._nthreads, 1))
         simd = self.simd
         if simd:

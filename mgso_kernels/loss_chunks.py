@@ -173,8 +173,9 @@ def stage_chunks(offset: int, rendered: wp.array2d(dtype=wp.vec3), target: wp.ar
                  weight: wp.array2d(dtype=float), use_weight: int, gain: float, bias: float, nch: int,
                  stage_images: int, x: wp.array2d(dtype=vec16), y: wp.array2d(dtype=vec16),
                  w_chunks: wp.array2d(dtype=vec16)):
-    """Copy the image pair (``gain * rendered + bias``, target) and/or the pixel weights into zero-padded chunks, one
-    thread per chunk (for widths whose rows are not whole chunks, and for masks)."""
+    """Copy the image pair (``gain * rendered + bias``, target; ``stage_images``) and/or the pixel weights
+    (``use_weight``) into zero-padded chunks, one thread per chunk (for widths whose rows are not whole chunks, and for
+    masks)."""
     i = offset + wp.tid()
     row = i // nch
     c = i - row * nch
@@ -187,8 +188,9 @@ def stage_chunks(offset: int, rendered: wp.array2d(dtype=wp.vec3), target: wp.ar
         px = f // 3
         if px < w:
             ch = f - 3 * px
-            xv[k] = rendered[row, px][ch] * gain + bias
-            yv[k] = target[row, px][ch]
+            if stage_images != 0:
+                xv[k] = rendered[row, px][ch] * gain + bias
+                yv[k] = target[row, px][ch]
             if use_weight != 0:
                 wv[k] = weight[row, px]
     if stage_images != 0:

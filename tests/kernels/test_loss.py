@@ -204,3 +204,35 @@ def test_cpu_row_loops_equal_the_chunk_kernels_bit_for_bit(wp_device, rng, use_m
     a, b = out[False], out[True]
     assert a[:5] == b[:5]
     assert np.array_equal(a[5].view(np.uint32), b[5].view(np.uint32))
+
+
+@pytest.mark.parametrize("h,w", [(48, 64), (37, 50)])   # rows of whole chunks (in place) and staged rows
+def test_a_mask_staged_once_is_reused_only_while_its_weights_are_equal(wp_device, rng, h, w):
+    # On the CPU the loss keeps the weights it staged last and skips staging equal ones again (a camera's
+    # undistortion mask, the same for every view). Each call must still give what a fresh loss gives with its own
+    # mask: a different mask, an equal mask in another array, and the first mask changed in place (the control: a
+    # cache keyed on the array object would return the stale result there).
+    import warp as wp
+    rendered, target = _pair(rng, h, w)
+    mask_a = (rng.random((h, w)) > 0.2).astype(np.float32)
+    mask_b = np.ones((h, w), np.float32)
+    mask_b[: h // 3] = 0.0
+    arr_a = wp.array(mask_a, dtype=wp.float32, device=wp_device)
+
+    def fresh(mask):
+        r = wl.L1SSIMLoss(h, w, wp_device)(rendered, target, mask=mask.copy(), exposure=(0.1, 0.02))
+        return r.loss, r.v_rendered.numpy().copy()
+
+    fn = wl.L1SSIMLoss(h, w, wp_device)
+    calls = [(arr_a, mask_a), (mask_b, mask_b), (mask_a.copy(), mask_a), (arr_a, mask_a)]
+    for k, (given, values) in enumerate(calls):
+        r = fn(rendered, target, mask=given, exposure=(0.1, 0.02))
+        want_loss, want_grad = fresh(values)
+        assert r.loss == want_loss and np.array_equal(r.v_rendered.numpy(), want_grad), k
+    changed = mask_a.copy()
+    changed[h // 2:] = 0.0
+    arr_a.assign(changed)   # the same array, new weights
+    r = fn(rendered, target, mask=arr_a, exposure=(0.1, 0.02))
+    want_loss, want_grad = fresh(changed)
+    assert r.loss == want_loss and np.array_equal(r.v_rendered.numpy(), want_grad)
+    assert r.loss != fresh(mask_a)[0]
