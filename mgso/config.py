@@ -761,11 +761,14 @@ class MapperConfig:
     iterations_per_keyframe: int = opt(20, "deterministic mode: training steps after each keyframe message (real "
                                            "time trains as much as it can instead); a CPU-sized budget, the rest "
                                            "of it spent at the end (final_iterations; docs/mapping.md)")
-    final_iterations: int = opt(1300, "final refinement after the last frame: steps over all keyframes, chosen as "
-                                      "while running; the keyframes that came last were trained least, and these "
-                                      "steps even it out (7-Scenes 640x480, uniform sampling: 22.26 dB with 20 a "
-                                      "keyframe + 1,300, 22.36 dB with 40 + 300 but its last frames at 13.9 dB; "
-                                      "the oracle 21.54 against 21.18 dB; docs/mapping.md); 0 = none")
+    final_iterations: int | None = opt(None, "final refinement after the last frame: steps over all keyframes, "
+                                             "chosen as while running; the keyframes that came last were trained "
+                                             "least, and these steps even it out (7-Scenes 640x480, uniform "
+                                             "sampling: 22.26 dB with 20 a keyframe + 1,300, 22.36 dB with 40 + 300 "
+                                             "but its last frames at 13.9 dB); null = 2,000 in the deterministic "
+                                             "mode (1,300 until 2026-12-06: 2,000 with final_coarse_share 0.8 gave "
+                                             "7-Scenes 23.11 against 22.42 dB in less time; docs/mapping.md), "
+                                             "1,300 in real time (the map's wait after the stream); 0 = none")
     running_max_pixels: int = opt(80_000, "real time: while the stream runs, train each view at the finest level of "
                                           "its pyramid with at most this many pixels (a 640x480 view at 320x240: a "
                                           "step 2.9x cheaper on the 2-core CPU, docs/mgso.md); the final "
@@ -774,8 +777,10 @@ class MapperConfig:
                                                 "the level running_max_pixels gives, the rest at full resolution; "
                                                 "null = 0.95 in real time (7-Scenes on 2 cores: the final 1,300 "
                                                 "steps in 122 s, 129-151 s at 0.8, 235-306 s at 0, the PSNR within "
-                                                "the runs' spread), 0 in the deterministic mode (KITTI lost 0.24 "
-                                                "dB there at 0.8; docs/mapping.md)")
+                                                "the runs' spread), 0.8 in the deterministic mode with its 2,000 "
+                                                "final steps (0 with 1,300 until 2026-12-06, where KITTI lost 0.24 "
+                                                "dB at 0.8; with 2,000 it gains 0.58 dB over 1,300 at 0, in less "
+                                                "time; docs/mapping.md)")
     keyframe_steps_coarse: bool = opt(False, "deterministic mode: the steps after each keyframe train at the level "
                                              "running_max_pixels gives, as the real-time mapper's steps while the "
                                              "stream runs (the final refinement: final_coarse_share)")
@@ -847,10 +852,24 @@ class MapperConfig:
                                      "157k Gaussians, 10.7 MB at 0.0002; KITTI 397k, 27 MB); docs/mapping.md; "
                                      "0 = mapping.densify's")
 
+    def final_steps(self, realtime: bool) -> int:
+        """``final_iterations`` with its null resolved for the mode: 2,000 deterministic, 1,300 in real time."""
+        if self.final_iterations is not None:
+            return int(self.final_iterations)
+        return 1300 if realtime else 2000
+
+    def final_share_coarse(self, realtime: bool) -> float:
+        """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time, 0.8 deterministic."""
+        if self.final_coarse_share is not None:
+            return float(self.final_coarse_share)
+        return 0.95 if realtime else 0.8
+
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)
-        c.ge(0, "iterations_per_keyframe", "final_iterations", "refine_every", "running_max_pixels",
-             "defer_seeding_above", "final_refine_after")
+        c.ge(0, "iterations_per_keyframe", "refine_every", "running_max_pixels", "defer_seeding_above",
+             "final_refine_after")
+        if self.final_iterations is not None:
+            c.ge(0, "final_iterations")
         c.within(0, 1, "running_train_share", open_hi=True)    # a share of 1 would never handle a message
         if self.final_coarse_share is not None:
             c.within(0, 1, "final_coarse_share")

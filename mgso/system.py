@@ -603,7 +603,7 @@ class System:
             self._send_correction(loop.finish())
         if self.mapper is None:
             return
-        steps = self.config.mapping.mapper.final_iterations
+        steps = self.config.mapping.mapper.final_steps(self.realtime)
         if not interrupted and steps > 0 and self._keyframes:    # minutes on a CPU: say what and how to cut it
             log.info("final refinement: %d mapping steps over the %d keyframes (Ctrl-C cuts it short; the outputs are "
                      "written either way)", steps, self._keyframes)

@@ -395,12 +395,14 @@ class Mapper:
 
     def final_coarse_share(self) -> float:
         """``mapping.mapper.final_coarse_share``, its null resolved: 0.95 in real time (a mapping thread or process:
-        the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0 in the
-        deterministic mode."""
-        share = self.cfg.final_coarse_share
-        if share is None:
-            share = 0.95 if self._thread is not None else 0.0
-        return float(share)
+        the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0.8 in the
+        deterministic mode (with its 2,000 final steps)."""
+        return self.cfg.final_share_coarse(realtime=self._thread is not None)
+
+    def final_iterations(self) -> int:
+        """``mapping.mapper.final_iterations``, its null resolved: 1,300 in real time (a mapping thread or process:
+        the map is awaited after the stream), 2,000 in the deterministic mode."""
+        return self.cfg.final_steps(realtime=self._thread is not None)
 
     def running_level(self) -> int:
         """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most
@@ -529,8 +531,9 @@ class Mapper:
             from mgso_kernels import runtime
 
             self._take_final_resources()
-            self.stats.final_threads = runtime.cpu_threads() if self.cfg.final_iterations > 0 else 0
-            self.refine(self.cfg.final_iterations)
+            steps = self.final_iterations()
+            self.stats.final_threads = runtime.cpu_threads() if steps > 0 else 0
+            self.refine(steps)
             # an interrupt during the refinement ends it early (train() checks it between steps)
             self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
             if not self._interrupt.is_set():
