@@ -626,9 +626,13 @@ class TrainConfig:
                                           "mapper the keyframes whose depths disagree with the map (the seeding's "
                                           "depth rule stood down: a handheld camera's segments disagree by degrees), "
                                           "in `mgso fit` none (given poses, trusted); true = every view; false = none")
-    lr_pose_translation: float = opt(0.001, "Adam rate of the pose translation delta, world units (MonoGS "
-                                            "cam_trans_delta)")
-    lr_pose_rotation: float = opt(0.003, "Adam rate of the pose rotation delta, radians (MonoGS cam_rot_delta)")
+    lr_pose_translation: float = opt(0.003, "Adam rate of the pose translation delta, world units (MonoGS's "
+                                            "cam_trans_delta is 0.001, the default until 2026-12-06: the mapper's "
+                                            "untrusted keyframes converged too slowly; freiburg1_rpy's replays "
+                                            "gained 0.33-1.06 dB at three times both rates, lost 0.04 at six times; "
+                                            "docs/mapping.md)")
+    lr_pose_rotation: float = opt(0.009, "Adam rate of the pose rotation delta, radians (MonoGS's cam_rot_delta is "
+                                         "0.003, the default until 2026-12-06; see lr_pose_translation)")
     metrics_every: int = opt(10, "compute the training PSNR every n steps (reads the render back to the host); 0 = "
                                  "never")
     init_points: int = opt(20_000, "random initial points in the view frusta for `mgso fit --init random` (3DGS's "
