@@ -34,9 +34,10 @@ Results agree with the row kernels to float rounding (the row kernels use an ``e
 Intended for the CPU: on CUDA a thread per tile leaves the GPU idle, use ``pixels_per_thread=1`` there (the default).
 
 On the CPU each kernel first hands its tile to a C++ snippet (:mod:`~mgso_kernels.splat.raster_tile_cpp`, 1.5-1.8x
-faster: the spans of a Gaussian's rows 8 rows a vector, no masked stores, FMAs) that computes the same values to float
-rounding and the same stop decisions (tested); the Warp code below it runs where the snippet declines (CUDA) or is
-switched off (:func:`use_native`, for tests and profiles). Each launch writes which ran into :func:`status_buffer`.
+faster: the spans of a Gaussian's rows 8 or 16 rows a vector, a tile row's 16 pixels a vector with AVX-512, no
+masked stores, FMAs) that computes the same values to float rounding and the same stop decisions (tested); the
+Warp code below it runs where the snippet declines (CUDA) or is switched off (:func:`use_native`, for tests and
+profiles). Each launch writes which ran into :func:`status_buffer`.
 
 Twin: :func:`mgso_kernels.reference.splat.render` and :func:`~mgso_kernels.reference.splat.render_vjp`.
 """

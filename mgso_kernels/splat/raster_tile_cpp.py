@@ -43,7 +43,7 @@ import os
 
 import numpy as np
 
-__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill", "lanes", "lanes_probe"]
+__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill", "lanes_probe"]
 
 
 def _f32(x: float) -> str:
@@ -489,13 +489,6 @@ return 1;
 """
 
 
-def lanes() -> int:
-    """The lane width the snippets ask for where the CPU has AVX-512: 16 (a whole tile row a vector), or 8 when the
-    environment sets ``MGSO_TILE_LANES=8`` (read once, at import: for tests and profiles that compare the two). Where
-    the compiler targets no AVX-512 the snippets use 8 lanes either way."""
-    return _LANES
-
-
 def lanes_probe() -> str:
     """A snippet that returns the lane width :func:`fill`'s snippets compile at in the same module (16 or 8), 0 where
     they do not run (CUDA)."""
@@ -504,6 +497,9 @@ def lanes_probe() -> str:
 
 
 def _lanes_from_env() -> int:
+    """The lane width the snippets ask for where the CPU has AVX-512: 16 (a whole tile row a vector), or 8 when the
+    environment sets ``MGSO_TILE_LANES=8`` (read once, at import: for the test and profiles that compare the two).
+    Where the compiler targets no AVX-512 the snippets use 8 lanes either way."""
     value = os.environ.get("MGSO_TILE_LANES", "16").strip()
     if value not in ("8", "16"):
         raise ValueError(f"MGSO_TILE_LANES={value!r}: the tile snippets' lane width is 8 or 16")
