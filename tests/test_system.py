@@ -711,30 +711,52 @@ def test_dso_keyframe_messages_carry_the_frames_valid_mask(wp_device):
 
 
 def test_the_trajectory_check_line_names_each_warning():
-    """The summary's and report.png's line of metrics.json's trajectory_check: freiburg1_rpy's figures (a run of
-    2026-12-06) get both warnings, test_full_stage_runs_dso_and_the_mapper_end_to_end's none, no ground truth no
-    line."""
-    from mgso.app.outputs import trajectory_check_line
+    """The summary's and report.png's line of metrics.json's trajectory_check, made as a run makes it (the ATE's own
+    warnings, in a few words): an estimate whose scale collapsed after its first tenth gets both warnings, a right
+    one none; freiburg1_rpy's figures (a run of 2026-12-06) give the line's exact text; no ground truth no line."""
+    from mgso.app.outputs import _trajectory_check, trajectory_check_line
+    from mgso.eval import compute_ate
+    from mgso.io.trajectory import Trajectory
 
-    tum = {"ate_all_frames_m": 0.0453, "trajectory_check": {"standing_still_m": 0.0471, "scale_drift": 70.7}}
-    line = trajectory_check_line(tum)
-    assert line == ("trajectory check: standing still 0.0471 m (the ATE 96 % of it); scale drift 70.7x; WARNING: "
-                    "positions not estimated, scale drifts")
-    room = {"ate_all_frames_m": 0.002, "trajectory_check": {"standing_still_m": 0.19, "scale_drift": 1.09}}
-    assert "WARNING" not in trajectory_check_line(room) and "(the ATE 1 % of it)" in trajectory_check_line(room)
+    rng = np.random.default_rng(3)
+    ref = Trajectory(np.arange(60) * 0.1, np.tile(np.eye(4), (60, 1, 1)))
+    ref.cam_to_world[:, :3, 3] = np.cumsum(rng.normal(size=(60, 3)), axis=0)
+
+    def scaled(scales):
+        T = ref.cam_to_world.copy()
+        T[1:, :3, 3] = ref.positions[0] + np.cumsum(np.diff(ref.positions, axis=0) * scales[:, None], axis=0)
+        return Trajectory(ref.timestamps, T)
+
+    def line(est):
+        r = compute_ate(est, ref, align="sim3")
+        return trajectory_check_line({"ate_all_frames_m": r.rmse, "trajectory_check": _trajectory_check(r)})
+
+    assert line(scaled(np.r_[np.ones(6), np.full(53, 0.01)])).endswith(
+        "; WARNING: positions not estimated, scale drifts")
+    good = line(scaled(np.full(59, 0.3)))
+    assert "WARNING" not in good and "(the ATE 0 % of it); scale drift 1x" in good
+    tum = {"ate_all_frames_m": 0.0453, "trajectory_check": {"standing_still_m": 0.0471, "scale_drift": 70.7,
+                                                            "warning_words": ["positions not estimated",
+                                                                              "scale drifts"]}}
+    assert trajectory_check_line(tum) == ("trajectory check: standing still 0.0471 m (the ATE 96 % of it); scale "
+                                          "drift 70.7x; WARNING: positions not estimated, scale drifts")
     still = {"ate_all_frames_m": 0.002, "trajectory_check": {"standing_still_m": 0.19, "scale_drift": None}}
     assert "scale drift unmeasured" in trajectory_check_line(still)
     assert trajectory_check_line({"ate_all_frames_m": None, "trajectory_check": None}) is None
 
 
 def test_the_map_health_line_names_each_warning():
-    """report.png's map health line: the fogged TUM map of before issue 41 (median opacity 0.10, training views
-    15.1 dB) gets both warnings in a few words, a good map none, a run without a map no line."""
-    from mgso.app.outputs import map_health_line
+    """report.png's map health line of metrics.json's map_health as a run makes it: the fogged TUM map of before
+    issue 41 (median opacity 0.10, training views 15.1 dB) gets both warnings in a few words, a good map none, a run
+    without a map no line."""
+    from mgso.app.outputs import _map_health, map_health_line
 
-    assert map_health_line({"median_opacity": 0.10, "training_view_psnr_db": 15.1}) == (
+    fog = {"median_opacity": 0.10, "transparent_fraction": 0.62, "training_view_psnr_db": 15.1,
+           "training_views_rendered": 8, "training_view_psnr_min_db": 12.3}
+    assert map_health_line(_map_health(fog)) == (
         "map health: median opacity 0.10, its training views 15.1 dB; WARNING: mostly transparent, its training "
         "views not fitted")
-    assert map_health_line({"median_opacity": 0.32, "training_view_psnr_db": 20.4}) == (
-        "map health: median opacity 0.32, its training views 20.4 dB")
+    assert len(_map_health(fog)["warnings"]) == 2
+    good = dict(fog, median_opacity=0.32, transparent_fraction=0.1, training_view_psnr_db=20.4)
+    assert map_health_line(_map_health(good)) == "map health: median opacity 0.32, its training views 20.4 dB"
     assert map_health_line({}) is None

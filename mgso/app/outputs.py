@@ -61,23 +61,30 @@ FOG_MEDIAN_OPACITY = 0.15
 POOR_FIT_PSNR_DB = 18.0
 
 
-def map_warnings(health: dict) -> list[str]:
-    """One line per sign of a foggy map in ``health`` (:meth:`mgso.mapping.mapper.Mapper.health`): mostly
-    transparent Gaussians, or training views the map renders badly."""
+def map_warning_items(health: dict) -> list[tuple[str, str]]:
+    """Each sign of a foggy map in ``health`` (:meth:`mgso.mapping.mapper.Mapper.health`) as (a few words, the full
+    line): mostly transparent Gaussians, or training views the map renders badly."""
     out = []
     med = health.get("median_opacity")
     if med is not None and med < FOG_MEDIAN_OPACITY:
-        out.append(f"the map is mostly transparent (median opacity {med:.2f}, "
-                   f"{100 * health['transparent_fraction']:.0f} % of its Gaussians below "
-                   f"{Mapper.TRANSPARENT_OPACITY}): fog, many faint Gaussians where the views and the odometry's "
-                   "depths disagree (docs/mapping.md, \"Handheld camera\")")
+        out.append(("mostly transparent",
+                    f"the map is mostly transparent (median opacity {med:.2f}, "
+                    f"{100 * health['transparent_fraction']:.0f} % of its Gaussians below "
+                    f"{Mapper.TRANSPARENT_OPACITY}): fog, many faint Gaussians where the views and the odometry's "
+                    "depths disagree (docs/mapping.md, \"Handheld camera\")"))
     fit = health.get("training_view_psnr_db")
     if fit is not None and fit < POOR_FIT_PSNR_DB:
-        out.append(f"the map renders its own training views at {fit:.1f} dB (the lowest of "
-                   f"{health['training_views_rendered']} at {health['training_view_psnr_min_db']:.1f} dB, below "
-                   f"{POOR_FIT_PSNR_DB:g} dB): it does not fit the keyframes it was trained on; views that disagree "
-                   "(poses, motion blur, exposure) were averaged (docs/mapping.md, \"Handheld camera\")")
+        out.append(("its training views not fitted",
+                    f"the map renders its own training views at {fit:.1f} dB (the lowest of "
+                    f"{health['training_views_rendered']} at {health['training_view_psnr_min_db']:.1f} dB, below "
+                    f"{POOR_FIT_PSNR_DB:g} dB): it does not fit the keyframes it was trained on; views that "
+                    "disagree (poses, motion blur, exposure) were averaged (docs/mapping.md, \"Handheld camera\")"))
     return out
+
+
+def map_warnings(health: dict) -> list[str]:
+    """:func:`map_warning_items`' full lines."""
+    return [line for _, line in map_warning_items(health)]
 
 
 def write_run_outputs(result: SystemResult, mapper: Mapper | None, seq, cfg: Config, writer: RunWriter, *,
@@ -232,8 +239,7 @@ def map_health_line(h: dict) -> str | None:
     med, fit = h.get("median_opacity"), h.get("training_view_psnr_db")
     if med is None and fit is None:
         return None
-    words = ((["mostly transparent"] if med is not None and med < FOG_MEDIAN_OPACITY else [])
-             + (["its training views not fitted"] if fit is not None and fit < POOR_FIT_PSNR_DB else []))
+    words = h.get("warning_words", [])
     return (f"map health: median opacity {'n/a' if med is None else format(med, '.2f')}, its training views "
             f"{'n/a' if fit is None else format(fit, '.1f')} dB" + (f"; WARNING: {', '.join(words)}" if words else ""))
 
@@ -242,16 +248,13 @@ def trajectory_check_line(f: dict) -> str | None:
     """One line of ``metrics.json``'s ``trajectory_check`` (``f``: the metrics) for the run's summary and report.png:
     what standing still would score, the ATE's share of it, the scale's drift and a short word per warning (the
     warnings in full are in the log and metrics.json); None without ground truth."""
-    from mgso.eval.ate import MOTIONLESS_SHARE, SCALE_DRIFT_WARN
-
     tc = f.get("trajectory_check") or {}
     ate = f.get("ate_all_frames_m")
     if not tc or ate is None:
         return None
     still, drift = tc["standing_still_m"], tc.get("scale_drift")
     share = 100 * ate / still if still > 0 else None
-    words = ((["positions not estimated"] if share is not None and share >= 100 * MOTIONLESS_SHARE else [])
-             + (["scale drifts"] if drift is not None and drift > SCALE_DRIFT_WARN else []))
+    words = tc.get("warning_words", [])
     return (f"trajectory check: standing still {still:.4f} m (the ATE "
             + ("n/a" if share is None else f"{share:.0f} %") + " of it); scale drift "
             + ("unmeasured" if drift is None else f"{drift:.3g}x")
@@ -446,13 +449,21 @@ def _tracking_figures(run: _Run) -> dict:
             "backend": run.cfg.window.backend}
 
 
+def _map_health(health: dict) -> dict:
+    """metrics.json's ``map_health``: :meth:`Mapper.health`'s figures, the warnings in full and in a few words."""
+    items = map_warning_items(health)
+    return {**health, "warnings": [line for _, line in items], "warning_words": [words for words, _ in items]}
+
+
 def _trajectory_check(ate) -> dict | None:
     """What the all-frames ATE is worth (docs/evaluation.md, "What an ATE is worth"): the ATE a camera standing
     still would get, each tenth's own scale over the whole's, their drift, and the warnings; None without it."""
     if ate is None:
         return None
+    items = ate.warning_items()
     return {"standing_still_m": ate.motionless_rmse, "local_scales": [float(x) for x in ate.local_scales],
-            "scale_drift": ate.scale_drift, "warnings": ate.warnings()}
+            "scale_drift": ate.scale_drift, "warnings": [line for _, line in items],
+            "warning_words": [words for words, _ in items]}
 
 
 def _figures(run: _Run, ate: dict, renders: list) -> dict:
@@ -516,7 +527,7 @@ def _figures(run: _Run, ate: dict, renders: list) -> dict:
         "mapper": {k: v for k, v in st.as_dict().items() if k != "seeding"} if has_map else None,
         "realtime": None if result.mode != "realtime" else _realtime(result, cfg, st if has_map else None),
         "loop": None if result.loop is None else result.loop.as_dict(),
-        "map_health": None if not st.health else {**st.health, "warnings": map_warnings(st.health)},
+        "map_health": None if not st.health else _map_health(st.health),
         "sequence": None if seq is None else {"path": str(seq.path), "layout": seq.layout, "name": seq.name,
                                               "frames": len(seq)},
         # a live source: frames captured, replaced at the source, the timestamps' clock, why the input ended

@@ -280,21 +280,28 @@ class AteResult:
         return (f"ATE RMSE{what} {self.rmse:.6f} m ({self.alignment_text}{scale}, {self.num_pairs} poses; "
                 f"mean {self.mean:.6f}, median {self.median:.6f}, max {self.max:.6f} m{still}{drift})")
 
-    def warnings(self) -> list[str]:
-        """What makes this ATE worth little, one line each: an error near what standing still would get
-        (``MOTIONLESS_SHARE``), a scale that drifts more than ``SCALE_DRIFT_WARN`` times along the trajectory."""
+    def warning_items(self) -> list[tuple[str, str]]:
+        """What makes this ATE worth little, as (a few words, the full line) each: an error near what standing
+        still would get (``MOTIONLESS_SHARE``), a scale that drifts more than ``SCALE_DRIFT_WARN`` times along the
+        trajectory."""
         out = []
         what = f" of {self.label}" if self.label else ""
         if self.align != "none" and self.motionless_rmse > 0 and self.rmse >= MOTIONLESS_SHARE * self.motionless_rmse:
-            out.append(f"the ATE{what} ({self.rmse:.4f} m) is {100 * self.rmse / self.motionless_rmse:.0f} % of "
-                       f"what a camera standing still would get ({self.motionless_rmse:.4f} m): the positions are "
-                       "not estimated (docs/evaluation.md, \"What an ATE is worth\")")
+            out.append(("positions not estimated",
+                        f"the ATE{what} ({self.rmse:.4f} m) is {100 * self.rmse / self.motionless_rmse:.0f} % of "
+                        f"what a camera standing still would get ({self.motionless_rmse:.4f} m): the positions are "
+                        "not estimated (docs/evaluation.md, \"What an ATE is worth\")"))
         drift = self.scale_drift
         if drift is not None and drift > SCALE_DRIFT_WARN:
-            out.append(f"the scale{what} drifts {drift:.3g}x along the trajectory (each tenth's own Sim(3) scale, "
-                       f"{self.local_scales.min():.3g} to {self.local_scales.max():.3g} of the whole's): one "
-                       "alignment cannot fit it (docs/evaluation.md, \"What an ATE is worth\")")
+            out.append(("scale drifts",
+                        f"the scale{what} drifts {drift:.3g}x along the trajectory (each tenth's own Sim(3) scale, "
+                        f"{self.local_scales.min():.3g} to {self.local_scales.max():.3g} of the whole's): one "
+                        "alignment cannot fit it (docs/evaluation.md, \"What an ATE is worth\")"))
         return out
+
+    def warnings(self) -> list[str]:
+        """:meth:`warning_items`' full lines."""
+        return [line for _, line in self.warning_items()]
 
     def as_dict(self) -> dict:
         return {"metric": "ATE", "label": self.label, "align": self.align, "n_to_align": self.n_to_align,

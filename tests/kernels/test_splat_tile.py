@@ -156,32 +156,35 @@ def test_colour_and_opacity_gradients_match_finite_differences_of_warp(wp_device
 def _render_both_ways(device, scene, cam, ups, absgrad):
     """Forward and backward of the tile kernels with their C++ snippets and with their own Warp code, and the status
     flags each path left (1 where the snippet did a tile)."""
-    res = {}
-    for native in (True, False):
-        before = raster_tile.use_native(native)
-        try:
-            rast = Rasterizer(device)
-            out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
-            r = {k: getattr(out, k).numpy().copy() for k in ("rgb", "depth", "alpha", "T_final", "n_contrib")}
-            dim = cam.tiles_x * cam.tiles_y
-            r["status_forward"] = raster_tile.status_buffer(dim, device).numpy().copy()
-            for t_stop in (0.0, 0.01):   # the coverage kernel, with and without the depth (the seeding's)
-                a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, t_stop=t_stop)
-                r[f"coverage_{t_stop}"] = a.alpha.numpy().copy()
-                r[f"status_coverage_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
-                a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, with_depth=True, t_stop=t_stop)
-                r[f"coverage_depth_{t_stop}"] = np.stack([a.alpha.numpy(), a.depth.numpy()])
-                r[f"status_coverage_depth_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
-            out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
-            g = rast.backward(out, *ups, absgrad=absgrad)
-            r["status_backward"] = raster_tile.status_buffer(dim, device).numpy().copy()
-            for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
-                         "absgrad"):
-                r[name] = getattr(g, name).numpy().copy()
-        finally:
-            raster_tile.use_native(before)
-        res[native] = r
-    return res[True], res[False]
+    return _render(device, scene, cam, ups, absgrad, True), _render(device, scene, cam, ups, absgrad, False)
+
+
+def _render(device, scene, cam, ups, absgrad, native: bool) -> dict:
+    """Images, coverage and gradients of the tile kernels, with their C++ snippets or their own Warp code, and the
+    status flags each launch left."""
+    before = raster_tile.use_native(native)
+    try:
+        rast = Rasterizer(device)
+        out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+        r = {k: getattr(out, k).numpy().copy() for k in ("rgb", "depth", "alpha", "T_final", "n_contrib")}
+        dim = cam.tiles_x * cam.tiles_y
+        r["status_forward"] = raster_tile.status_buffer(dim, device).numpy().copy()
+        for t_stop in (0.0, 0.01):   # the coverage kernel, with and without the depth (the seeding's)
+            a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, t_stop=t_stop)
+            r[f"coverage_{t_stop}"] = a.alpha.numpy().copy()
+            r[f"status_coverage_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
+            a = rast.render_alpha(*(scene[k] for k in PARAMS[:4]), cam, with_depth=True, t_stop=t_stop)
+            r[f"coverage_depth_{t_stop}"] = np.stack([a.alpha.numpy(), a.depth.numpy()])
+            r[f"status_coverage_depth_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
+        out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+        g = rast.backward(out, *ups, absgrad=absgrad)
+        r["status_backward"] = raster_tile.status_buffer(dim, device).numpy().copy()
+        for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
+                     "absgrad"):
+            r[name] = getattr(g, name).numpy().copy()
+    finally:
+        raster_tile.use_native(before)
+    return r
 
 
 @pytest.mark.parametrize("size,n,absgrad", [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True)])
@@ -321,7 +324,7 @@ def _snippet_outputs(device) -> dict:
         rng, scene, cam = _scene(20 + c, n, *size)
         w, h = size
         ups = [rng.normal(size=s).astype(np.float32) for s in ((h, w, 3), (h, w), (h, w))]
-        cpp, _ = _render_both_ways(device, scene, cam, ups, absgrad)
+        cpp = _render(device, scene, cam, ups, absgrad, True)
         out.update({f"{c}_{k}": v for k, v in cpp.items()})
     return out
 
