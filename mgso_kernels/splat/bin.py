@@ -104,15 +104,9 @@ def col_range(m: wp.vec2, conic: wp.vec3, r2: float, ty: int, cam: Camera) -> wp
     return wp.vec2i(wp.max(tx0, 0), wp.min(tx1, cam.tiles_x - 1))
 
 
-@wp.kernel
-def count_tiles(
-    offset: int,
-    splats: wp.array(dtype=vec8),  # [N] per Gaussian: mean (px), conic, opacity, exp(-a), cut-off r2
-    radii: wp.array(dtype=wp.int32),  # [N] 0 = culled
-    cam: Camera,
-    tiles_touched: wp.array(dtype=wp.int32),  # [N] out
-):
-    g = offset + wp.tid()
+@wp.func
+def count_one(g: int, splats: wp.array(dtype=vec8), radii: wp.array(dtype=wp.int32), cam: Camera) -> int:
+    """Number of tiles Gaussian ``g`` is listed in (0 if culled)."""
     n = int(0)
     if radii[g] > 0:
         s = splats[g]
@@ -124,22 +118,15 @@ def count_tiles(
             cols = col_range(m, conic, r2, ty, cam)
             if cols[1] >= cols[0]:
                 n += cols[1] - cols[0] + 1
-    tiles_touched[g] = n
+    return n
 
 
-@wp.kernel
-def emit_pairs(
-    offset: int,
-    splats: wp.array(dtype=vec8),  # [N] per Gaussian
-    depths: wp.array(dtype=float),  # [N] camera z (> near > 0 for listed Gaussians)
-    radii: wp.array(dtype=wp.int32),  # [N]
-    pair_offsets: wp.array(dtype=wp.int32),  # [N] exclusive scan of tiles_touched
-    cam: Camera,
-    keys: wp.array(dtype=wp.int64),  # [>= 2 M] out: tile << 32 | depth bits
-    slots: wp.array(dtype=wp.int32),  # [>= 2 M] out: pair slot (= unsorted position)
-    pair_gauss: wp.array(dtype=wp.int32),  # [>= M] out: Gaussian of each slot
-):
-    g = offset + wp.tid()
+@wp.func
+def emit_one(g: int, splats: wp.array(dtype=vec8), depths: wp.array(dtype=float), radii: wp.array(dtype=wp.int32),
+             pair_offsets: wp.array(dtype=wp.int32), cam: Camera, keys: wp.array(dtype=wp.int64),
+             slots: wp.array(dtype=wp.int32), pair_gauss: wp.array(dtype=wp.int32)):
+    """Gaussian ``g``'s keys, slots and slot->Gaussian entries from ``pair_offsets[g]`` on, tile rows then columns
+    in ascending order."""
     if radii[g] == 0:
         return
     s = splats[g]
@@ -157,6 +144,226 @@ def emit_pairs(
             slots[p] = p
             pair_gauss[p] = g
             p += 1
+
+
+@wp.kernel
+def count_tiles(
+    offset: int,
+    splats: wp.array(dtype=vec8),  # [N] per Gaussian: mean (px), conic, opacity, exp(-a), cut-off r2
+    radii: wp.array(dtype=wp.int32),  # [N] 0 = culled
+    cam: Camera,
+    tiles_touched: wp.array(dtype=wp.int32),  # [N] out
+):
+    g = offset + wp.tid()
+    tiles_touched[g] = count_one(g, splats, radii, cam)
+
+
+@wp.kernel
+def emit_pairs(
+    offset: int,
+    splats: wp.array(dtype=vec8),  # [N] per Gaussian
+    depths: wp.array(dtype=float),  # [N] camera z (> near > 0 for listed Gaussians)
+    radii: wp.array(dtype=wp.int32),  # [N]
+    pair_offsets: wp.array(dtype=wp.int32),  # [N] exclusive scan of tiles_touched
+    cam: Camera,
+    keys: wp.array(dtype=wp.int64),  # [>= 2 M] out: tile << 32 | depth bits
+    slots: wp.array(dtype=wp.int32),  # [>= 2 M] out: pair slot (= unsorted position)
+    pair_gauss: wp.array(dtype=wp.int32),  # [>= M] out: Gaussian of each slot
+):
+    emit_one(offset + wp.tid(), splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss)
+
+
+# The CPU's binning in C++ blocks of up to BIN_BLOCK Gaussians (count_tiles' and emit_pairs' arithmetic, the same
+# operations in the same order, so the same tiles bit for bit; Warp's min/max are C's fmin/fmax). The Warp kernels
+# compute each tile row's span one Gaussian at a time, seven divisions and six square roots a row in one dependent
+# chain; here a block first computes 16 Gaussians' row ranges and the span's per-Gaussian constants (det, the
+# half-heights and half-width, the extreme points' dy) a vector at a time, lists the (Gaussian, tile row) items, then
+# computes 16 items' column ranges a vector at a time (two roots and four divisions each), and only then counts or
+# writes the pairs, in the kernels' order. mode 0: tiles_touched of [lo, hi); mode 1: their keys, slots and
+# pair_gauss. Returns 1, or 0 where it does not apply (CUDA, arrays not contiguous, a block too large, more than 1024
+# tile rows) and nothing is written.
+_BIN_CPP = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+enum { BLK = 256, CAP = 2048, V = 16 };
+const int n = hi - lo;
+if (n < 0 || n > BLK || tiles_y < 1 || tiles_y > 1024 || tiles_x < 1 || splats.strides[0] != 32
+    || radii.strides[0] != 4) return 0;
+if (mode == 0 && tiles_touched.strides[0] != 4) return 0;
+if (mode == 1 && (depths.strides[0] != 4 || pair_offsets.strides[0] != 4 || keys.strides[0] != 8
+                  || slots.strides[0] != 4 || pair_gauss.strides[0] != 4)) return 0;
+typedef float vf __attribute__((ext_vector_type(16)));
+typedef int vi __attribute__((ext_vector_type(16)));
+auto sel = [](vi m, vf a, vf b) -> vf { return (vf)((m & (vi)a) | (~m & (vi)b)); };
+auto seli = [](vi m, vi a, vi b) -> vi { return (m & a) | (~m & b); };
+auto fmn = [&](vf a, vf b) -> vf { return sel(a <= b, a, sel(b == b, b, a)); };   // wp::min: C's fminf
+auto fmx = [&](vf a, vf b) -> vf { return sel(a >= b, a, sel(b == b, b, a)); };   // wp::max: C's fmaxf
+auto imn = [&](vi a, vi b) -> vi { return seli(a < b, a, b); };
+auto imx = [&](vi a, vi b) -> vi { return seli(a > b, a, b); };
+auto sqrtv = [](vf x) -> vf { return __builtin_elementwise_sqrt(x); };
+auto ceili = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_ceil(x), vi); };
+auto floori = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_floor(x), vi); };
+const float* S = (const float*)splats.data;
+const int* R = (const int*)radii.data;
+const float Hm1 = (float)(height - 1), Wm1 = (float)(width - 1);
+// per Gaussian of the block: the span's constants (ellipse_row_span's, which does not depend on the row)
+float CA[BLK], CNB[BLK], CDET[BLK], CAR2[BLK], CRY[BLK], CEX[BLK], CDYR[BLK], CM0[BLK], CM1[BLK];
+int CNT[BLK], CUR[BLK];
+long long DB[BLK];
+// the (Gaussian, tile row) items waiting, and their column ranges
+int IK[CAP], ITY[CAP], IX0[CAP], IX1[CAP];
+int ni = 0;
+auto flush = [&]() {
+    for (int i0 = 0; i0 < ni; i0 += V) {
+        vf a, nb, det, ar2, ry, ex, dyr, m0, m1;
+        vi ty;
+        for (int j = 0; j < V; ++j) {
+            const int i = i0 + j < ni ? i0 + j : i0;    // past the end: a copy of the first, not stored
+            const int k = IK[i];
+            a[j] = CA[k]; nb[j] = CNB[k]; det[j] = CDET[k]; ar2[j] = CAR2[k]; ry[j] = CRY[k]; ex[j] = CEX[k];
+            dyr[j] = CDYR[k]; m0[j] = CM0[k]; m1[j] = CM1[k]; ty[j] = ITY[i];
+        }
+        // col_range: the row's pixel centres, relative to the centre
+        const vf y0 = __builtin_convertvector(ty * 16, vf);
+        const vf y1 = __builtin_convertvector(imn(ty * 16 + 15, (vi)(height - 1)), vf);
+        const vf dlo = y0 - m1, dhi = y1 - m1;
+        // ellipse_row_span
+        const vf slo = fmx(dlo, -ry), shi = fmn(dhi, ry);
+        vi miss = slo > shi;
+        const vf s_lo = sqrtv(fmx((vf)0.0f, ar2 - det * slo * slo));
+        const vf s_hi = sqrtv(fmx((vf)0.0f, ar2 - det * shi * shi));
+        vf xr = fmx((nb * slo + s_lo) / a, (nb * shi + s_hi) / a);
+        vf xl = fmn((nb * slo - s_lo) / a, (nb * shi - s_hi) / a);
+        xr = sel((dyr >= slo) & (dyr <= shi), ex, xr);
+        const vf ndyr = -dyr;
+        xl = sel((ndyr >= slo) & (ndyr <= shi), -ex, xl);
+        miss |= xl > xr;
+        const vf x_lo = fmx(m0 + xl, (vf)0.0f), x_hi = fmn(m0 + xr, (vf)Wm1);
+        miss |= x_lo > x_hi;
+        const vi tx0 = imx(ceili((x_lo - 15.0f) / 16.0f), (vi)0);
+        const vi tx1 = imn(floori(x_hi / 16.0f), (vi)(tiles_x - 1));
+        const vi t0 = seli(miss, (vi)1, tx0), t1 = seli(miss, (vi)0, tx1);
+        const int m = ni - i0 < V ? ni - i0 : V;
+        for (int j = 0; j < m; ++j) { IX0[i0 + j] = t0[j]; IX1[i0 + j] = t1[j]; }
+    }
+    if (mode == 0) {
+        for (int i = 0; i < ni; ++i)
+            if (IX1[i] >= IX0[i]) CNT[IK[i]] += IX1[i] - IX0[i] + 1;
+    } else {
+        long long* K = (long long*)keys.data;
+        int* SL = (int*)slots.data;
+        int* PG = (int*)pair_gauss.data;
+        for (int i = 0; i < ni; ++i) {
+            const int k = IK[i];
+            int p = CUR[k];
+            const long long row = (long long)ITY[i] * tiles_x;
+            for (int tx = IX0[i]; tx <= IX1[i]; ++tx, ++p) {
+                K[p] = ((row + tx) << 32) | DB[k];
+                SL[p] = p;
+                PG[p] = lo + k;
+            }
+            CUR[k] = p;
+        }
+    }
+    ni = 0;
+};
+for (int k0 = 0; k0 < n; k0 += V) {
+    vf a, b, c, r2, m0, m1;
+    vi live;
+    for (int j = 0; j < V; ++j) {
+        const int k = k0 + j;
+        if (k < n) {
+            const float* s = S + 8L * (lo + k);
+            m0[j] = s[0]; m1[j] = s[1]; a[j] = s[2]; b[j] = s[3]; c[j] = s[4]; r2[j] = s[7];
+            live[j] = R[lo + k] > 0 ? -1 : 0;
+        } else {
+            m0[j] = 0.0f; m1[j] = 0.0f; a[j] = 1.0f; b[j] = 0.0f; c[j] = 1.0f; r2[j] = 1.0f; live[j] = 0;
+        }
+    }
+    // row_range
+    const vf det = a * c - b * b;
+    const vf ryr = sqrtv(r2 * a / det);
+    const vf y_lo = fmx(m1 - ryr, (vf)0.0f), y_hi = fmn(m1 + ryr, (vf)Hm1);
+    const vi none = (y_lo > y_hi) | ~live;
+    const vi ty0 = seli(none, (vi)1, imx(ceili((y_lo - 15.0f) / 16.0f), (vi)0));
+    const vi ty1 = seli(none, (vi)0, imn(floori(y_hi / 16.0f), (vi)(tiles_y - 1)));
+    // ellipse_row_span's constants
+    const vf syy = a / det, sxx = c / det, sxy = -b / det;
+    const vf ry = sqrtv(r2 * syy), ex = sqrtv(r2 * sxx), dyr = sxy * sqrtv(r2 / sxx), ar2 = a * r2, nb = -b;
+    const int m = n - k0 < V ? n - k0 : V;
+    for (int j = 0; j < m; ++j) {
+        const int k = k0 + j;
+        CA[k] = a[j]; CNB[k] = nb[j]; CDET[k] = det[j]; CAR2[k] = ar2[j]; CRY[k] = ry[j]; CEX[k] = ex[j];
+        CDYR[k] = dyr[j]; CM0[k] = m0[j]; CM1[k] = m1[j];
+        CNT[k] = 0;
+        if (mode == 1 && live[j]) {
+            CUR[k] = ((const int*)pair_offsets.data)[lo + k];
+            int bits;
+            __builtin_memcpy(&bits, (const float*)depths.data + lo + k, 4);
+            DB[k] = (long long)bits;
+        }
+        const int rows = ty1[j] - ty0[j] + 1;
+        if (rows <= 0) continue;
+        if (ni + rows > CAP) flush();
+        for (int t = ty0[j]; t <= ty1[j]; ++t) { IK[ni] = k; ITY[ni] = t; ++ni; }
+    }
+}
+flush();
+if (mode == 0) {
+    int* T = (int*)tiles_touched.data;
+    for (int k = 0; k < n; ++k) T[lo + k] = CNT[k];
+}
+return 1;
+#else
+return 0;
+#endif
+"""
+
+
+@wp.func_native(_BIN_CPP)
+def bin_block_cpp(mode: int, lo: int, hi: int, splats: wp.array(dtype=vec8), depths: wp.array(dtype=float),
+                  radii: wp.array(dtype=wp.int32), pair_offsets: wp.array(dtype=wp.int32), width: int, height: int,
+                  tiles_x: int, tiles_y: int, tiles_touched: wp.array(dtype=wp.int32),
+                  keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
+                  pair_gauss: wp.array(dtype=wp.int32)) -> int:
+    """count_tiles (``mode`` 0) or emit_pairs (1) for the Gaussians ``[lo, hi)`` in C++ (above): the same tiles and
+    pairs. Returns 1, or 0 where it does not apply (nothing written)."""
+    ...
+
+
+@wp.kernel
+def bin_blocks(
+    offset: int,
+    block: int,  # Gaussians a thread (at most 256)
+    n: int,
+    mode: int,  # 0: count_tiles; 1: emit_pairs
+    splats: wp.array(dtype=vec8),
+    depths: wp.array(dtype=float),  # mode 1
+    radii: wp.array(dtype=wp.int32),
+    pair_offsets: wp.array(dtype=wp.int32),  # mode 1
+    cam: Camera,
+    tiles_touched: wp.array(dtype=wp.int32),  # mode 0 out
+    keys: wp.array(dtype=wp.int64),  # mode 1 out
+    slots: wp.array(dtype=wp.int32),  # mode 1 out
+    pair_gauss: wp.array(dtype=wp.int32),  # mode 1 out
+    native: int,  # 1: the C++ block where it applies; 0: this kernel's loop (raster_tile.use_native)
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians
+):
+    """:func:`count_tiles` or :func:`emit_pairs` with ``block`` Gaussians a thread, for the CPU: the C++ block
+    first, the kernels' own functions where it declines."""
+    c = offset + wp.tid()
+    lo = c * block
+    hi = wp.min(lo + block, n)
+    done = int(0)
+    if native != 0:
+        done = bin_block_cpp(mode, lo, hi, splats, depths, radii, pair_offsets, cam.width, cam.height, cam.tiles_x,
+                             cam.tiles_y, tiles_touched, keys, slots, pair_gauss)
+    status[c] = done
+    if done == 0:
+        for g in range(lo, hi):
+            if mode == 0:
+                tiles_touched[g] = count_one(g, splats, radii, cam)
+            else:
+                emit_one(g, splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss)
 
 
 @wp.kernel
@@ -185,8 +392,9 @@ def tile_key_bits(n_tiles: int) -> int:
 
 
 def launch_count_tiles(splats, radii, cam: Camera, tiles_touched, device: str, threads: int | None = None,
-                       min_chunk: int = 4096) -> None:
-    """``tiles_touched[g]`` = number of tiles Gaussian g is listed in (0 if culled)."""
+                       min_chunk: int = 4096):
+    """``tiles_touched[g]`` = number of tiles Gaussian g is listed in (0 if culled). On the CPU the C++ blocks of
+    :func:`bin_blocks` (returns their status array: 1 where the C++ ran); elsewhere :func:`count_tiles` (None)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -194,12 +402,17 @@ def launch_count_tiles(splats, radii, cam: Camera, tiles_touched, device: str, t
     for name, a, dt in (("splats", splats, vec8), ("radii", radii, wp.int32),
                         ("tiles_touched", tiles_touched, wp.int32)):
         check_array(a, name, dt, (n,), device)
+    if _is_cpu(device):
+        return _launch_blocks(0, n, splats, None, radii, None, cam, tiles_touched, None, None, None, device,
+                              threads, min_chunk)
     launch_split(count_tiles, n, [splats, radii, cam, tiles_touched], device, threads=threads, min_chunk=min_chunk)
+    return None
 
 
 def launch_emit_pairs(splats, depths, radii, pair_offsets, cam: Camera, keys, slots, pair_gauss, n_pairs: int,
-                      device: str, threads: int | None = None, min_chunk: int = 4096) -> None:
-    """Write the unsorted keys, slots and slot->Gaussian map; keys/slots need ``2 * n_pairs`` capacity."""
+                      device: str, threads: int | None = None, min_chunk: int = 4096):
+    """Write the unsorted keys, slots and slot->Gaussian map; keys/slots need ``2 * n_pairs`` capacity. Returns what
+    :func:`launch_count_tiles` returns."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -211,8 +424,42 @@ def launch_emit_pairs(splats, depths, radii, pair_offsets, cam: Camera, keys, sl
         raise TypeError("emit_pairs: keys must be int64, slots and pair_gauss int32")
     if keys.shape[0] < 2 * n_pairs or slots.shape[0] < 2 * n_pairs or pair_gauss.shape[0] < n_pairs:
         raise ValueError(f"emit_pairs: buffers too small for {n_pairs} pairs (keys/slots need 2x for the sort)")
+    if _is_cpu(device):
+        return _launch_blocks(1, n, splats, depths, radii, pair_offsets, cam, None, keys, slots, pair_gauss, device,
+                              threads, min_chunk)
     launch_split(emit_pairs, n, [splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss], device,
                  threads=threads, min_chunk=min_chunk)
+    return None
+
+
+#: Gaussians a thread of the CPU's binning (:func:`bin_blocks`; the C++ block takes at most 256).
+BIN_BLOCK = 256
+
+
+def _is_cpu(device) -> bool:
+    return wp.get_device(device).is_cpu
+
+
+def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touched, keys, slots, pair_gauss,
+                   device, threads, min_chunk):
+    """The CPU's count (mode 0) or emit (1) in blocks of BIN_BLOCK Gaussians (:func:`bin_blocks`), spread over the
+    cores; returns the blocks' status (1 where the C++ block ran)."""
+    from ..runtime import launch_split
+    from .raster import _dummy
+    from .raster_tile import native_flag
+
+    n_blocks = (n + BIN_BLOCK - 1) // BIN_BLOCK
+    status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
+    if n_blocks == 0:
+        return status[:0]
+    f32, i32, i64 = _dummy(wp.float32, 1, device), _dummy(wp.int32, 1, device), _dummy(wp.int64, 1, device)
+    launch_split(bin_blocks, n_blocks, [BIN_BLOCK, n, mode, splats, f32 if depths is None else depths, radii,
+                                        i32 if pair_offsets is None else pair_offsets, cam,
+                                        i32 if tiles_touched is None else tiles_touched,
+                                        i64 if keys is None else keys, i32 if slots is None else slots,
+                                        i32 if pair_gauss is None else pair_gauss, native_flag(), status],
+                 device, threads=threads, min_chunk=max(1, min_chunk // BIN_BLOCK))
+    return status
 
 
 # A stable LSD radix sort of (int64 key, int32 value) pairs over bits [0, end_bit), 8 bits a pass, the passes'

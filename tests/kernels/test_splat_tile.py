@@ -314,6 +314,96 @@ def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
         assert ran == (1 if native and str(wp_device).startswith("cpu") else 0)
 
 
+def _random_splats(rng, n, width, height, big=False):
+    """Projected Gaussians as the projection writes them (mean, conic, opacity, exp(-a), cut-off r2), a few culled:
+    means inside the image, on its borders and off it; ``big``: ellipses many tile rows tall."""
+    means = np.stack([rng.uniform(-40, width + 40, n), rng.uniform(-40, height + 40, n)], 1)
+    means[: n // 10, 0] = rng.choice([0.0, width - 1.0, -0.5, width - 0.5], n // 10)
+    means[n // 10: n // 5, 1] = rng.choice([0.0, height - 1.0, 15.0, 16.0, 31.5], n // 10)
+    sig = np.exp(rng.uniform(0.0, 5.5 if big else 3.5, (n, 2)))
+    th = rng.uniform(0, np.pi, n)
+    c, s_ = np.cos(th), np.sin(th)
+    cxx = (c * sig[:, 0]) ** 2 + (s_ * sig[:, 1]) ** 2 + 0.3
+    cyy = (s_ * sig[:, 0]) ** 2 + (c * sig[:, 1]) ** 2 + 0.3
+    cxy = c * s_ * (sig[:, 0] ** 2 - sig[:, 1] ** 2)
+    det = cxx * cyy - cxy * cxy
+    a, b, cc = cyy / det, -cxy / det, cxx / det
+    op = rng.uniform(0.004, 0.99, n)
+    r2 = 2.0 * np.log(255.0 * op) * 1.001 + 0.01
+    splats = np.stack([means[:, 0], means[:, 1], a, b, cc, op, np.exp(-a), r2], 1).astype(np.float32)
+    radii = np.where(rng.random(n) < 0.05, 0, 1 + rng.integers(0, 50, n)).astype(np.int32)
+    depths = rng.uniform(0.1, 30.0, n).astype(np.float32)
+    return splats, radii, depths
+
+
+@pytest.mark.parametrize("size,n,big", [((640, 480), 3000, False), ((53, 35), 700, False), ((16, 4000), 600, True),
+                                        ((40, 16400), 300, True)])
+def test_the_cpus_binning_blocks_list_the_kernels_pairs(wp_device, size, n, big):
+    """On the CPU the binning (count_tiles, emit_pairs) runs in C++ blocks of BIN_BLOCK Gaussians whose row and column
+    ranges are computed 16 at a time: the same tiles_touched, keys, slots and pair_gauss bit for bit as the Warp
+    kernels (CUDA's path) on Gaussians inside, across and off the image borders, culled ones, several blocks, and
+    tall images whose ellipses reach hundreds of tile rows (a block's items flushed more than once); every block's
+    status is 1, except beyond 1024 tile rows (16,400 px), where the block declines (status 0) and the kernels' own
+    loop gives the same pairs; with the C++ switched off (the control) status 0 and the same pairs."""
+    from mgso_kernels.splat import bin as binning
+    from mgso_kernels.splat import raster
+
+    rng = np.random.default_rng(size[0] + n)
+    splats, radii, depths = _random_splats(rng, n, *size, big=big)
+    cam = make_camera(100.0, 100.0, size[0] / 2, size[1] / 2, size[0], size[1], np.eye(4))
+    arr = lambda a, t: wp.array(a, dtype=t, device=wp_device)  # noqa: E731
+    sp, rd, dp = arr(splats, raster.vec8), arr(radii, wp.int32), arr(depths, wp.float32)
+
+    def run(kind):
+        touched = wp.zeros(n + 1, dtype=wp.int32, device=wp_device)
+        if kind == "kernel":
+            wp.launch(binning.count_tiles, dim=n, inputs=[0, sp, rd, cam, touched[:n]], device=wp_device)
+            st_count = None
+        else:
+            before = raster_tile.use_native(kind == "native")
+            try:
+                st_count = binning.launch_count_tiles(sp, rd, cam, touched[:n], wp_device)
+            finally:
+                raster_tile.use_native(before)
+        t = touched.numpy()
+        offsets = np.concatenate([[0], np.cumsum(t[:n])]).astype(np.int32)
+        m = int(offsets[-1])
+        keys = wp.zeros(2 * m, dtype=wp.int64, device=wp_device)
+        slots = wp.zeros(2 * m, dtype=wp.int32, device=wp_device)
+        gauss = wp.zeros(max(m, 1), dtype=wp.int32, device=wp_device)
+        off = arr(offsets[:n], wp.int32)
+        if kind == "kernel":
+            wp.launch(binning.emit_pairs, dim=n, inputs=[0, sp, dp, rd, off, cam, keys, slots, gauss],
+                      device=wp_device)
+            st_emit = None
+        else:
+            before = raster_tile.use_native(kind == "native")
+            try:
+                st_emit = binning.launch_emit_pairs(sp, dp, rd, off, cam, keys, slots, gauss, m, wp_device)
+            finally:
+                raster_tile.use_native(before)
+        out = (t[:n], keys.numpy()[:m], slots.numpy()[:m], gauss.numpy()[:m])
+        status = [None if x is None else x.numpy() for x in (st_count, st_emit)]
+        return out, status
+
+    want, _ = run("kernel")
+    assert want[1].size > (5 if big else 1) * n      # pairs listed, many rows a Gaussian for the big ones
+    got, status = run("native")
+    for w, g in zip(want, got):
+        np.testing.assert_array_equal(g, w)
+    if not str(wp_device).startswith("cpu"):
+        return
+    blocks = -(-n // binning.BIN_BLOCK)
+    tall = size[1] > 16 * 1024
+    for st in status:
+        assert len(st) == blocks and (st == (0 if tall else 1)).all()
+    off, status = run("off")
+    for w, g in zip(want, off):
+        np.testing.assert_array_equal(g, w)
+    for st in status:
+        assert (st == 0).all()
+
+
 _LANE_CASES = [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True), ((70, 41), 1500, False)]
 
 
