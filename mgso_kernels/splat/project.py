@@ -24,11 +24,12 @@ Twin: :func:`mgso_kernels.reference.splat.project` / ``project_vjp``.
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from .camera import Camera
 from ..image import finite
-from .common import ALPHA_MIN, cutoff_r2, vec6, vec8
+from .common import ALPHA_MIN, R2_ABS_MARGIN, R2_REL_MARGIN, cutoff_r2, vec6, vec8
 
 wp.set_module_options({"enable_backward": False})
 
@@ -102,9 +103,9 @@ def cov2d_of(J: wp.mat33, covc: wp.mat33, eps2d: float) -> wp.vec3:
     return wp.vec3(m[0, 0] + eps2d, m[0, 1], m[1, 1] + eps2d)
 
 
-@wp.kernel
-def project_gaussians(
-    offset: int,
+@wp.func
+def project_one(
+    g: int,
     means: wp.array2d(dtype=float),  # [N, 3] world
     log_scales: wp.array2d(dtype=float),  # [N, 3] log of the standard deviations, world units
     quats: wp.array2d(dtype=float),  # [N, 4] w, x, y, z (any norm > 0)
@@ -119,7 +120,7 @@ def project_gaussians(
     radii: wp.array(dtype=wp.int32),  # [N] out, 3-sigma screen radius in pixels; 0 = culled
     splats: wp.array(dtype=vec8),  # [N] out, blending data (mx, my, a, b, c, opacity, exp(-a), cut-off r2)
 ):
-    g = offset + wp.tid()
+    """:func:`project_gaussians` of Gaussian ``g``."""
     p = load_vec3(means, g)
     pc = cam.R * p + cam.t
     z = pc[2]
@@ -170,8 +171,28 @@ def project_gaussians(
 
 
 @wp.kernel
-def project_gaussians_backward(
+def project_gaussians(
     offset: int,
+    means: wp.array2d(dtype=float),  # [N, 3] world
+    log_scales: wp.array2d(dtype=float),  # [N, 3] log of the standard deviations, world units
+    quats: wp.array2d(dtype=float),  # [N, 4] w, x, y, z (any norm > 0)
+    opacity_logits: wp.array(dtype=float),  # [N] opacity = sigmoid(logit)
+    cam: Camera,
+    eps2d: float,  # low-pass dilation, px^2
+    antialiased: int,  # 1: opacity *= sqrt(det(Sigma_2 - eps2d I) / det(Sigma_2))
+    means2d: wp.array(dtype=wp.vec2),  # [N] out, pixels
+    conics: wp.array(dtype=wp.vec3),  # [N] out, (a, b, c) inverse 2D covariance, 1/px^2
+    depths: wp.array(dtype=float),  # [N] out, camera z
+    opacities: wp.array(dtype=float),  # [N] out, effective opacity (sigmoid(logit) [* compensation])
+    radii: wp.array(dtype=wp.int32),  # [N] out, 3-sigma screen radius in pixels; 0 = culled
+    splats: wp.array(dtype=vec8),  # [N] out, blending data (mx, my, a, b, c, opacity, exp(-a), cut-off r2)
+):
+    project_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, means2d, conics, depths, opacities, radii, splats)
+
+
+@wp.func
+def project_backward_one(
+    g: int,
     means: wp.array2d(dtype=float),  # [N, 3]
     log_scales: wp.array2d(dtype=float),  # [N, 3]
     quats: wp.array2d(dtype=float),  # [N, 4]
@@ -190,7 +211,7 @@ def project_gaussians_backward(
     v_opacity_logits: wp.array(dtype=float),  # [N] out
     v_pose_partial: wp.array(dtype=vec6),  # [N] out, this Gaussian's term of v_pose
 ):
-    g = offset + wp.tid()
+    """:func:`project_gaussians_backward` of Gaussian ``g``."""
     if radii[g] == 0:
         for k in range(3):
             v_means[g, k] = 0.0
@@ -299,6 +320,441 @@ def project_gaussians_backward(
 
 
 @wp.kernel
+def project_gaussians_backward(
+    offset: int,
+    means: wp.array2d(dtype=float),  # [N, 3]
+    log_scales: wp.array2d(dtype=float),  # [N, 3]
+    quats: wp.array2d(dtype=float),  # [N, 4]
+    opacity_logits: wp.array(dtype=float),  # [N]
+    cam: Camera,
+    eps2d: float,
+    antialiased: int,
+    radii: wp.array(dtype=wp.int32),  # [N] 0 = culled: all gradients 0
+    v_means2d: wp.array(dtype=wp.vec2),  # [N] upstream
+    v_conics: wp.array(dtype=wp.vec3),  # [N] upstream
+    v_depths: wp.array(dtype=float),  # [N] upstream (camera z)
+    v_opacities: wp.array(dtype=float),  # [N] upstream (d/d effective opacity)
+    v_means: wp.array2d(dtype=float),  # [N, 3] out
+    v_log_scales: wp.array2d(dtype=float),  # [N, 3] out
+    v_quats: wp.array2d(dtype=float),  # [N, 4] out
+    v_opacity_logits: wp.array(dtype=float),  # [N] out
+    v_pose_partial: wp.array(dtype=vec6),  # [N] out, this Gaussian's term of v_pose
+):
+    project_backward_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, radii, v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats, v_opacity_logits, v_pose_partial)
+
+
+# The CPU's projection backward in C++ blocks, 16 Gaussians a vector (clang's vector types): the operations of
+# project_backward_one in the same order, each as Warp's CPU code does it, so the same gradients bit for bit: matrix
+# products as Warp's mat_t mul (each entry a chain of fmaf from 0), matrix-vector products, dot and cross products
+# as Warp's vec_t code (no FMA: contraction stays off), min/max/clamp as C's fminf/fmaxf, exp as the C library's
+# expf (per lane: the one function Warp calls). Returns 0 where it does not apply (CUDA, arrays not contiguous, the
+# antialiased mode) and nothing is written.
+_PROJECT_COMMON_CPP = r"""
+typedef float vf __attribute__((ext_vector_type(16)));
+typedef int vi __attribute__((ext_vector_type(16)));
+struct M3 { vf m[3][3]; };
+auto sel = [](vi c, vf a, vf b) -> vf { return (vf)((c & (vi)a) | (~c & (vi)b)); };
+auto fmn = [&](vf a, vf b) -> vf { return sel(a <= b, a, sel(b == b, b, a)); };   // wp::min: C's fminf
+auto fmx = [&](vf a, vf b) -> vf { return sel(a >= b, a, sel(b == b, b, a)); };   // wp::max: C's fmaxf
+auto clampv = [&](vf x, float a, float b) -> vf { return fmn(fmx((vf)a, x), (vf)b); };   // wp::clamp
+auto mm = [](const M3& a, const M3& b) -> M3 {    // Warp's mat_t mul: sum = fmaf(a_ik, b_kj, sum) from 0
+    M3 t;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            vf sum = 0.0f;
+            for (int k = 0; k < 3; ++k) sum = __builtin_elementwise_fma(a.m[i][k], b.m[k][j], sum);
+            t.m[i][j] = sum;
+        }
+    return t;
+};
+auto tr = [](const M3& a) -> M3 {
+    M3 t;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) t.m[i][j] = a.m[j][i];
+    return t;
+};
+auto diag = [](vf a, vf b, vf c) -> M3 {
+    M3 t;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) t.m[i][j] = 0.0f;
+    t.m[0][0] = a; t.m[1][1] = b; t.m[2][2] = c;
+    return t;
+};
+auto expv = [](vf x) -> vf { vf r; for (int j = 0; j < 16; ++j) r[j] = ::expf(x[j]); return r; };
+M3 RC;                                   // the camera's rotation, every lane
+for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) RC.m[i][j] = cam.R.data[i][j];
+const float fx = cam.fx, fy = cam.fy, lxn = cam.lim_x_neg, lxp = cam.lim_x_pos, lyn = cam.lim_y_neg,
+            lyp = cam.lim_y_pos;
+// quat_to_rotmat
+auto rotmat = [](vf w, vf x, vf y, vf z) -> M3 {
+    M3 t;
+    t.m[0][0] = 1.0f - 2.0f * (y * y + z * z); t.m[0][1] = 2.0f * (x * y - w * z); t.m[0][2] = 2.0f * (x * z + w * y);
+    t.m[1][0] = 2.0f * (x * y + w * z); t.m[1][1] = 1.0f - 2.0f * (x * x + z * z); t.m[1][2] = 2.0f * (y * z - w * x);
+    t.m[2][0] = 2.0f * (x * z - w * y); t.m[2][1] = 2.0f * (y * z + w * x); t.m[2][2] = 1.0f - 2.0f * (x * x + y * y);
+    return t;
+};
+// ewa_jacobian (first two rows; the third is zero)
+auto jacobian = [&](vf px, vf py, vf z) -> M3 {
+    const vf clx = clampv(px / z, -lxn, lxp), cly = clampv(py / z, -lyn, lyp);
+    M3 t;
+    t.m[0][0] = fx / z; t.m[0][1] = 0.0f; t.m[0][2] = -fx * clx / z;
+    t.m[1][0] = 0.0f; t.m[1][1] = fy / z; t.m[1][2] = -fy * cly / z;
+    t.m[2][0] = 0.0f; t.m[2][1] = 0.0f; t.m[2][2] = 0.0f;
+    return t;
+};
+"""
+
+_PROJECT_BWD_CPP = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+if (antialiased != 0 || means.strides[0] != 12 || means.strides[1] != 4 || log_scales.strides[0] != 12
+    || log_scales.strides[1] != 4 || quats.strides[0] != 16 || quats.strides[1] != 4 || opacity_logits.strides[0] != 4
+    || radii.strides[0] != 4 || v_means2d.strides[0] != 8 || v_conics.strides[0] != 12 || v_depths.strides[0] != 4
+    || v_opacities.strides[0] != 4 || v_means.strides[0] != 12 || v_means.strides[1] != 4
+    || v_log_scales.strides[0] != 12 || v_log_scales.strides[1] != 4 || v_quats.strides[0] != 16
+    || v_quats.strides[1] != 4 || v_opacity_logits.strides[0] != 4 || v_pose_partial.strides[0] != 24) return 0;
+@COMMON@
+const float* PM = (const float*)means.data;
+const float* PL = (const float*)log_scales.data;
+const float* PQ = (const float*)quats.data;
+const float* PO = (const float*)opacity_logits.data;
+const int* RD = (const int*)radii.data;
+const float* VM2 = (const float*)v_means2d.data;
+const float* VCN = (const float*)v_conics.data;
+const float* VD = (const float*)v_depths.data;
+const float* VOP = (const float*)v_opacities.data;
+float* OM = (float*)v_means.data;
+float* OL = (float*)v_log_scales.data;
+float* OQ = (float*)v_quats.data;
+float* OO = (float*)v_opacity_logits.data;
+float* OP = (float*)v_pose_partial.data;
+const float t0 = cam.t[0], t1 = cam.t[1], t2 = cam.t[2];
+for (int g0 = lo; g0 < hi; g0 += 16) {
+    const int m = hi - g0 < 16 ? hi - g0 : 16;
+    vf p0, p1, p2, q0, q1, q2, q3, l0, l1, l2, ol, vm0, vm1, va, vb, vc, vdep, vop;
+    for (int j = 0; j < 16; ++j) {
+        const long g = g0 + (j < m ? j : 0);
+        p0[j] = PM[3 * g]; p1[j] = PM[3 * g + 1]; p2[j] = PM[3 * g + 2];
+        q0[j] = PQ[4 * g]; q1[j] = PQ[4 * g + 1]; q2[j] = PQ[4 * g + 2]; q3[j] = PQ[4 * g + 3];
+        l0[j] = PL[3 * g]; l1[j] = PL[3 * g + 1]; l2[j] = PL[3 * g + 2];
+        ol[j] = PO[g];
+        vm0[j] = VM2[2 * g]; vm1[j] = VM2[2 * g + 1];
+        va[j] = VCN[3 * g]; vb[j] = VCN[3 * g + 1]; vc[j] = VCN[3 * g + 2];
+        vdep[j] = VD[g]; vop[j] = VOP[g];
+    }
+    const vf sig = 1.0f / (1.0f + expv(-ol));
+    // pc = R p + t (mat_t * vec_t: column 0 times p0, plus column 1 times p1, plus column 2 times p2)
+    const vf x = RC.m[0][0] * p0 + RC.m[0][1] * p1 + RC.m[0][2] * p2 + t0;
+    const vf y = RC.m[1][0] * p0 + RC.m[1][1] * p1 + RC.m[1][2] * p2 + t1;
+    const vf z = RC.m[2][0] * p0 + RC.m[2][1] * p1 + RC.m[2][2] * p2 + t2;
+    const vf qnorm = __builtin_elementwise_sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);   // length(vec4)
+    const vf w_ = q0 / qnorm, x_ = q1 / qnorm, y_ = q2 / qnorm, z_ = q3 / qnorm;
+    const M3 M = rotmat(w_, x_, y_, z_);
+    const vf s0 = expv(l0), s1 = expv(l1), s2 = expv(l2);
+    const M3 L = mm(M, diag(s0, s1, s2));
+    const M3 cov3 = mm(L, tr(L));
+    const M3 covc = mm(mm(RC, cov3), tr(RC));
+    const M3 J = jacobian(x, y, z);
+    const M3 m2 = mm(mm(J, covc), tr(J));
+    const vf cv0 = m2.m[0][0] + eps2d, cv1 = m2.m[0][1], cv2 = m2.m[1][1] + eps2d;
+    const vf det = cv0 * cv2 - cv1 * cv1;
+    const vf inv_det = 1.0f / det;
+    const vf a = cv2 * inv_det, b = -cv1 * inv_det, c = cv0 * inv_det;
+    // G2 = -(Q V Q), mat22 products as mat_t mul
+    const vf hv = 0.5f * vb;
+    auto f2 = [](vf a0, vf b0, vf a1, vf b1) -> vf {
+        return __builtin_elementwise_fma(a1, b1, __builtin_elementwise_fma(a0, b0, (vf)0.0f));
+    };
+    const vf QV00 = f2(a, va, b, hv), QV01 = f2(a, hv, b, vc), QV10 = f2(b, va, c, hv), QV11 = f2(b, hv, c, vc);
+    const vf G00 = -f2(QV00, a, QV01, b), G01 = -f2(QV00, b, QV01, c);
+    const vf G10 = -f2(QV10, a, QV11, b), G11 = -f2(QV10, b, QV11, c);
+    const vf comp = 1.0f;
+    const vf v_ol = vop * comp * sig * (1.0f - sig);
+    M3 G;
+    G.m[0][0] = G00; G.m[0][1] = G01; G.m[0][2] = 0.0f;
+    G.m[1][0] = G10; G.m[1][1] = G11; G.m[1][2] = 0.0f;
+    G.m[2][0] = 0.0f; G.m[2][1] = 0.0f; G.m[2][2] = 0.0f;
+    const M3 v_covc = mm(mm(tr(J), G), J);
+    M3 v_J = mm(mm(G, J), covc);
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) v_J.m[i][k] = v_J.m[i][k] * 2.0f;
+    const vf clx = clampv(x / z, -lxn, lxp), cly = clampv(y / z, -lyn, lyp);
+    const vf z2 = z * z;
+    vf vx = 0.0f, vy = 0.0f, vz = vdep;
+    vz = vz + (v_J.m[0][0] * (-fx / z2) + v_J.m[1][1] * (-fy / z2));
+    vz = vz + (v_J.m[0][2] * (fx * clx / z2) + v_J.m[1][2] * (fy * cly / z2));
+    const vf v_clx = v_J.m[0][2] * (-fx / z), v_cly = v_J.m[1][2] * (-fy / z);
+    const vf rx = x / z, ry = y / z;
+    const vi inx = (rx >= -lxn) & (rx <= lxp), iny = (ry >= -lyn) & (ry <= lyp);
+    vx = sel(inx, vx + v_clx / z, vx);
+    vz = sel(inx, vz + -v_clx * x / z2, vz);
+    vy = sel(iny, vy + v_cly / z, vy);
+    vz = sel(iny, vz + -v_cly * y / z2, vz);
+    vx = vx + fx / z * vm0;
+    vy = vy + fy / z * vm1;
+    vz = vz + (-fx * x / z2 * vm0 - fy * y / z2 * vm1);
+    // pose
+    const M3 A1 = mm(v_covc, covc), A2 = mm(covc, v_covc);
+    const vf r0 = (A1.m[2][1] - A2.m[2][1]) - (A1.m[1][2] - A2.m[1][2]);
+    const vf r1 = (A1.m[0][2] - A2.m[0][2]) - (A1.m[2][0] - A2.m[2][0]);
+    const vf r2 = (A1.m[1][0] - A2.m[1][0]) - (A1.m[0][1] - A2.m[0][1]);
+    const vf vr0 = r0 + (y * vz - z * vy), vr1 = r1 + (z * vx - x * vz), vr2 = r2 + (x * vy - y * vx);
+    // means: R^T v_pc (mat_t * vec_t with the transpose's columns, R's rows)
+    const vf om0 = RC.m[0][0] * vx + RC.m[1][0] * vy + RC.m[2][0] * vz;
+    const vf om1 = RC.m[0][1] * vx + RC.m[1][1] * vy + RC.m[2][1] * vz;
+    const vf om2 = RC.m[0][2] * vx + RC.m[1][2] * vy + RC.m[2][2] * vz;
+    // world covariance -> scales and rotation
+    const M3 v_cov3 = mm(mm(tr(RC), v_covc), RC);
+    M3 v_L = mm(v_cov3, L);
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) v_L.m[i][k] = v_L.m[i][k] * 2.0f;
+    const M3 g = mm(v_L, diag(s0, s1, s2));
+    const vf ols0 = (M.m[0][0] * v_L.m[0][0] + M.m[1][0] * v_L.m[1][0] + M.m[2][0] * v_L.m[2][0]) * s0;
+    const vf ols1 = (M.m[0][1] * v_L.m[0][1] + M.m[1][1] * v_L.m[1][1] + M.m[2][1] * v_L.m[2][1]) * s1;
+    const vf ols2 = (M.m[0][2] * v_L.m[0][2] + M.m[1][2] * v_L.m[1][2] + M.m[2][2] * v_L.m[2][2]) * s2;
+    // quat_to_rotmat_vjp
+    const vf w = w_, qx = x_, qy = y_, qz = z_;
+    const vf v_w = 2.0f * (-qz * g.m[0][1] + qy * g.m[0][2] + qz * g.m[1][0] - qx * g.m[1][2] - qy * g.m[2][0]
+                           + qx * g.m[2][1]);
+    const vf v_x = 2.0f * (qy * g.m[0][1] + qz * g.m[0][2] + qy * g.m[1][0] - 2.0f * qx * g.m[1][1] - w * g.m[1][2]
+                           + qz * g.m[2][0] + w * g.m[2][1] - 2.0f * qx * g.m[2][2]);
+    const vf v_y = 2.0f * (-2.0f * qy * g.m[0][0] + qx * g.m[0][1] + w * g.m[0][2] + qx * g.m[1][0] + qz * g.m[1][2]
+                           - w * g.m[2][0] + qz * g.m[2][1] - 2.0f * qy * g.m[2][2]);
+    const vf v_z = 2.0f * (-2.0f * qz * g.m[0][0] - w * g.m[0][1] + qx * g.m[0][2] + w * g.m[1][0]
+                           - 2.0f * qz * g.m[1][1] + qy * g.m[1][2] + qx * g.m[2][0] + qy * g.m[2][1]);
+    const vf d = 0.0f + w * v_w + qx * v_x + qy * v_y + qz * v_z;     // dot(vec4): from 0
+    const vf oq0 = (v_w - w * d) / qnorm, oq1 = (v_x - qx * d) / qnorm, oq2 = (v_y - qy * d) / qnorm,
+             oq3 = (v_z - qz * d) / qnorm;
+    for (int j = 0; j < m; ++j) {
+        const long gi = g0 + j;
+        const bool live = RD[gi] != 0;
+        OM[3 * gi] = live ? om0[j] : 0.0f; OM[3 * gi + 1] = live ? om1[j] : 0.0f; OM[3 * gi + 2] = live ? om2[j] : 0.0f;
+        OL[3 * gi] = live ? ols0[j] : 0.0f; OL[3 * gi + 1] = live ? ols1[j] : 0.0f;
+        OL[3 * gi + 2] = live ? ols2[j] : 0.0f;
+        OQ[4 * gi] = live ? oq0[j] : 0.0f; OQ[4 * gi + 1] = live ? oq1[j] : 0.0f; OQ[4 * gi + 2] = live ? oq2[j] : 0.0f;
+        OQ[4 * gi + 3] = live ? oq3[j] : 0.0f;
+        OO[gi] = live ? v_ol[j] : 0.0f;
+        float* pp = OP + 6 * gi;
+        pp[0] = live ? vx[j] : 0.0f; pp[1] = live ? vy[j] : 0.0f; pp[2] = live ? vz[j] : 0.0f;
+        pp[3] = live ? vr0[j] : 0.0f; pp[4] = live ? vr1[j] : 0.0f; pp[5] = live ? vr2[j] : 0.0f;
+    }
+}
+return 1;
+#else
+return 0;
+#endif
+""".replace("@COMMON@", _PROJECT_COMMON_CPP)
+
+
+@wp.func_native(_PROJECT_BWD_CPP)
+def project_backward_cpp(lo: int, hi: int, means: wp.array2d(dtype=float), log_scales: wp.array2d(dtype=float),
+                         quats: wp.array2d(dtype=float), opacity_logits: wp.array(dtype=float), cam: Camera,
+                         eps2d: float, antialiased: int, radii: wp.array(dtype=wp.int32),
+                         v_means2d: wp.array(dtype=wp.vec2), v_conics: wp.array(dtype=wp.vec3),
+                         v_depths: wp.array(dtype=float), v_opacities: wp.array(dtype=float),
+                         v_means: wp.array2d(dtype=float), v_log_scales: wp.array2d(dtype=float),
+                         v_quats: wp.array2d(dtype=float), v_opacity_logits: wp.array(dtype=float),
+                         v_pose_partial: wp.array(dtype=vec6)) -> int:
+    """:func:`project_backward_one` of the Gaussians ``[lo, hi)`` in C++ (above): the same values bit for bit.
+    Returns 1, or 0 where it does not apply (nothing written)."""
+    ...
+
+
+@wp.kernel
+def project_gaussians_backward_blocks(
+    offset: int,
+    block: int,  # Gaussians a thread
+    n: int,
+    means: wp.array2d(dtype=float),
+    log_scales: wp.array2d(dtype=float),
+    quats: wp.array2d(dtype=float),
+    opacity_logits: wp.array(dtype=float),
+    cam: Camera,
+    eps2d: float,
+    antialiased: int,
+    radii: wp.array(dtype=wp.int32),
+    v_means2d: wp.array(dtype=wp.vec2),
+    v_conics: wp.array(dtype=wp.vec3),
+    v_depths: wp.array(dtype=float),
+    v_opacities: wp.array(dtype=float),
+    v_means: wp.array2d(dtype=float),
+    v_log_scales: wp.array2d(dtype=float),
+    v_quats: wp.array2d(dtype=float),
+    v_opacity_logits: wp.array(dtype=float),
+    v_pose_partial: wp.array(dtype=vec6),
+    native: int,  # 1: the C++ block where it applies; 0: the function's loop (raster_tile.use_native)
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians
+):
+    """:func:`project_gaussians_backward` with ``block`` Gaussians a thread, for the CPU: the C++ block first,
+    :func:`project_backward_one` where it declines."""
+    c = offset + wp.tid()
+    lo = c * block
+    hi = wp.min(lo + block, n)
+    done = int(0)
+    if native != 0:
+        done = project_backward_cpp(lo, hi, means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, radii,
+                                    v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats,
+                                    v_opacity_logits, v_pose_partial)
+    status[c] = done
+    if done == 0:
+        for g in range(lo, hi):
+            project_backward_one(g, means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, radii,
+                                 v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats,
+                                 v_opacity_logits, v_pose_partial)
+
+
+#: Gaussians a thread of the CPU's projection blocks.
+PROJECT_BLOCK = 256
+
+
+_PROJECT_FWD_CPP = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+if (antialiased != 0 || means.strides[0] != 12 || means.strides[1] != 4 || log_scales.strides[0] != 12
+    || log_scales.strides[1] != 4 || quats.strides[0] != 16 || quats.strides[1] != 4 || opacity_logits.strides[0] != 4
+    || means2d.strides[0] != 8 || conics.strides[0] != 12 || depths.strides[0] != 4 || opacities.strides[0] != 4
+    || radii.strides[0] != 4 || splats.strides[0] != 32) return 0;
+@COMMON@
+const float* PM = (const float*)means.data;
+const float* PL = (const float*)log_scales.data;
+const float* PQ = (const float*)quats.data;
+const float* PO = (const float*)opacity_logits.data;
+float* OM2 = (float*)means2d.data;
+float* OC = (float*)conics.data;
+float* OD = (float*)depths.data;
+float* OOP = (float*)opacities.data;
+int* ORD = (int*)radii.data;
+float* OS = (float*)splats.data;
+const float t0 = cam.t[0], t1 = cam.t[1], t2 = cam.t[2];
+const float near_ = cam.near, far_ = cam.far, cx = cam.cx, cy = cam.cy;
+const float Wm1 = (float)(cam.width - 1), Hm1 = (float)(cam.height - 1);
+const float AMIN = @ALPHA_MIN@, RREL = @R2_REL@, RABS = @R2_ABS@;
+for (int g0 = lo; g0 < hi; g0 += 16) {
+    const int m = hi - g0 < 16 ? hi - g0 : 16;
+    vf p0, p1, p2, ol;
+    for (int j = 0; j < 16; ++j) {
+        const long g = g0 + (j < m ? j : 0);
+        p0[j] = PM[3 * g]; p1[j] = PM[3 * g + 1]; p2[j] = PM[3 * g + 2]; ol[j] = PO[g];
+    }
+    const vf x = RC.m[0][0] * p0 + RC.m[0][1] * p1 + RC.m[0][2] * p2 + t0;
+    const vf y = RC.m[1][0] * p0 + RC.m[1][1] * p1 + RC.m[1][2] * p2 + t1;
+    const vf z = RC.m[2][0] * p0 + RC.m[2][1] * p1 + RC.m[2][2] * p2 + t2;
+    const vf op = 1.0f / (1.0f + expv(-ol));
+    // the lanes past the culls by depth and opacity (the compensation, off here, only lowers it)
+    const vi go = (z > near_) & (z < far_) & ~(op < AMIN);
+    int any = 0;
+    for (int j = 0; j < m; ++j) {
+        const long g = g0 + j;
+        OD[g] = z[j]; OOP[g] = op[j]; ORD[g] = 0;
+        OM2[2 * g] = 0.0f; OM2[2 * g + 1] = 0.0f;
+        OC[3 * g] = 0.0f; OC[3 * g + 1] = 0.0f; OC[3 * g + 2] = 0.0f;
+        any |= go[j];
+    }
+    if (!any) continue;
+    vf q0, q1, q2, q3, l0, l1, l2;
+    for (int j = 0; j < 16; ++j) {
+        const long g = g0 + (j < m ? j : 0);
+        q0[j] = PQ[4 * g]; q1[j] = PQ[4 * g + 1]; q2[j] = PQ[4 * g + 2]; q3[j] = PQ[4 * g + 3];
+        l0[j] = PL[3 * g]; l1[j] = PL[3 * g + 1]; l2[j] = PL[3 * g + 2];
+    }
+    // normalize(vec4): q / length(q) where length > 0, else the zero vector
+    const vf len = __builtin_elementwise_sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
+    const vi pos = len > 0.0f;
+    const vf w_ = sel(pos, q0 / len, (vf)0.0f), x_ = sel(pos, q1 / len, (vf)0.0f), y_ = sel(pos, q2 / len, (vf)0.0f),
+             z_ = sel(pos, q3 / len, (vf)0.0f);
+    const M3 M = rotmat(w_, x_, y_, z_);
+    vf s0, s1, s2;
+    for (int j = 0; j < 16; ++j) {
+        s0[j] = go[j] ? ::expf(l0[j]) : 1.0f; s1[j] = go[j] ? ::expf(l1[j]) : 1.0f;
+        s2[j] = go[j] ? ::expf(l2[j]) : 1.0f;
+    }
+    const M3 L = mm(M, diag(s0, s1, s2));
+    const M3 covc = mm(mm(RC, mm(L, tr(L))), tr(RC));
+    const M3 J = jacobian(x, y, z);
+    const M3 m2 = mm(mm(J, covc), tr(J));
+    const vf cv0 = m2.m[0][0] + eps2d, cv1 = m2.m[0][1], cv2 = m2.m[1][1] + eps2d;
+    const vf det = cv0 * cv2 - cv1 * cv1;
+    const vi ok = go & (det > 0.0f) & (det - det == 0.0f);
+    const vf inv_det = 1.0f / det;
+    const vf mx = fx * x / z + cx, my = fy * y / z + cy;
+    vf lg;
+    for (int j = 0; j < 16; ++j) lg[j] = ok[j] ? ::logf(255.0f * op[j]) : 1.0f;
+    const vf r2 = 2.0f * lg * (1.0f + RREL) + RABS;
+    const vf ex = __builtin_elementwise_sqrt(r2 * cv0), ey = __builtin_elementwise_sqrt(r2 * cv2);
+    const vi vis = ok & ~((mx + ex < 0.0f) | (mx - ex > Wm1) | (my + ey < 0.0f) | (my - ey > Hm1));
+    const vf a = cv2 * inv_det, b = -cv1 * inv_det, c = cv0 * inv_det;
+    vf ea;
+    for (int j = 0; j < 16; ++j) ea[j] = vis[j] ? ::expf(-a[j]) : 0.0f;
+    const vf mid = 0.5f * (cv0 + cv2);
+    const vf lam = mid + __builtin_elementwise_sqrt(fmx((vf)0.1f, mid * mid - det));
+    const vi rad = __builtin_convertvector(__builtin_elementwise_ceil(3.0f * __builtin_elementwise_sqrt(lam)), vi);
+    for (int j = 0; j < m; ++j) {
+        if (!vis[j]) continue;
+        const long g = g0 + j;
+        OM2[2 * g] = mx[j]; OM2[2 * g + 1] = my[j];
+        OC[3 * g] = a[j]; OC[3 * g + 1] = b[j]; OC[3 * g + 2] = c[j];
+        float* sp = OS + 8 * g;
+        sp[0] = mx[j]; sp[1] = my[j]; sp[2] = a[j]; sp[3] = b[j]; sp[4] = c[j]; sp[5] = op[j]; sp[6] = ea[j];
+        sp[7] = r2[j];
+        ORD[g] = rad[j] > 1 ? rad[j] : 1;
+    }
+}
+return 1;
+#else
+return 0;
+#endif
+""".replace("@COMMON@", _PROJECT_COMMON_CPP).replace("@ALPHA_MIN@", repr(float(np.float32(ALPHA_MIN))) + "f").replace(
+    "@R2_REL@", repr(float(np.float32(R2_REL_MARGIN))) + "f").replace("@R2_ABS@", repr(float(np.float32(R2_ABS_MARGIN))) + "f")
+
+
+@wp.func_native(_PROJECT_FWD_CPP)
+def project_cpp(lo: int, hi: int, means: wp.array2d(dtype=float), log_scales: wp.array2d(dtype=float),
+                quats: wp.array2d(dtype=float), opacity_logits: wp.array(dtype=float), cam: Camera, eps2d: float,
+                antialiased: int, means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),
+                depths: wp.array(dtype=float), opacities: wp.array(dtype=float), radii: wp.array(dtype=wp.int32),
+                splats: wp.array(dtype=vec8)) -> int:
+    """:func:`project_one` of the Gaussians ``[lo, hi)`` in C++ (above): the same values bit for bit. Returns 1, or
+    0 where it does not apply (nothing written)."""
+    ...
+
+
+@wp.kernel
+def project_gaussians_blocks(
+    offset: int,
+    block: int,  # Gaussians a thread
+    n: int,
+    means: wp.array2d(dtype=float),
+    log_scales: wp.array2d(dtype=float),
+    quats: wp.array2d(dtype=float),
+    opacity_logits: wp.array(dtype=float),
+    cam: Camera,
+    eps2d: float,
+    antialiased: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=float),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.int32),
+    splats: wp.array(dtype=vec8),
+    native: int,  # 1: the C++ block where it applies; 0: the function's loop (raster_tile.use_native)
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians
+):
+    """:func:`project_gaussians` with ``block`` Gaussians a thread, for the CPU: the C++ block first,
+    :func:`project_one` where it declines."""
+    c = offset + wp.tid()
+    lo = c * block
+    hi = wp.min(lo + block, n)
+    done = int(0)
+    if native != 0:
+        done = project_cpp(lo, hi, means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, means2d, conics,
+                           depths, opacities, radii, splats)
+    status[c] = done
+    if done == 0:
+        for g in range(lo, hi):
+            project_one(g, means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, means2d, conics, depths,
+                        opacities, radii, splats)
+
+
+@wp.kernel
 def reduce_pose(
     offset: int,
     v_pose_partial: wp.array(dtype=vec6),  # [N] per-Gaussian terms
@@ -332,8 +788,10 @@ def finish_pose(
 # ------------------------------------------------------------------------------------------------- launchers
 def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, antialiased: bool, means2d,
                    conics, depths, opacities, radii, splats, device: str, threads: int | None = None,
-                   min_chunk: int = 4096) -> None:
-    """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long)."""
+                   min_chunk: int = 4096):
+    """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long). On the CPU in
+    C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
+    thread-per-Gaussian kernel (None)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -344,17 +802,28 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     for name, a, dt in (("means2d", means2d, wp.vec2), ("conics", conics, wp.vec3), ("depths", depths, wp.float32),
                         ("opacities", opacities, wp.float32), ("radii", radii, wp.int32), ("splats", splats, vec8)):
         check_array(a, name, dt, (n,), device)
-    launch_split(project_gaussians, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d),
-                                        int(bool(antialiased)), means2d, conics, depths, opacities, radii, splats],
-                 device, threads=threads,
-                 min_chunk=min_chunk)
+    inputs = [means, log_scales, quats, opacity_logits, cam, float(eps2d), int(bool(antialiased)), means2d, conics,
+              depths, opacities, radii, splats]
+    if wp.get_device(device).is_cpu:
+        from .raster_tile import native_flag
+
+        n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
+        status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
+        if n_blocks:
+            launch_split(project_gaussians_blocks, n_blocks, [PROJECT_BLOCK, n, *inputs, native_flag(), status],
+                         device, threads=threads, min_chunk=max(1, min_chunk // PROJECT_BLOCK))
+        return status[:n_blocks]
+    launch_split(project_gaussians, n, inputs, device, threads=threads, min_chunk=min_chunk)
+    return None
 
 
 def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camera, eps2d: float, antialiased: bool,
                             radii, v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats,
                             v_opacity_logits, v_pose_partial, device: str, threads: int | None = None,
-                            min_chunk: int = 4096) -> None:
-    """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten."""
+                            min_chunk: int = 4096):
+    """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten. On the
+    CPU in C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
+    thread-per-Gaussian kernel (None)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -371,11 +840,20 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
                                ("v_opacity_logits", v_opacity_logits, wp.float32, (n,)),
                                ("v_pose_partial", v_pose_partial, vec6, (n,))):
         check_array(a, name, dt, shape, device)
-    launch_split(project_gaussians_backward, n, [means, log_scales, quats, opacity_logits, cam, float(eps2d),
-                                                 int(bool(antialiased)), radii,
-                                                 v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales,
-                                                 v_quats, v_opacity_logits, v_pose_partial], device,
-                 threads=threads, min_chunk=min_chunk)
+    inputs = [means, log_scales, quats, opacity_logits, cam, float(eps2d), int(bool(antialiased)), radii, v_means2d,
+              v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats, v_opacity_logits, v_pose_partial]
+    if wp.get_device(device).is_cpu:
+        from .raster_tile import native_flag
+
+        n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
+        status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
+        if n_blocks:
+            launch_split(project_gaussians_backward_blocks, n_blocks, [PROJECT_BLOCK, n, *inputs, native_flag(),
+                                                                       status], device, threads=threads,
+                         min_chunk=max(1, min_chunk // PROJECT_BLOCK))
+        return status[:n_blocks]
+    launch_split(project_gaussians_backward, n, inputs, device, threads=threads, min_chunk=min_chunk)
+    return None
 
 
 def launch_reduce_pose(v_pose_partial, block_sums, v_pose, device: str, threads: int | None = None,

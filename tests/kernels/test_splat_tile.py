@@ -404,6 +404,75 @@ def test_the_cpus_binning_blocks_list_the_kernels_pairs(wp_device, size, n, big)
         assert (st == 0).all()
 
 
+@pytest.mark.parametrize("n,antialiased", [(1000, False), (5003, False), (700, True)])
+def test_the_cpus_projection_blocks_compute_the_kernels_values(wp_device, n, antialiased):
+    """On the CPU the projection and its backward run in C++ blocks of PROJECT_BLOCK Gaussians, 16 a vector: the same
+    means2d, conics, depths, opacities, radii and blend records, and the same gradients (means, log-scales,
+    quaternions, opacity logits, pose terms), bit for bit, as the thread-per-Gaussian Warp kernels (CUDA's path), on
+    Gaussians behind the camera and beyond the far plane, off the image, faint (culled by opacity), with zero
+    quaternions, and culled ones in the backward; every block's status is 1. The antialiased mode is not in C++:
+    its blocks decline (status 0) and give the kernels' values. The control (C++ switched off): status 0, the same
+    values."""
+    from mgso_kernels.splat import project as proj
+    from mgso_kernels.splat.common import vec6, vec8
+
+    rng = np.random.default_rng(n)
+    cam = make_camera(300.0, 310.0, 160.3, 119.6, 320, 240, se3_exp(rng.normal(size=6) * 0.3), near=0.05, far=50.0)
+    means = (rng.normal(size=(n, 3)) * 2).astype(np.float32)
+    means[:50] *= 30                                                    # beyond far, behind, far off the image
+    ls = rng.normal(-2, 1.5, (n, 3)).astype(np.float32)
+    quats = rng.normal(size=(n, 4)).astype(np.float32)
+    quats[:7] = 0.0
+    ls[n - n // 10:] = rng.uniform(-8.0, -5.0, (n // 10, 1))           # tiny, round: the radius's floor
+    logits = rng.normal(0, 4, n).astype(np.float32)                     # some below 1/255
+    up = [rng.normal(size=(n, 2)).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32),
+          rng.normal(size=n).astype(np.float32), rng.normal(size=n).astype(np.float32)]
+    arr = lambda a, t=wp.float32: wp.array(a, dtype=t, device=wp_device)  # noqa: E731
+    params = [arr(means), arr(ls), arr(quats), arr(logits), cam, 0.3, antialiased]
+
+    def run(kind):
+        fwd = [wp.zeros(n, dtype=wp.vec2, device=wp_device), wp.zeros(n, dtype=wp.vec3, device=wp_device),
+               wp.zeros(n, dtype=float, device=wp_device), wp.zeros(n, dtype=float, device=wp_device),
+               wp.zeros(n, dtype=wp.int32, device=wp_device), wp.zeros(n, dtype=vec8, device=wp_device)]
+        bwd = [wp.zeros((n, 3), dtype=float, device=wp_device), wp.zeros((n, 3), dtype=float, device=wp_device),
+               wp.zeros((n, 4), dtype=float, device=wp_device), wp.zeros(n, dtype=float, device=wp_device),
+               wp.zeros(n, dtype=vec6, device=wp_device)]
+        ups = [arr(up[0], wp.vec2), arr(up[1], wp.vec3), arr(up[2]), arr(up[3])]
+        status = []
+        if kind == "kernel":
+            wp.launch(proj.project_gaussians, dim=n, inputs=[0, *params, *fwd], device=wp_device)
+            wp.launch(proj.project_gaussians_backward, dim=n, inputs=[0, *params, fwd[4], *ups, *bwd],
+                      device=wp_device)
+        else:
+            before = raster_tile.use_native(kind == "native")
+            try:
+                status.append(proj.launch_project(*params, *fwd, wp_device))
+                status.append(proj.launch_project_backward(*params, fwd[4], *ups, *bwd, wp_device))
+            finally:
+                raster_tile.use_native(before)
+        out = [a.numpy() for a in fwd + bwd]
+        out[5] = out[5][out[4] > 0]                # the blend records are written for the visible only
+        return out, [None if st is None else st.numpy() for st in status]
+
+    want, _ = run("kernel")
+    visible = int((want[4] > 0).sum())
+    assert 0.1 * n < visible < 0.9 * n                                   # culls and visible ones both
+    assert np.abs(want[6]).max() > 0 and np.isfinite(want[6]).all()
+    got, status = run("native")
+    for k, (w, g) in enumerate(zip(want, got)):
+        np.testing.assert_array_equal(g, w, err_msg=str(k))
+    if not str(wp_device).startswith("cpu"):
+        return
+    blocks = -(-n // proj.PROJECT_BLOCK)
+    for st in status:
+        assert len(st) == blocks and (st == (0 if antialiased else 1)).all()
+    off, status = run("off")
+    for k, (w, g) in enumerate(zip(want, off)):
+        np.testing.assert_array_equal(g, w, err_msg=str(k))
+    for st in status:
+        assert (st == 0).all()
+
+
 _LANE_CASES = [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True), ((70, 41), 1500, False)]
 
 
