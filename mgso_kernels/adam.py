@@ -163,12 +163,11 @@ def has_gradient(g: GaussianParams, i: int):
 
 
 # ------------------------------------------------------------------------------------------------ kernels
-@wp.kernel
-def adam_step_gaussians(offset: int, params: GaussianParams, grads: GaussianParams, exp_avg: GaussianParams,
-                        exp_avg_sq: GaussianParams, steps: wp.array(dtype=wp.int32),
-                        visible: wp.array(dtype=wp.uint8), hp: AdamHyper):
-    """One Adam step of every parameter group of Gaussian ``offset + tid``."""
-    i = offset + wp.tid()
+@wp.func
+def adam_row(i: int, params: GaussianParams, grads: GaussianParams, exp_avg: GaussianParams,
+             exp_avg_sq: GaussianParams, steps: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8),
+             hp: AdamHyper):
+    """One Adam step of every parameter group of Gaussian ``i``."""
     if hp.sparse != 0:
         if hp.use_visible != 0:
             if visible[i] == wp.uint8(0):
@@ -199,6 +198,129 @@ def adam_step_gaussians(offset: int, params: GaussianParams, grads: GaussianPara
         if k == 0:
             lr = hp.lr_sh_dc
         adam_row_sh(params.sh, grads.sh, exp_avg.sh, exp_avg_sq.sh, i, k, lr, hp, bc1, bc2_sqrt)
+
+
+@wp.kernel
+def adam_step_gaussians(offset: int, params: GaussianParams, grads: GaussianParams, exp_avg: GaussianParams,
+                        exp_avg_sq: GaussianParams, steps: wp.array(dtype=wp.int32),
+                        visible: wp.array(dtype=wp.uint8), hp: AdamHyper):
+    """One Adam step of every parameter group of Gaussian ``offset + tid``."""
+    adam_row(offset + wp.tid(), params, grads, exp_avg, exp_avg_sq, steps, visible, hp)
+
+
+# The CPU's dense Adam in C++ blocks of up to ADAM_BLOCK Gaussians: adam_row's arithmetic in the same order (so the
+# same parameters and moments bit for bit), with two changes of order of work: each Gaussian's bias corrections
+# (two float64 pow, about half of the kernel's time with per-Gaussian steps) are computed once for each run of equal
+# step counts (Gaussians seeded together have the same), and each parameter group is updated 16 floats a vector
+# (sqrt and division as one IEEE instruction each, the values of the scalar ones). The sparse mode and SH of degree
+# above 0 decline (return 0) to adam_row.
+_ADAM_CPP = r"""
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+enum { BLK = 256 };
+const int n = hi - lo;
+if (n < 0 || n > BLK || hp.sparse != 0 || steps.strides[0] != 4) return 0;
+const int K = params.sh.shape[1];
+if (K != 1) return 0;
+#define MGSO_ADAM_OK(S) (S.means.strides[0] == 12 && S.log_scales.strides[0] == 12 && S.quats.strides[0] == 16 \
+    && S.opacity_logits.strides[0] == 4 && S.sh.strides[0] == 12 && S.sh.strides[1] == 12)
+if (!(MGSO_ADAM_OK(params) && MGSO_ADAM_OK(grads) && MGSO_ADAM_OK(exp_avg) && MGSO_ADAM_OK(exp_avg_sq))) return 0;
+#undef MGSO_ADAM_OK
+typedef float vf __attribute__((ext_vector_type(16)));
+const float b1 = hp.beta1, b2 = hp.beta2, eps = hp.eps;
+const float ob1 = 1.0f - b1, ob2 = 1.0f - b2;
+// the rows' bias corrections
+float BC1[BLK], BC2[BLK];
+int* ST = (int*)steps.data;
+int last_t = 0;
+float c1 = 1.0f, c2 = 1.0f;
+bool have = false;
+for (int r = 0; r < n; ++r) {
+    int t = ST[lo + r] + 1;
+    ST[lo + r] = t;
+    if (hp.bias_correction == 1) t = hp.global_step;
+    if (hp.bias_correction != 0) {
+        if (!have || t != last_t) {
+            const double tt = (double)t;
+            c1 = (float)(1.0 - ::pow((double)b1, tt));
+            c2 = (float)::sqrt(1.0 - ::pow((double)b2, tt));
+            last_t = t;
+            have = true;
+        }
+        BC1[r] = c1; BC2[r] = c2;
+    } else {
+        BC1[r] = 1.0f; BC2[r] = 1.0f;
+    }
+}
+// one group: C floats a row, rows [lo, hi), learning rate lr
+float E1[BLK * 4], E2[BLK * 4];
+auto group = [&](void* pp, void* gp, void* mp, void* vp, const int C, const float lr) {
+    float* P = (float*)pp + (long)lo * C;
+    const float* G = (const float*)gp + (long)lo * C;
+    float* M = (float*)mp + (long)lo * C;
+    float* V = (float*)vp + (long)lo * C;
+    const int cnt = n * C;
+    for (int r = 0; r < n; ++r)
+        for (int c = 0; c < C; ++c) { E1[r * C + c] = BC1[r]; E2[r * C + c] = BC2[r]; }
+    int j = 0;
+    for (; j + 16 <= cnt; j += 16) {
+        vf p, g, m, v, e1, e2;
+        __builtin_memcpy(&p, P + j, 64); __builtin_memcpy(&g, G + j, 64); __builtin_memcpy(&m, M + j, 64);
+        __builtin_memcpy(&v, V + j, 64); __builtin_memcpy(&e1, E1 + j, 64); __builtin_memcpy(&e2, E2 + j, 64);
+        const vf m2 = b1 * m + ob1 * g;
+        const vf v2 = b2 * v + ob2 * g * g;
+        const vf p2 = p - lr / e1 * m2 / (__builtin_elementwise_sqrt(v2) / e2 + eps);
+        __builtin_memcpy(P + j, &p2, 64); __builtin_memcpy(M + j, &m2, 64); __builtin_memcpy(V + j, &v2, 64);
+    }
+    for (; j < cnt; ++j) {
+        const float m2 = b1 * M[j] + ob1 * G[j];
+        const float v2 = b2 * V[j] + ob2 * G[j] * G[j];
+        P[j] = P[j] - lr / E1[j] * m2 / (__builtin_sqrtf(v2) / E2[j] + eps);
+        M[j] = m2; V[j] = v2;
+    }
+};
+group(params.means.data, grads.means.data, exp_avg.means.data, exp_avg_sq.means.data, 3, hp.lr_means);
+group(params.log_scales.data, grads.log_scales.data, exp_avg.log_scales.data, exp_avg_sq.log_scales.data, 3,
+      hp.lr_log_scales);
+group(params.quats.data, grads.quats.data, exp_avg.quats.data, exp_avg_sq.quats.data, 4, hp.lr_quats);
+group(params.opacity_logits.data, grads.opacity_logits.data, exp_avg.opacity_logits.data,
+      exp_avg_sq.opacity_logits.data, 1, hp.lr_opacity);
+group(params.sh.data, grads.sh.data, exp_avg.sh.data, exp_avg_sq.sh.data, 3, hp.lr_sh_dc);
+return 1;
+#else
+return 0;
+#endif
+"""
+
+
+@wp.func_native(_ADAM_CPP)
+def adam_block_cpp(lo: int, hi: int, params: GaussianParams, grads: GaussianParams, exp_avg: GaussianParams,
+                   exp_avg_sq: GaussianParams, steps: wp.array(dtype=wp.int32), hp: AdamHyper) -> int:
+    """:func:`adam_row` of the Gaussians ``[lo, hi)`` in C++ (above), the same values bit for bit. Returns 1, or 0
+    where it does not apply (nothing written)."""
+    ...
+
+
+@wp.kernel
+def adam_step_gaussians_blocks(offset: int, block: int, n: int, params: GaussianParams, grads: GaussianParams,
+                               exp_avg: GaussianParams, exp_avg_sq: GaussianParams, steps: wp.array(dtype=wp.int32),
+                               visible: wp.array(dtype=wp.uint8), hp: AdamHyper, native: int,
+                               status: wp.array(dtype=wp.int32)):
+    """:func:`adam_step_gaussians` with ``block`` Gaussians a thread, for the CPU: the C++ block first,
+    :func:`adam_row` where it declines; ``status[block]`` 1 where the C++ ran."""
+    c = offset + wp.tid()
+    lo = c * block
+    hi = wp.min(lo + block, n)
+    done = int(0)
+    if native != 0:
+        done = adam_block_cpp(lo, hi, params, grads, exp_avg, exp_avg_sq, steps, hp)
+    status[c] = done
+    if done == 0:
+        for i in range(lo, hi):
+            adam_row(i, params, grads, exp_avg, exp_avg_sq, steps, visible, hp)
+
+
+#: Gaussians a thread of the CPU's Adam (:func:`adam_step_gaussians_blocks`; the C++ block takes at most 256).
+ADAM_BLOCK = 256
 
 
 @wp.kernel
@@ -329,8 +451,10 @@ def _check_group(name: str, s: GaussianParams, n: int, k: int) -> None:
 
 def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianParams, exp_avg_sq: GaussianParams,
               steps: wp.array, hyper: AdamHyper, visible: wp.array | None = None,
-              device: str | None = None) -> None:
-    """One fused Adam step over all Gaussians and parameter groups (in place).
+              device: str | None = None):
+    """One fused Adam step over all Gaussians and parameter groups (in place). On the CPU in C++ blocks of
+    :data:`ADAM_BLOCK` Gaussians (returns their status: 1 where the C++ ran; dense mode, SH degree 0), elsewhere the
+    thread-per-Gaussian kernel (None).
 
     ``params``, ``grads``, ``exp_avg``, ``exp_avg_sq``: :class:`GaussianParams` over the same N Gaussians.
     ``steps``: [N] int32 updates received per Gaussian (incremented for every updated row).
@@ -350,8 +474,28 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
         visible = wp.empty(1, dtype=wp.uint8, device=device)
     if n == 0:
         return
+    if wp.get_device(device).is_cpu:
+        n_blocks = (n + ADAM_BLOCK - 1) // ADAM_BLOCK
+        status = wp.empty(n_blocks, dtype=wp.int32, device=device)
+        runtime.launch_split(adam_step_gaussians_blocks, n_blocks, [ADAM_BLOCK, n, params, grads, exp_avg,
+                                                                    exp_avg_sq, steps, visible, hyper,
+                                                                    int(_native["on"]), status],
+                             device, min_chunk=max(1, 8192 // ADAM_BLOCK))
+        return status
     runtime.launch_split(adam_step_gaussians, n, [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper],
                          device, min_chunk=8192)
+    return None
+
+
+_native = {"on": True}
+
+
+def use_native(on: bool) -> bool:
+    """Whether the CPU's Adam runs its C++ blocks (the default) or the Warp code (the same values bit for bit; for
+    tests and profiles). Returns the previous setting."""
+    before = _native["on"]
+    _native["on"] = bool(on)
+    return before
 
 
 def adam_step_array(param: wp.array, grad: wp.array, exp_avg: wp.array, exp_avg_sq: wp.array, lr: float, step: int,

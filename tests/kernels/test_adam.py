@@ -140,3 +140,47 @@ def test_densify_stats_match_twin(wp_device, rng):
         ref = ra.accumulate_densify_stats(ref, g, radii, W, H, ga)
     for kk in ref:
         np.testing.assert_allclose(getattr(s, kk).numpy(), ref[kk], rtol=1e-6, err_msg=kk)
+
+
+@pytest.mark.parametrize("bias,k,sparse", [(wa.BIAS_PER_GAUSSIAN, 1, False), (wa.BIAS_GLOBAL, 1, False),
+                                           (wa.BIAS_NONE, 1, False), (wa.BIAS_PER_GAUSSIAN, 4, False),
+                                           (wa.BIAS_PER_GAUSSIAN, 1, True)])
+def test_the_cpus_adam_blocks_update_as_the_kernel_does(wp_device, rng, bias, k, sparse):
+    """On the CPU the dense Adam of SH degree 0 (MGSO's) runs in C++ blocks of ADAM_BLOCK Gaussians (the bias
+    corrections once per run of equal step counts, each group 16 floats a vector): parameters, both moments and the
+    step counts equal the Warp kernel's bit for bit over five steps, with runs of equal step counts broken at random
+    rows (so cached corrections must be recomputed), three blocks and a part; every block's status is 1. SH above
+    degree 0 and the sparse mode decline to the kernel's code (status 0), and the control with the C++ switched off
+    (wa.use_native(False)) runs none."""
+    n = 3 * wa.ADAM_BLOCK + 37
+    p0 = _rand_group(rng, n, k)
+    steps0 = np.repeat(rng.integers(0, 9, n // 20 + 1), 20)[:n].astype(np.int32)
+    steps0[rng.random(n) < 0.05] += 1
+    grads = [_rand_group(rng, n, k, 0.1) for _ in range(5)]
+
+    def run(native):
+        params, m, v = (_to_wp(p0, wp_device), _to_wp(_rand_group(rng, n, k, 0.0), wp_device),
+                        _to_wp(_rand_group(rng, n, k, 0.0), wp_device))
+        steps = wp.array(steps0, dtype=wp.int32, device=wp_device)
+        status = []
+        before = wa.use_native(native)
+        try:
+            for it, g in enumerate(grads):
+                hp = wa.make_hyper(wa.AdamRates(**RATES), bias_correction=bias, global_step=it + 3, sparse=sparse)
+                status.append(wa.adam_step(params, _to_wp(g, wp_device), m, v, steps, hp, device=wp_device))
+        finally:
+            wa.use_native(before)
+        out = [getattr(s, f).numpy() for s in (params, m, v) for f in ra.GROUPS] + [steps.numpy()]
+        return out, status
+
+    want, off = run(False)
+    got, status = run(True)
+    for w, g in zip(want, got):
+        np.testing.assert_array_equal(g, w)
+    assert np.any(want[0] != p0["means"].astype(np.float32))
+    if str(wp_device).startswith("cpu"):
+        blocks = -(-n // wa.ADAM_BLOCK)
+        for st in status:
+            assert len(st) == blocks and (st.numpy() == (1 if k == 1 and not sparse else 0)).all()
+        for st in off:
+            assert (st.numpy() == 0).all()
