@@ -66,6 +66,9 @@ auto hwin = [&](const float* in, float* out) {
         out[k] = o;
     }
 };
+typedef float v16 __attribute__((ext_vector_type(16)));
+auto ld16 = [](const float* p) -> v16 { v16 v; __builtin_memcpy(&v, p, sizeof v); return v; };
+auto st16 = [](float* p, v16 v) { __builtin_memcpy(p, &v, sizeof v); };
 auto lane_sum16 = [](const float* v) -> float {
     float h[8], q[4];
     for (int k = 0; k < 8; ++k) h[k] = v[k] + v[k + 8];
@@ -110,19 +113,22 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
     const int row = yy - 5;
     if (row < y0) continue;
     const int base = (row - y0) % 11;
+    // the vertical window, 16 floats a vector, each sum over the 11 taps in order kept in a register (the same
+    // sums as a loop over the taps that reads and writes them back at every tap, which is load- and store-bound)
+    int slt[11];
+    for (int t = 0; t < 11; ++t) { int sl = base + t; if (sl >= 11) sl -= 11; slt[t] = sl; }
     float mx[BW], my[BW], exx[BW], eyy[BW], exy[BW];
-    for (int k = 0; k < n; ++k) { mx[k] = 0.0f; my[k] = 0.0f; exx[k] = 0.0f; eyy[k] = 0.0f; exy[k] = 0.0f; }
-    for (int t = 0; t < 11; ++t) {
-        int sl = base + t;
-        if (sl >= 11) sl -= 11;
-        const float g = WIN[t];
-        for (int k = 0; k < n; ++k) {
-            mx[k] = mx[k] + ring[sl][0][k] * g;
-            my[k] = my[k] + ring[sl][1][k] * g;
-            exx[k] = exx[k] + ring[sl][2][k] * g;
-            eyy[k] = eyy[k] + ring[sl][3][k] * g;
-            exy[k] = exy[k] + ring[sl][4][k] * g;
+    for (int k = 0; k < n; k += 16) {
+        v16 a0 = 0.0f, a1 = 0.0f, a2 = 0.0f, a3 = 0.0f, a4 = 0.0f;
+        for (int t = 0; t < 11; ++t) {
+            const float g = WIN[t];
+            a0 = a0 + ld16(&ring[slt[t]][0][k]) * g;
+            a1 = a1 + ld16(&ring[slt[t]][1][k]) * g;
+            a2 = a2 + ld16(&ring[slt[t]][2][k]) * g;
+            a3 = a3 + ld16(&ring[slt[t]][3][k]) * g;
+            a4 = a4 + ld16(&ring[slt[t]][4][k]) * g;
         }
+        st16(mx + k, a0); st16(my + k, a1); st16(exx + k, a2); st16(eyy + k, a3); st16(exy + k, a4);
     }
     const float* xr = row_of(img.x, row) + f0;
     const float* tr = row_of(img.y, row) + f0;
@@ -201,17 +207,18 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
     const int row = yy - 5;
     if (row < y0) continue;
     const int base = (row - y0) % 11;
+    int slt[11];
+    for (int t = 0; t < 11; ++t) { int sl = base + t; if (sl >= 11) sl -= 11; slt[t] = sl; }
     float ga[BW], gb[BW], gc[BW];
-    for (int k = 0; k < n; ++k) { ga[k] = 0.0f; gb[k] = 0.0f; gc[k] = 0.0f; }
-    for (int t = 0; t < 11; ++t) {
-        int sl = base + t;
-        if (sl >= 11) sl -= 11;
-        const float g = WIN[t];
-        for (int k = 0; k < n; ++k) {
-            ga[k] = ga[k] + ring[sl][0][k] * g;
-            gb[k] = gb[k] + ring[sl][1][k] * g;
-            gc[k] = gc[k] + ring[sl][2][k] * g;
+    for (int k = 0; k < n; k += 16) {
+        v16 a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
+        for (int t = 0; t < 11; ++t) {
+            const float g = WIN[t];
+            a0 = a0 + ld16(&ring[slt[t]][0][k]) * g;
+            a1 = a1 + ld16(&ring[slt[t]][1][k]) * g;
+            a2 = a2 + ld16(&ring[slt[t]][2][k]) * g;
         }
+        st16(ga + k, a0); st16(gb + k, a1); st16(gc + k, a2);
     }
     const float* xr = row_of(img.x, row) + f0;
     const float* tr = row_of(img.y, row) + f0;
