@@ -142,6 +142,8 @@ class MapperStats:
     image_blocks: int = 0                   # mapper's process: shared-memory blocks of keyframe images it took
     loop_corrections: int = 0               # LoopCorrection messages applied
     gaussians_moved: int = 0                # Gaussians moved by them (each time it moved)
+    # keyframes whose pose the map began to refine because a loop correction moved them (loop_refines_poses)
+    loop_poses_refined: int = 0
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
                                                    "pruned_opacity": 0, "pruned_world": 0, "pruned_screen": 0,
                                                    "skipped_capacity": 0, "opacity_resets": 0,
@@ -659,6 +661,13 @@ class Mapper:
             if view.depth_z is not None and len(view.depth_z):
                 view.set_depth_points(view.depth_uv, view.depth_z * sim3_to_parts(S)[2])
         self.stats.gaussians_moved += self.gmap.transform_anchored(msg.transforms)
+        if self.cfg.loop_refines_poses and self.refines_poses:
+            # the pose graph spreads the loop's error over the keyframes: closer to the truth, but no longer the
+            # poses the odometry's depths (and the Gaussians seeded from them) agree with, so the map refines them
+            for kid in msg.transforms:
+                if kid in self.views and kid != self._first_kid and self.views[kid].fixed_pose:
+                    self.views[kid].fixed_pose = False
+                    self.stats.loop_poses_refined += 1
 
     def _on_points(self, msg: PointsMessage) -> None:
         self.stats.point_messages += 1

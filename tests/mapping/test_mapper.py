@@ -577,6 +577,37 @@ def test_loop_correction_moves_views_depths_and_anchored_gaussians(wp_device, se
     assert back.loop == 2 and np.array_equal(back.transforms[8], S)
 
 
+def test_keyframes_a_loop_moved_have_their_poses_refined(wp_device, seq, cam):
+    """The pose graph's corrections are not the poses the odometry's depths agree with, so once a LoopCorrection moved
+    the map, the keyframes it moved are refined against the map (mapping.mapper.loop_refines_poses): keyframes 4 and
+    8 were trusted (fixed poses) and are not after the loop; keyframe 0 holds the gauge and stays fixed even when
+    the correction names it; training then moves keyframe 8's pose and not keyframe 0's. The control
+    (loop_refines_poses=false) keeps every pose fixed."""
+    from mgso.geometry import sim3_from_parts, so3_exp
+    from mgso.messages import LoopCorrection
+
+    S = sim3_from_parts(so3_exp([0.01, -0.02, 0.005]), np.array([0.03, 0.01, -0.02]), 1.05)
+    for refine in (True, False):
+        mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.train.depth_weight=0.2",
+                         "mapping.train.refine_poses=null",                 # the default: untrusted ones only
+                         f"mapping.mapper.loop_refines_poses={refine}"), device=wp_device)
+        for k in (0, 4, 8):
+            mp.submit(_kf(seq, cam, k))
+        mp.process_pending()
+        assert all(mp.views[k].fixed_pose for k in (0, 4, 8))         # trusted keyframes: the odometry's poses
+        mp.submit(LoopCorrection({0: np.eye(4), 4: S, 8: S}, loop=1))
+        mp.process_pending()
+        assert mp.views[0].fixed_pose
+        assert [mp.views[k].fixed_pose for k in (4, 8)] == [not refine] * 2
+        assert mp.stats.loop_poses_refined == (2 if refine else 0)
+        w2c0, w2c8 = mp.views[0].world_to_cam.copy(), mp.views[8].world_to_cam.copy()
+        for _ in range(6):
+            mp.trainer.step(view_id=8)
+            mp.trainer.step(view_id=0)
+        np.testing.assert_array_equal(mp.views[0].world_to_cam, w2c0)
+        assert (np.abs(mp.views[8].world_to_cam - w2c8).max() > 0) == refine
+
+
 def test_the_mappers_prune_threshold_replaces_densifys(wp_device, seq, cam):
     """mapping.mapper.prune_opacity prunes faint Gaussians at each refinement (0.05 by default); 0 leaves
     mapping.densify's 3DGS threshold (0.005): the negative control keeps more of the same map."""
