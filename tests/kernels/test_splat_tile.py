@@ -278,7 +278,7 @@ def test_the_cpus_blocked_pack_copies_the_bytes_of_the_pair_kernel(wp_device, wi
 @pytest.mark.parametrize("n_tiles", [2, 1200, 70000])
 def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
     """bin.sort_pairs sorts (tile << 32 | depth bits, slot) pairs stably by the key's low tile_key_bits; on the CPU in
-    C++ (8-bit digits: 5, 6 and 7 passes for these tile counts, so the result ends in either half), elsewhere with
+    C++ (11-bit digits: 3, 4 and 5 passes for these tile counts, so the result ends in either half), elsewhere with
     wp.utils.radix_sort_pairs. The same keys and slots bit for bit on 30,000 pairs with repeated depths (ties keep
     the slot order), and the C++ sort ran on the CPU (returned 1); the control with the C++ switched off returns 0
     and the same order."""
