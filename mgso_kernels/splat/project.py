@@ -187,7 +187,8 @@ def project_gaussians(
     radii: wp.array(dtype=wp.int32),  # [N] out, 3-sigma screen radius in pixels; 0 = culled
     splats: wp.array(dtype=vec8),  # [N] out, blending data (mx, my, a, b, c, opacity, exp(-a), cut-off r2)
 ):
-    project_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, means2d, conics, depths, opacities, radii, splats)
+    project_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, means2d, conics,
+                depths, opacities, radii, splats)
 
 
 @wp.func
@@ -340,7 +341,9 @@ def project_gaussians_backward(
     v_opacity_logits: wp.array(dtype=float),  # [N] out
     v_pose_partial: wp.array(dtype=vec6),  # [N] out, this Gaussian's term of v_pose
 ):
-    project_backward_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, radii, v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats, v_opacity_logits, v_pose_partial)
+    project_backward_one(offset + wp.tid(), means, log_scales, quats, opacity_logits, cam, eps2d, antialiased, radii,
+                         v_means2d, v_conics, v_depths, v_opacities, v_means, v_log_scales, v_quats,
+                         v_opacity_logits, v_pose_partial)
 
 
 # The CPU's projection backward in C++ blocks, 16 Gaussians a vector (clang's vector types): the operations of
@@ -702,8 +705,12 @@ return 1;
 #else
 return 0;
 #endif
-""".replace("@COMMON@", _PROJECT_COMMON_CPP).replace("@ALPHA_MIN@", repr(float(np.float32(ALPHA_MIN))) + "f").replace(
-    "@R2_REL@", repr(float(np.float32(R2_REL_MARGIN))) + "f").replace("@R2_ABS@", repr(float(np.float32(R2_ABS_MARGIN))) + "f")
+"""
+for _name, _value in (("@COMMON@", _PROJECT_COMMON_CPP), ("@ALPHA_MIN@", ALPHA_MIN), ("@R2_REL@", R2_REL_MARGIN),
+                      ("@R2_ABS@", R2_ABS_MARGIN)):
+    _PROJECT_FWD_CPP = _PROJECT_FWD_CPP.replace(
+        _name, _value if isinstance(_value, str) else repr(float(np.float32(_value))) + "f")
+del _name, _value
 
 
 @wp.func_native(_PROJECT_FWD_CPP)
