@@ -88,7 +88,9 @@ def test_a_loop_with_drift_is_closed_and_corrects_trajectory_and_map(loop_runs):
     (res, m, system), (res_off, m_off, _), _ = loop_runs
     lp = m["loop"]
     # measured (2026-12-03, 5 steps a keyframe; 2026-12-02 with 10: 0.0225 m, 23.58 -> 24.05 dB): 3 loops accepted
-    # (keyframes 19-21 on keyframes 0-1), ATE 0.0695 -> 0.0227 m, PSNR (MonoGS protocol) 23.57 -> 23.95 dB
+    # (keyframes 19-21 on keyframes 0-1), ATE 0.0695 -> 0.0227 m, PSNR (MonoGS protocol) 23.57 -> 23.95 dB; since
+    # the map refines the poses a loop moved (mapping.mapper.loop_refines_poses, 2026-12-06) 23.57 -> 24.30 dB: the
+    # bound below fails with those poses held (+0.38 dB)
     assert lp["accepted"] >= 1 and lp["graph_solves"] == lp["accepted"] and lp["corrections_sent"] >= 1
     for rec in lp["loops"]:
         assert rec["candidate_frame_index"] < 16 and rec["frame_index"] >= 72      # the start, seen again
@@ -98,7 +100,7 @@ def test_a_loop_with_drift_is_closed_and_corrects_trajectory_and_map(loop_runs):
     # the odometry's own trajectory is the same in both runs, and it is what the disabled run wrote
     assert m["ate_odometry_all_frames_m"] == pytest.approx(m_off["ate_all_frames_m"], rel=1e-9)
     assert m["ate_all_frames_m"] < 0.5 * m_off["ate_all_frames_m"]
-    assert m["psnr_monogs_db"] > m_off["psnr_monogs_db"] + 0.2
+    assert m["psnr_monogs_db"] > m_off["psnr_monogs_db"] + 0.4
     assert res.mapper.loop_corrections == lp["corrections_sent"] and res.mapper.gaussians_moved > 0
     assert res_off.mapper.loop_corrections == 0
 
