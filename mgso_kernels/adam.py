@@ -15,6 +15,8 @@ Kernels (each with a NumPy twin in :mod:`mgso_kernels.reference.adam`):
 
   The update is torch.optim.Adam's: ``m = b1 m + (1-b1) g``, ``v = b2 v + (1-b2) g^2``,
   ``p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps)`` with ``bc_k = 1 - b_k^t`` (1 without bias correction).
+  On the CPU the dense mode with SH degree 0 (MGSO's) runs as C++ blocks (``adam_step_gaussians_blocks``): the
+  same values bit for bit, the bias corrections once per run of equal step counts (docs/rasteriser.md).
 - ``adam_step_flat``: the same update on a flat float array with one global step (per-keyframe exposures, poses).
 - ``gather_rows`` / ``gather_rows_2d``: ``dst[i] = src[index[i]]``, the one primitive the Gaussian map uses to
   remove, clone and split rows of parameters, moments and statistics together.

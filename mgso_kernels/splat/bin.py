@@ -26,6 +26,10 @@ contiguous range ``[offset_g, offset_g + tiles_touched_g)``. The backward pass a
 into slots and then sums each Gaussian's contiguous range: no cross-thread atomics on the CPU, deterministic.
 ``pair_gauss[p]`` is the Gaussian of slot ``p``.
 
+**On the CPU** counting and emitting run as C++ blocks of :data:`BIN_BLOCK` Gaussians (:func:`bin_blocks`,
+``_BIN_CPP``): the same arithmetic 16 Gaussians (then 16 tile rows) a vector, the same pairs bit for bit; CUDA keeps
+the thread-per-Gaussian kernels (docs/rasteriser.md).
+
 Twin: :func:`mgso_kernels.reference.splat.tile_pairs` (brute-force ellipse-rectangle test over every tile).
 """
 

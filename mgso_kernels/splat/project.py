@@ -19,6 +19,10 @@ Backward (:func:`project_gaussians_backward`) maps gradients w.r.t. means2d, con
 means, log-scales, quaternions (through the normalisation), opacity logits, and per-Gaussian contributions to the
 6-vector camera-pose gradient (left perturbation, translation first), summed by :func:`reduce_pose`.
 
+On the CPU both run as C++ blocks of :data:`PROJECT_BLOCK` Gaussians (:func:`project_gaussians_blocks`,
+:func:`project_gaussians_backward_blocks`), 16 Gaussians a vector with Warp's own order of operations: the same values
+bit for bit (the antialiased mode and CUDA run the thread-per-Gaussian kernels; docs/rasteriser.md).
+
 Twin: :func:`mgso_kernels.reference.splat.project` / ``project_vjp``.
 """
 
