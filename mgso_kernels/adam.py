@@ -477,13 +477,9 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
     if n == 0:
         return
     if wp.get_device(device).is_cpu:
-        n_blocks = (n + ADAM_BLOCK - 1) // ADAM_BLOCK
-        status = wp.empty(n_blocks, dtype=wp.int32, device=device)
-        runtime.launch_split(adam_step_gaussians_blocks, n_blocks, [ADAM_BLOCK, n, params, grads, exp_avg,
-                                                                    exp_avg_sq, steps, visible, hyper,
-                                                                    int(_native["on"]), status],
-                             device, min_chunk=max(1, 8192 // ADAM_BLOCK))
-        return status
+        return runtime.launch_blocks(adam_step_gaussians_blocks, n, ADAM_BLOCK,
+                                     [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper], _native["on"],
+                                     device, min_chunk=8192)
     runtime.launch_split(adam_step_gaussians, n, [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper],
                          device, min_chunk=8192)
     return None

@@ -32,6 +32,7 @@ from typing import Any, Sequence
 import warp as wp
 
 __all__ = [
+    "launch_blocks",
     "default_cache_dir",
     "init",
     "is_initialised",
@@ -301,6 +302,20 @@ def load_modules(modules: Sequence[Any], device: str) -> None:
     of several seconds (a new install, a new Warp, an edited kernel) would drop."""
     for m in modules:
         wp.load_module(m, device=device)
+
+
+def launch_blocks(kernel: Any, n: int, block: int, inputs: Sequence[Any], native: int, device: str, *,
+                  threads: int | None = None, min_chunk: int = 4096) -> Any:
+    """The CPU's C++ blocks: ``kernel(offset, block, n, *inputs, native, status)`` with a thread per block of
+    ``block`` of the ``n`` items, which runs its native snippet (``native`` 1) and its own Warp loop where that
+    declines, spread over the cores by :func:`launch_split` (chunks of at least ``min_chunk`` items). Returns the
+    ``(blocks,)`` int32 status the kernel writes (1 where the snippet did the block)."""
+    n_blocks = -(-int(n) // int(block))
+    status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
+    if n_blocks:
+        launch_split(kernel, n_blocks, [int(block), int(n), *inputs, int(native), status], device, threads=threads,
+                     min_chunk=max(1, min_chunk // int(block)))
+    return status[:n_blocks]
 
 
 def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | None = None, *,

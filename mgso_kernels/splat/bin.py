@@ -38,7 +38,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
-from .common import vec8
+from .common import LANES16_CPP, vec8
 
 wp.set_module_options({"enable_backward": False})
 
@@ -195,17 +195,7 @@ if (n < 0 || n > BLK || tiles_y < 1 || tiles_y > 1024 || tiles_x < 1 || splats.s
 if (mode == 0 && tiles_touched.strides[0] != 4) return 0;
 if (mode == 1 && (depths.strides[0] != 4 || pair_offsets.strides[0] != 4 || keys.strides[0] != 8
                   || slots.strides[0] != 4 || pair_gauss.strides[0] != 4)) return 0;
-typedef float vf __attribute__((ext_vector_type(16)));
-typedef int vi __attribute__((ext_vector_type(16)));
-auto sel = [](vi m, vf a, vf b) -> vf { return (vf)((m & (vi)a) | (~m & (vi)b)); };
-auto seli = [](vi m, vi a, vi b) -> vi { return (m & a) | (~m & b); };
-auto fmn = [&](vf a, vf b) -> vf { return sel(a <= b, a, sel(b == b, b, a)); };   // wp::min: C's fminf
-auto fmx = [&](vf a, vf b) -> vf { return sel(a >= b, a, sel(b == b, b, a)); };   // wp::max: C's fmaxf
-auto imn = [&](vi a, vi b) -> vi { return seli(a < b, a, b); };
-auto imx = [&](vi a, vi b) -> vi { return seli(a > b, a, b); };
-auto sqrtv = [](vf x) -> vf { return __builtin_elementwise_sqrt(x); };
-auto ceili = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_ceil(x), vi); };
-auto floori = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_floor(x), vi); };
+@LANES16@
 const float* S = (const float*)splats.data;
 const int* R = (const int*)radii.data;
 const float Hm1 = (float)(height - 1), Wm1 = (float)(width - 1);
@@ -320,7 +310,7 @@ return 1;
 #else
 return 0;
 #endif
-"""
+""".replace("@LANES16@", LANES16_CPP)
 
 
 @wp.func_native(_BIN_CPP)
@@ -448,22 +438,16 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
                    device, threads, min_chunk):
     """The CPU's count (mode 0) or emit (1) in blocks of BIN_BLOCK Gaussians (:func:`bin_blocks`), spread over the
     cores; returns the blocks' status (1 where the C++ block ran)."""
-    from ..runtime import launch_split
+    from ..runtime import launch_blocks
     from .raster import _dummy
     from .raster_tile import native_flag
 
-    n_blocks = (n + BIN_BLOCK - 1) // BIN_BLOCK
-    status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
-    if n_blocks == 0:
-        return status[:0]
     f32, i32, i64 = _dummy(wp.float32, 1, device), _dummy(wp.int32, 1, device), _dummy(wp.int64, 1, device)
-    launch_split(bin_blocks, n_blocks, [BIN_BLOCK, n, mode, splats, f32 if depths is None else depths, radii,
-                                        i32 if pair_offsets is None else pair_offsets, cam,
-                                        i32 if tiles_touched is None else tiles_touched,
-                                        i64 if keys is None else keys, i32 if slots is None else slots,
-                                        i32 if pair_gauss is None else pair_gauss, native_flag(), status],
-                 device, threads=threads, min_chunk=max(1, min_chunk // BIN_BLOCK))
-    return status
+    inputs = [mode, splats, f32 if depths is None else depths, radii, i32 if pair_offsets is None else pair_offsets,
+              cam, i32 if tiles_touched is None else tiles_touched, i64 if keys is None else keys,
+              i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss]
+    return launch_blocks(bin_blocks, n, BIN_BLOCK, inputs, native_flag(), device, threads=threads,
+                         min_chunk=min_chunk)
 
 
 #: Bits of a digit of the CPU's radix sort: 11 sorts a 640x480 view's 43 key bits in 4 passes where 8 took 6 (1.9 ->

@@ -23,7 +23,7 @@ from .camera import TILE_SIZE
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["vec6", "vec8", "vec12", "vec16", "vec16i", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN",
-           "R2_ABS_MARGIN", "cutoff_r2"]
+           "R2_ABS_MARGIN", "cutoff_r2", "LANES16_CPP"]
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
@@ -45,3 +45,22 @@ def cutoff_r2(op: float) -> float:
     a relative 1e-3 and 1e-2 (a 0.5% margin in alpha at the border)."""
     r2 = 2.0 * wp.log(255.0 * op)
     return r2 * (1.0 + R2_REL_MARGIN) + R2_ABS_MARGIN
+
+
+# C++ of the CPU's per-Gaussian snippets (bin.py, project.py): 16-lane clang vectors and the scalar operations of
+# Warp's CPU code on them, so that a snippet computes what the Warp function computes, bit for bit: a select without
+# a branch, Warp's float min/max (C's fminf/fmaxf: a NaN operand gives the other), int min/max, the IEEE square root,
+# and float -> int through ceil or floor (a cast truncates, as Warp's int()).
+LANES16_CPP = r"""
+typedef float vf __attribute__((ext_vector_type(16)));
+typedef int vi __attribute__((ext_vector_type(16)));
+auto sel = [](vi m, vf a, vf b) -> vf { return (vf)((m & (vi)a) | (~m & (vi)b)); };
+auto seli = [](vi m, vi a, vi b) -> vi { return (m & a) | (~m & b); };
+auto fmn = [&](vf a, vf b) -> vf { return sel(a <= b, a, sel(b == b, b, a)); };   // wp::min: C's fminf
+auto fmx = [&](vf a, vf b) -> vf { return sel(a >= b, a, sel(b == b, b, a)); };   // wp::max: C's fmaxf
+auto imn = [&](vi a, vi b) -> vi { return seli(a < b, a, b); };
+auto imx = [&](vi a, vi b) -> vi { return seli(a > b, a, b); };
+auto sqrtv = [](vf x) -> vf { return __builtin_elementwise_sqrt(x); };
+auto ceili = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_ceil(x), vi); };
+auto floori = [](vf x) -> vi { return __builtin_convertvector(__builtin_elementwise_floor(x), vi); };
+"""

@@ -33,7 +33,8 @@ import warp as wp
 
 from .camera import Camera
 from ..image import finite
-from .common import ALPHA_MIN, R2_ABS_MARGIN, R2_REL_MARGIN, cutoff_r2, vec6, vec8
+from .common import (ALPHA_MIN, LANES16_CPP, R2_ABS_MARGIN, R2_REL_MARGIN,
+                     cutoff_r2, vec6, vec8)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -356,13 +357,8 @@ def project_gaussians_backward(
 # as Warp's vec_t code (no FMA: contraction stays off), min/max/clamp as C's fminf/fmaxf, exp as the C library's
 # expf (per lane: the one function Warp calls). Returns 0 where it does not apply (CUDA, arrays not contiguous, the
 # antialiased mode) and nothing is written.
-_PROJECT_COMMON_CPP = r"""
-typedef float vf __attribute__((ext_vector_type(16)));
-typedef int vi __attribute__((ext_vector_type(16)));
+_PROJECT_COMMON_CPP = LANES16_CPP + r"""
 struct M3 { vf m[3][3]; };
-auto sel = [](vi c, vf a, vf b) -> vf { return (vf)((c & (vi)a) | (~c & (vi)b)); };
-auto fmn = [&](vf a, vf b) -> vf { return sel(a <= b, a, sel(b == b, b, a)); };   // wp::min: C's fminf
-auto fmx = [&](vf a, vf b) -> vf { return sel(a >= b, a, sel(b == b, b, a)); };   // wp::max: C's fmaxf
 auto clampv = [&](vf x, float a, float b) -> vf { return fmn(fmx((vf)a, x), (vf)b); };   // wp::clamp
 auto mm = [](const M3& a, const M3& b) -> M3 {    // Warp's mat_t mul: sum = fmaf(a_ik, b_kj, sum) from 0
     M3 t;
@@ -454,7 +450,7 @@ for (int g0 = lo; g0 < hi; g0 += 16) {
     const vf x = RC.m[0][0] * p0 + RC.m[0][1] * p1 + RC.m[0][2] * p2 + t0;
     const vf y = RC.m[1][0] * p0 + RC.m[1][1] * p1 + RC.m[1][2] * p2 + t1;
     const vf z = RC.m[2][0] * p0 + RC.m[2][1] * p1 + RC.m[2][2] * p2 + t2;
-    const vf qnorm = __builtin_elementwise_sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);   // length(vec4)
+    const vf qnorm = sqrtv(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);   // length(vec4)
     const vf w_ = q0 / qnorm, x_ = q1 / qnorm, y_ = q2 / qnorm, z_ = q3 / qnorm;
     const M3 M = rotmat(w_, x_, y_, z_);
     const vf s0 = expv(l0), s1 = expv(l1), s2 = expv(l2);
@@ -664,7 +660,7 @@ for (int g0 = lo; g0 < hi; g0 += 16) {
         l0[j] = PL[3 * g]; l1[j] = PL[3 * g + 1]; l2[j] = PL[3 * g + 2];
     }
     // normalize(vec4): q / length(q) where length > 0, else the zero vector
-    const vf len = __builtin_elementwise_sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
+    const vf len = sqrtv(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
     const vi pos = len > 0.0f;
     const vf w_ = sel(pos, q0 / len, (vf)0.0f), x_ = sel(pos, q1 / len, (vf)0.0f), y_ = sel(pos, q2 / len, (vf)0.0f),
              z_ = sel(pos, q3 / len, (vf)0.0f);
@@ -686,14 +682,14 @@ for (int g0 = lo; g0 < hi; g0 += 16) {
     vf lg;
     for (int j = 0; j < 16; ++j) lg[j] = ok[j] ? ::logf(255.0f * op[j]) : 1.0f;
     const vf r2 = 2.0f * lg * (1.0f + RREL) + RABS;
-    const vf ex = __builtin_elementwise_sqrt(r2 * cv0), ey = __builtin_elementwise_sqrt(r2 * cv2);
+    const vf ex = sqrtv(r2 * cv0), ey = sqrtv(r2 * cv2);
     const vi vis = ok & ~((mx + ex < 0.0f) | (mx - ex > Wm1) | (my + ey < 0.0f) | (my - ey > Hm1));
     const vf a = cv2 * inv_det, b = -cv1 * inv_det, c = cv0 * inv_det;
     vf ea;
     for (int j = 0; j < 16; ++j) ea[j] = vis[j] ? ::expf(-a[j]) : 0.0f;
     const vf mid = 0.5f * (cv0 + cv2);
-    const vf lam = mid + __builtin_elementwise_sqrt(fmx((vf)0.1f, mid * mid - det));
-    const vi rad = __builtin_convertvector(__builtin_elementwise_ceil(3.0f * __builtin_elementwise_sqrt(lam)), vi);
+    const vf lam = mid + sqrtv(fmx((vf)0.1f, mid * mid - det));
+    const vi rad = ceili(3.0f * sqrtv(lam));
     for (int j = 0; j < m; ++j) {
         if (!vis[j]) continue;
         const long g = g0 + j;
@@ -803,7 +799,7 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long). On the CPU in
     C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
     thread-per-Gaussian kernel (None)."""
-    from ..runtime import launch_split
+    from ..runtime import launch_blocks, launch_split
     from ._checks import check_array
 
     n = means.shape[0]
@@ -818,12 +814,8 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     if wp.get_device(device).is_cpu:
         from .raster_tile import native_flag
 
-        n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
-        status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
-        if n_blocks:
-            launch_split(project_gaussians_blocks, n_blocks, [PROJECT_BLOCK, n, *inputs, native_flag(), status],
-                         device, threads=threads, min_chunk=max(1, min_chunk // PROJECT_BLOCK))
-        return status[:n_blocks]
+        return launch_blocks(project_gaussians_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
+                             threads=threads, min_chunk=min_chunk)
     launch_split(project_gaussians, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 
@@ -835,7 +827,7 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
     """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten. On the
     CPU in C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
     thread-per-Gaussian kernel (None)."""
-    from ..runtime import launch_split
+    from ..runtime import launch_blocks, launch_split
     from ._checks import check_array
 
     n = means.shape[0]
@@ -856,13 +848,8 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
     if wp.get_device(device).is_cpu:
         from .raster_tile import native_flag
 
-        n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
-        status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
-        if n_blocks:
-            launch_split(project_gaussians_backward_blocks, n_blocks, [PROJECT_BLOCK, n, *inputs, native_flag(),
-                                                                       status], device, threads=threads,
-                         min_chunk=max(1, min_chunk // PROJECT_BLOCK))
-        return status[:n_blocks]
+        return launch_blocks(project_gaussians_backward_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
+                             threads=threads, min_chunk=min_chunk)
     launch_split(project_gaussians_backward, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 

@@ -377,7 +377,7 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
     without it but with ``depths_g`` (N,) their depth only (``splat_rgbz[:, 3]``, for the coverage depth); with
     neither the blending data only (alpha-only). On the CPU returns the call's own per-block status (a Warp int32
     array, 1 where the C++ block did the block's pairs; renders may pack on two threads at once), else None."""
-    from ..runtime import launch_split
+    from ..runtime import launch_blocks, launch_split
 
     if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
         raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
@@ -389,13 +389,10 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
     if str(device).startswith("cpu"):
         from .raster_tile import native_flag
 
-        # blocks of PACK_BLOCK pairs, a thread each (the C++ block; launch_split spreads the blocks over the cores)
-        n_blocks = (n_pairs + PACK_BLOCK - 1) // PACK_BLOCK
-        status = wp.empty(n_blocks, dtype=wp.int32, device=device)     # every block writes its own entry
-        launch_split(pack_splats_blocks, n_blocks, [PACK_BLOCK, n_pairs, slots, pair_gauss, splat_g, rgbz_g, depths_g,
-                                                    with_color, splats, splat_rgbz, native_flag(), status], device,
-                     threads=threads, min_chunk=max(1, min_chunk // PACK_BLOCK))
-        return status
+        # blocks of PACK_BLOCK pairs, a thread each (the C++ block; launch_blocks spreads the blocks over the cores)
+        return launch_blocks(pack_splats_blocks, n_pairs, PACK_BLOCK, [slots, pair_gauss, splat_g, rgbz_g, depths_g,
+                                                                       with_color, splats, splat_rgbz],
+                             native_flag(), device, threads=threads, min_chunk=min_chunk)
     launch_split(pack_splats, n_pairs, [slots, pair_gauss, splat_g, rgbz_g, depths_g, with_color, splats,
                                         splat_rgbz], device, threads=threads, min_chunk=min_chunk)
     return None
