@@ -19,6 +19,7 @@ Nothing here runs at import time: importing ``mgso_kernels`` neither initialises
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -44,6 +45,7 @@ __all__ = [
     "available_cores",
     "set_cpu_threads",
     "cpu_threads_setting",
+    "cpu_threads_here",
     "set_blas_threads",
     "split_ranges",
     "launch_split",
@@ -58,6 +60,8 @@ _lock = threading.RLock()
 _initialised = False  # Warp started (kernel cache set)
 _configured = False  # init() called (the BLAS default applied)
 _threads = 0  # 0 = all available cores
+# per launching thread: its workers (the odometry launches from two threads) and its cpu_threads_here setting
+_local = threading.local()
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 
@@ -191,10 +195,29 @@ def device_of(*arrays: Any, default: str | None = None) -> str:
 
 
 def cpu_threads() -> int:
-    """Number of threads CPU split launches use."""
+    """Number of threads CPU split launches use: this thread's :func:`cpu_threads_here`, else the process's
+    :func:`set_cpu_threads`, else every available core."""
+    here = getattr(_local, "threads", 0)
+    if here > 0:
+        return here
     if _threads > 0:
         return _threads
     return available_cores()
+
+
+@contextlib.contextmanager
+def cpu_threads_here(threads: int):
+    """The CPU split launches made from this thread use ``threads`` threads inside the block (0: the process's
+    setting): for work that already runs one task a core, such as renders evaluated two at a time (the other threads
+    of the process keep theirs)."""
+    if threads < 0:
+        raise ValueError(f"threads must be >= 0, got {threads}")
+    before = getattr(_local, "threads", 0)
+    _local.threads = int(threads)
+    try:
+        yield
+    finally:
+        _local.threads = before
 
 
 _cores_seen = (-1e9, 1)  # (time.monotonic() of the last look, cores)
@@ -432,7 +455,6 @@ class _Worker:
             raise e
 
 
-_local = threading.local()  # each launching thread its own workers (the odometry launches from two threads)
 
 
 def _workers(n: int) -> list:

@@ -1,6 +1,6 @@
 """The render evaluation of a finished run (both protocols), one pass against two; prints one JSON line.
 
-    python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N] [--modes one-pass,two-pass]
+    python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N] [--modes one-pass,per-core,two-pass]
 
 ``RUN_DIR`` is an ``mgso run`` output folder (``map.ply``, ``trajectory.txt``, ``keyframes.txt``,
 ``sequence.json`` or ``--sequence``). Its map is rendered at the poses ``mgso run`` renders at
@@ -9,6 +9,8 @@ pixel), and evaluated under the MonoGS and Photo-SLAM protocols as ``mgso run`` 
 
 - ``one-pass``: :func:`mgso.eval.evaluate_protocols` -- each frame rendered once for both protocols, its figures
   taken in a worker thread while the next frame renders (``mgso run`` since 2026-12-05);
+- ``per-core``: :func:`mgso.eval.evaluate_protocols` with a render function a core, each on one thread with a
+  rasteriser of its own, a frame each in flight (``mgso run`` on the CPU since 2026-12-06);
 - ``two-pass``: :func:`mgso.eval.evaluate_renders` once per protocol, every frame of each rendered for it (``mgso
   run`` before). Only this mode runs on an older tree (``PYTHONPATH=OLD_TREE``): then it measures the old metrics.
 
@@ -78,9 +80,18 @@ def main(argv=None) -> int:
     if args.frames:
         tracked = tracked[:args.frames]
 
-    def render(i):
-        out = rast.forward(*params, TrainStep.camera_struct(cam, w2c[i]), (0.0, 0.0, 0.0))
+    def render(i, r=rast):
+        out = r.forward(*params, TrainStep.camera_struct(cam, w2c[i]), (0.0, 0.0, 0.0))
         return np.array(out.rgb.numpy(), np.float32)
+
+    from mgso_kernels import runtime
+    cores = runtime.cpu_threads()
+
+    def on_one_thread(r):
+        def f(i):
+            with runtime.cpu_threads_here(1):
+                return render(i, r)
+        return f
 
     def reference(i):
         return seq.load(i).rgb
@@ -94,7 +105,11 @@ def main(argv=None) -> int:
         return [ev.evaluate_renders(((render(i), reference(i)) for i in frames), frames, p)
                 for p, frames in sel.items()]
 
-    runs = {"one-pass": one_pass, "two-pass": two_pass}
+    def per_core():
+        renders = [on_one_thread(Rasterizer()) for _ in range(cores)]
+        return ev.evaluate_protocols(sel, renders, reference)
+
+    runs = {"one-pass": one_pass, "two-pass": two_pass, "per-core": per_core}
     modes = [m for m in args.modes.split(",") if m]
     wall = {m: [] for m in modes}
     cpu = {m: [] for m in modes}

@@ -136,6 +136,40 @@ def test_map_renders_held_out_frames_well(det_run):
     assert frames == [5, 10, 15]          # positions 0, 5, ..., 20 of 24, minus the keyframes 0, 4, 8, 12, 16, 20
 
 
+def test_the_evaluation_renders_a_frame_a_core_with_the_figures_of_one_render(det_run, tmp_path, monkeypatch):
+    """On the CPU the evaluation renders a frame a core, each on one thread with a rasteriser of its own
+    (outputs.EVAL_MAX_WORKERS; 15.6 -> 12.4 s for the 7-Scenes map, docs/evaluation.md): its figures are those of
+    one render on all the threads, frame for frame, bit for bit. Run again here both ways on the run's map, with
+    two threads set (the control: EVAL_MAX_WORKERS 1 makes no rasteriser of its own)."""
+    from mgso.app import outputs
+    from mgso.app.writer import RunWriter
+    from mgso_kernels import runtime
+
+    result, metrics, system, odo, seq, out = det_run
+    mapper = system.mapper
+    traj = mapper.refined_trajectory(result.trajectory) if mapper.refines_poses else result.trajectory
+    made = []
+    new_rasterizer = mapper.new_rasterizer
+    monkeypatch.setattr(mapper, "new_rasterizer", lambda: made.append(1) or new_rasterizer())
+    before = runtime.cpu_threads_setting()
+    runtime.set_cpu_threads(2)
+    try:
+        both = {}
+        for workers in (2, 1):
+            monkeypatch.setattr(outputs, "EVAL_MAX_WORKERS", workers)
+            made.clear()
+            got = outputs._evaluate_renders(result, mapper, seq, system.config, RunWriter(tmp_path / str(workers)),
+                                            traj, None)
+            both[workers] = (len(made), [(list(r.frame_indices), list(r.psnr), list(r.ssim)) for r in got])
+    finally:
+        runtime.set_cpu_threads(before)
+    assert both[2][0] == 2 and both[1][0] == 0                  # a rasteriser a thread; none for one worker
+    assert both[2][1] == both[1][1]                              # the same figures, bit for bit
+    mono = both[2][1][0]
+    assert mono[0] == [f["frame"] for f in metrics["render"][0]["frames"]]
+    assert mono[1] == [f["psnr_db"] for f in metrics["render"][0]["frames"]]     # the run's own figures
+
+
 def test_outputs_exist_and_parse(det_run):
     result, metrics, system, odo, seq, out = det_run
     traj = read_tum(out / "trajectory.txt")

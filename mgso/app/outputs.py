@@ -59,6 +59,8 @@ FOG_MEDIAN_OPACITY = 0.15
 #: them: 11.9-15.1 dB measured on the fogged TUM maps, 19.4-22.5 dB on TUM, 7-Scenes and KITTI with the defaults
 #: since issue 41, 29 dB on the demo (docs/mapping.md, "Handheld camera").
 POOR_FIT_PSNR_DB = 18.0
+#: The evaluation renders at most this many frames at once on the CPU (one a core, each on one thread).
+EVAL_MAX_WORKERS = 8
 
 
 def map_warning_items(health: dict) -> list[tuple[str, str]]:
@@ -340,11 +342,15 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
             return None
         return mapper.exposure_for(log_.affine[k], log_.exposure_ms[k])
 
-    def render(i: int) -> np.ndarray:
-        k = pos_of[i]
-        w2c = se3_inverse(pose_at[log_.timestamp[k]])
-        w2c[:3, :3] = orthonormalize(w2c[:3, :3])
-        return mapper.render(cam, w2c, exposure=exposure_of(k))
+    def renderer(rasterizer=None, threads: int = 0):
+        def render(i: int) -> np.ndarray:
+            k = pos_of[i]
+            w2c = se3_inverse(pose_at[log_.timestamp[k]])
+            w2c[:3, :3] = orthonormalize(w2c[:3, :3])
+            from mgso_kernels import runtime
+            with runtime.cpu_threads_here(threads):
+                return mapper.render(cam, w2c, exposure=exposure_of(k), rasterizer=rasterizer)
+        return render
 
     save_renders = cfg.output.save_renders
 
@@ -369,8 +375,13 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
     # while the next frame renders
     n_frames = len(set().union(*selections.values()))
     bar = progress(n_frames, "eval " + " + ".join(p.key for p in selections)) if progress is not None else None
+    # on the CPU a frame a core, each rendered on one thread (a rasteriser each): the render's serial parts (sort,
+    # projection), the reference image and the metrics then overlap instead of leaving a core idle (docs/evaluation.md)
+    from mgso_kernels import runtime
+    workers = min(runtime.cpu_threads(), EVAL_MAX_WORKERS) if str(mapper.gmap.device).startswith("cpu") else 1
+    renders = [renderer()] if workers < 2 else [renderer(mapper.new_rasterizer(), 1) for _ in range(workers)]
     try:
-        return evaluate_protocols(selections, render, lambda i: seq.load(i).rgb, on_frame=on_frame)
+        return evaluate_protocols(selections, renders, lambda i: seq.load(i).rgb, on_frame=on_frame)
     finally:
         if bar is not None:
             bar.close()

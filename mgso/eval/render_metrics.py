@@ -340,7 +340,8 @@ def evaluate_renders(pairs: Iterable[tuple[np.ndarray, np.ndarray]], frame_indic
     return _metrics(p, frames, ps, ss)
 
 
-def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]], render: Callable[[int], np.ndarray],
+def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]],
+                       render: Callable[[int], np.ndarray] | Sequence[Callable[[int], np.ndarray]],
                        reference: Callable[[int], np.ndarray], *,
                        on_frame: Callable[[int, np.ndarray, np.ndarray, tuple[str, ...]], Any] | None = None,
                        pipelined: bool = True) -> list[RenderMetrics]:
@@ -355,6 +356,13 @@ def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]],
     which leave the interpreter lock to the renderer); at most two frames are in flight. An exception in either
     thread stops the evaluation (the worker's frame finishes first) and is raised here; a ``ValueError`` about an
     image names its frame.
+
+    ``render`` may be a sequence of render functions, each safe to call beside the others (a rasteriser each): then
+    one thread a function (the first is the caller's) takes the next frame, renders it and takes its figures, so
+    that as many frames are in flight as there are functions (for a CPU whose cores each render a frame on one
+    thread: the render's serial parts, the reference and the metrics then overlap). ``reference`` is called under a
+    lock, in increasing frame order (a video is read forwards), and ``on_frame`` under another (calls never
+    overlap). The figures are the same as with one function.
     """
     protos = [get_protocol(p) for p in selections]
     if len({p.key for p in protos}) != len(protos):
@@ -378,16 +386,21 @@ def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]],
             on_frame(i, rendered, ref, tuple(protos[j].key for j in members[i]))
 
     order = sorted(members)
-    if not pipelined:
+    renders = [render] if callable(render) else list(render)
+    if not renders:
+        raise ValueError("evaluate_protocols: no render function")
+    if len(renders) > 1:
+        _frames_in_parallel(order, renders, reference, finish)
+    elif not pipelined:
         for i in order:
-            finish(i, render(i), reference(i))
+            finish(i, renders[0](i), reference(i))
     else:
         from concurrent.futures import ThreadPoolExecutor
         pending: list = []
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mgso-eval") as pool:
             try:
                 for i in order:
-                    rendered, ref = render(i), reference(i)
+                    rendered, ref = renders[0](i), reference(i)
                     while len(pending) >= 2:
                         pending.pop(0).result()
                     pending.append(pool.submit(finish, i, rendered, ref))
@@ -398,3 +411,45 @@ def evaluate_protocols(selections: Mapping[str | RenderProtocol, Sequence[int]],
                     fut.cancel()
     return [_metrics(p, sel[j], [figures[(j, i)][0] for i in sel[j]], [figures[(j, i)][1] for i in sel[j]])
             for j, p in enumerate(protos)]
+
+
+def _frames_in_parallel(order: Sequence[int], renders: Sequence[Callable[[int], np.ndarray]],
+                        reference: Callable[[int], np.ndarray], finish: Callable[[int, Any, Any], None]) -> None:
+    """:func:`evaluate_protocols` with several render functions: a thread each (the first function on the calling
+    thread), each taking the next frame of ``order`` and its reference under one lock and ``finish``-ing it under
+    another. The first exception (a thread's, or the caller's, e.g. a signal's) stops every thread after its current
+    frame and is raised once they have all ended."""
+    import threading
+
+    frames = iter(order)
+    take, done = threading.Lock(), threading.Lock()
+    stop = threading.Event()
+    errors: list[BaseException] = []
+
+    def work(render: Callable[[int], np.ndarray]) -> None:
+        try:
+            while not stop.is_set():
+                with take:
+                    i = next(frames, None)
+                    if i is None:
+                        return
+                    ref = reference(i)
+                rendered = render(i)
+                with done:
+                    finish(i, rendered, ref)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller
+            errors.append(e)
+            stop.set()
+
+    threads = [threading.Thread(target=work, args=(r,), name=f"mgso-eval-{k + 1}", daemon=True)
+               for k, r in enumerate(renders[1:])]
+    for t in threads:
+        t.start()
+    try:
+        work(renders[0])
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+    if errors:
+        raise errors[0]

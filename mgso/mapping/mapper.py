@@ -1035,10 +1035,18 @@ class Mapper:
     def keyframe_ids(self) -> list[int]:
         return self.views.ids()
 
-    def render(self, camera, world_to_cam: np.ndarray, exposure: tuple[float, float] | None = None) -> np.ndarray:
+    def render(self, camera, world_to_cam: np.ndarray, exposure: tuple[float, float] | None = None, *,
+               rasterizer=None) -> np.ndarray:
         """(H, W, 3) float32 render of the map from ``world_to_cam`` with ``camera`` (a pinhole camera);
-        ``exposure`` (a', b') gives ``exp(a') render + b'``. Call after :meth:`stop` in real-time mode."""
-        return self.trainer.render(camera, world_to_cam, exposure=exposure)
+        ``exposure`` (a', b') gives ``exp(a') render + b'``. Call after :meth:`stop` in real-time mode.
+        ``rasterizer``: a :class:`~mgso_kernels.splat.Rasterizer` of the caller's (:meth:`new_rasterizer`) instead
+        of the trainer's, so that several threads can render the stopped map at once."""
+        return self.trainer.render(camera, world_to_cam, exposure=exposure, rasterizer=rasterizer)
+
+    def new_rasterizer(self):
+        """A rasteriser of its own on the map's device, for :meth:`render` from another thread."""
+        from mgso_kernels.splat import Rasterizer
+        return Rasterizer(self.gmap.device)
 
     def view_psnr(self, keyframe_id: int) -> float:
         """The map's PSNR (dB) on a training view: rendered at its map pose with its exposure, full resolution,

@@ -246,15 +246,18 @@ class TrainStep:
 
     # ------------------------------------------------------------------------------------------ render
     def render(self, gmap: GaussianMap, camera: PinholeCamera, world_to_cam: np.ndarray, *,
-               exposure: tuple[float, float] | None = None, sh_degree: int | None = None) -> np.ndarray:
+               exposure: tuple[float, float] | None = None, sh_degree: int | None = None,
+               rasterizer: Rasterizer | None = None) -> np.ndarray:
         """A copy of the map's RGB render (H, W, 3) float32 from ``world_to_cam`` with ``camera``; ``exposure``
-        (a, b) gives ``exp(a) * render + b`` (not clamped)."""
+        (a, b) gives ``exp(a) * render + b`` (not clamped). ``rasterizer``: one of the caller's instead of the
+        step's own (a render in another thread needs its own buffers)."""
         if gmap.n == 0:
             return np.broadcast_to(np.asarray(self.background, np.float32),
                                    (camera.height, camera.width, 3)).copy()
         p = gmap.float_params()
-        out = self.rasterizer.forward(p.means, p.log_scales, p.quats, p.opacity_logits, p.sh,
-                                      self.camera_struct(camera, world_to_cam), self.background, sh_degree=sh_degree)
+        r = rasterizer if rasterizer is not None else self.rasterizer
+        out = r.forward(p.means, p.log_scales, p.quats, p.opacity_logits, p.sh,
+                        self.camera_struct(camera, world_to_cam), self.background, sh_degree=sh_degree)
         rgb = np.array(out.rgb.numpy(), dtype=np.float32, copy=True)
         if exposure is not None:
             rgb = (math.exp(exposure[0]) * rgb + exposure[1]).astype(np.float32)
@@ -349,10 +352,12 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------ render
     def render(self, camera: PinholeCamera, world_to_cam: np.ndarray,
-               exposure: tuple[float, float] | None = None) -> np.ndarray:
-        """RGB render (H, W, 3) float32 of the current map (SH degree in use at the current step)."""
+               exposure: tuple[float, float] | None = None, rasterizer: Rasterizer | None = None) -> np.ndarray:
+        """RGB render (H, W, 3) float32 of the current map (SH degree in use at the current step); ``rasterizer``:
+        see :meth:`TrainStep.render`."""
         degree = self.train_step.sh_degree_at(self.gmap, self.step_count)
-        return self.train_step.render(self.gmap, camera, world_to_cam, exposure=exposure, sh_degree=degree)
+        return self.train_step.render(self.gmap, camera, world_to_cam, exposure=exposure, sh_degree=degree,
+                                      rasterizer=rasterizer)
 
     def render_view(self, view_id: int) -> np.ndarray:
         """Render of a training view at full resolution with its current pose and exposure."""

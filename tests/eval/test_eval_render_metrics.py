@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from scipy.signal import convolve2d
@@ -225,6 +227,49 @@ def test_evaluate_protocols_renders_each_frame_once_with_the_same_figures(pipeli
     assert out[0].psnr[1] != out[1].psnr[5]                    # the clamp differs between the two protocols
 
 
+def test_evaluate_protocols_with_a_render_function_a_thread_gives_the_same_figures():
+    """Three render functions (as ``mgso run`` gives one a core on the CPU): every frame rendered once, by one of
+    them; the references read in increasing order (a video reads forwards) and ``on_frame`` never entered twice at
+    once; the figures bit for bit those of one function. The functions sleep so that the threads interleave; the
+    control is that more than one of them rendered."""
+    import threading
+
+    rng = np.random.default_rng(6)
+    refs = {i: np.clip(rng.random((40, 30, 3)), 0.0, 0.9).astype(np.float32) for i in range(30)}
+    renders = {i: (r + rng.normal(0, 0.1, r.shape)).astype(np.float32) for i, r in refs.items()}
+    mono_frames, photo_frames = list(range(0, 29, 5)), list(range(30))
+    sel = {MONOGS: mono_frames, PHOTO_SLAM: photo_frames}
+    by, read, inside, overlaps = {}, [], [0], []
+
+    def make(k):
+        def render(i):
+            by.setdefault(i, []).append(k)
+            time.sleep(0.002 * (1 + (i + k) % 3))
+            return renders[i]
+        return render
+
+    def reference(i):
+        read.append(i)
+        return refs[i]
+
+    def on_frame(i, r, g, keys):
+        inside[0] += 1
+        overlaps.append(inside[0] > 1)
+        time.sleep(0.001)
+        inside[0] -= 1
+
+    out = evaluate_protocols(sel, [make(k) for k in range(3)], reference, on_frame=on_frame)
+    assert sorted(by) == photo_frames and all(len(v) == 1 for v in by.values())    # each frame once
+    assert len({v[0] for v in by.values()}) > 1                                     # the threads shared the work
+    assert read == photo_frames and not any(overlaps) and len(overlaps) == 30
+    want = evaluate_protocols(sel, lambda i: renders[i], refs.__getitem__, pipelined=False)
+    for got, w in zip(out, want):
+        np.testing.assert_array_equal(got.frame_indices, w.frame_indices)
+        np.testing.assert_array_equal(got.psnr, w.psnr)
+        np.testing.assert_array_equal(got.ssim, w.ssim)
+    assert not any(t.name.startswith("mgso-eval-") for t in threading.enumerate())       # all joined
+
+
 def test_evaluate_protocols_names_the_bad_frame_and_stops():
     refs = {i: np.full((20, 20, 3), 0.5, np.float32) for i in range(6)}
     rendered = []
@@ -236,5 +281,19 @@ def test_evaluate_protocols_names_the_bad_frame_and_stops():
     with pytest.raises(ValueError, match="frame 2: .*differ in shape"):
         evaluate_protocols({PHOTO_SLAM: list(range(6))}, render, refs.__getitem__)
     assert max(rendered) <= 4                                  # stopped within the two frames in flight
+    # a render function a thread: each thread ends after its frame in flight (the renders sleep, as a real one
+    # leaves the interpreter lock, so that a thread cannot run through many frames before the other raises)
+    refs = {i: np.full((20, 20, 3), 0.5, np.float32) for i in range(20)}
+    rendered.clear()
+
+    def slow(i):
+        time.sleep(0.005)
+        return render(i)
+
+    with pytest.raises(ValueError, match="frame 2: .*differ in shape"):
+        evaluate_protocols({PHOTO_SLAM: list(range(20))}, [slow, slow], refs.__getitem__)
+    assert 2 in rendered and max(rendered) <= 8
+    with pytest.raises(ValueError, match="no render function"):
+        evaluate_protocols({PHOTO_SLAM: [0]}, [], refs.__getitem__)
     with pytest.raises(ValueError, match="selected twice"):
         evaluate_protocols({PHOTO_SLAM: [0], "photo_slam": [1]}, render, refs.__getitem__)

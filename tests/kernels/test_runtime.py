@@ -53,6 +53,40 @@ def test_split_launch_equals_single_launch(wp_device):
     assert np.allclose(single.numpy(), ref, atol=1e-6)
 
 
+def test_threads_here_set_this_threads_split_launches_only():
+    """runtime.cpu_threads_here(1) (the evaluation's renders, a frame a core): a split launch inside the block is
+    one chunk while another thread's is still split by the process's setting; the setting comes back after the
+    block, an error in it included."""
+    img = np.random.default_rng(1).random((64, 128)).astype(np.float32)
+    a = wp.array(img, dtype=wp.float32, device="cpu")
+    out = wp.zeros_like(a)
+    before = runtime.cpu_threads_setting()
+    runtime.set_cpu_threads(3)
+    try:
+        assert runtime.launch_split(box_blur3, img.size, [a, out], "cpu", min_chunk=1000) == 3
+        seen = {}
+        with runtime.cpu_threads_here(1):
+            assert runtime.cpu_threads() == 1
+            seen["here"] = runtime.launch_split(box_blur3, img.size, [a, out], "cpu", min_chunk=1000)
+            other = threading.Thread(target=lambda: seen.__setitem__("other", runtime.launch_split(
+                box_blur3, img.size, [a, out], "cpu", min_chunk=1000)))
+            other.start()
+            other.join(10)
+        assert seen == {"here": 1, "other": 3}
+        assert runtime.cpu_threads() == 3                              # back after the block
+        with pytest.raises(RuntimeError, match="inside"):
+            with runtime.cpu_threads_here(2):
+                raise RuntimeError("inside")
+        assert runtime.cpu_threads() == 3
+        with runtime.cpu_threads_here(0):                              # 0: the process's setting
+            assert runtime.cpu_threads() == 3
+        with pytest.raises(ValueError, match=">= 0"):
+            with runtime.cpu_threads_here(-1):
+                pass
+    finally:
+        runtime.set_cpu_threads(before)
+
+
 def test_split_requires_offset_parameter(wp_device):
     @wp.kernel(enable_backward=False)
     def no_offset(a: wp.array(dtype=float)):
