@@ -145,7 +145,7 @@ def test_the_evaluation_renders_a_frame_a_core_with_the_figures_of_one_render(de
     from mgso.app.writer import RunWriter
     from mgso_kernels import runtime
 
-    result, metrics, system, odo, seq, out = det_run
+    result, metrics, system, _, seq, _ = det_run
     mapper = system.mapper
     traj = mapper.refined_trajectory(result.trajectory) if mapper.refines_poses else result.trajectory
     made = []

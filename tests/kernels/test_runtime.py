@@ -74,15 +74,13 @@ def test_threads_here_set_this_threads_split_launches_only():
             other.join(10)
         assert seen == {"here": 1, "other": 3}
         assert runtime.cpu_threads() == 3                              # back after the block
-        with pytest.raises(RuntimeError, match="inside"):
-            with runtime.cpu_threads_here(2):
-                raise RuntimeError("inside")
+        with pytest.raises(RuntimeError, match="inside"), runtime.cpu_threads_here(2):
+            raise RuntimeError("inside")
         assert runtime.cpu_threads() == 3
         with runtime.cpu_threads_here(0):                              # 0: the process's setting
             assert runtime.cpu_threads() == 3
-        with pytest.raises(ValueError, match=">= 0"):
-            with runtime.cpu_threads_here(-1):
-                pass
+        with pytest.raises(ValueError, match=">= 0"), runtime.cpu_threads_here(-1):
+            pass
     finally:
         runtime.set_cpu_threads(before)
 
