@@ -781,13 +781,17 @@ class MapperConfig:
                                                 "the level running_max_pixels gives, the rest at full resolution; "
                                                 "null = 0.95 in real time (7-Scenes on 2 cores: the final 1,300 "
                                                 "steps in 122 s, 129-151 s at 0.8, 235-306 s at 0, the PSNR within "
-                                                "the runs' spread), 0.8 in the deterministic mode with its 2,000 "
-                                                "final steps (0 with 1,300 until 2026-12-06, where KITTI lost 0.24 "
-                                                "dB at 0.8; with 2,000 it gains 0.58 dB over 1,300 at 0, in less "
-                                                "time; docs/mapping.md)")
-    keyframe_steps_coarse: bool = opt(False, "deterministic mode: the steps after each keyframe train at the level "
-                                             "running_max_pixels gives, as the real-time mapper's steps while the "
-                                             "stream runs (the final refinement: final_coarse_share)")
+                                                "the runs' spread), 0.6 in the deterministic mode with its 2,000 "
+                                                "final steps and its coarse steps after each keyframe (0.8 with "
+                                                "them at full resolution, until 2026-12-06; 0 with 1,300 final steps "
+                                                "before, where KITTI lost 0.24 dB at 0.8; docs/mapping.md)")
+    keyframe_steps_coarse: bool = opt(True, "deterministic mode: the steps after each keyframe train at the level "
+                                            "running_max_pixels gives, as the real-time mapper's steps while the "
+                                            "stream runs (the final refinement: final_coarse_share); with the "
+                                            "final refinement's last 40 % at full resolution the mapping took 27-48 "
+                                            "% less time than at full resolution, at -0.01, +0.07 and +0.11 dB on "
+                                            "7-Scenes, freiburg1_rpy and KITTI (docs/mapping.md); false: full "
+                                            "resolution (the default until 2026-12-06)")
     running_train_share: float = opt(0.25, "real time: the share of the mapper's busy time kept for training while "
                                            "messages wait (a mapper that trains only when its queue is empty never "
                                            "trains on a small CPU: seeding the keyframes fills what the odometry "
@@ -870,10 +874,13 @@ class MapperConfig:
         return 1300 if realtime else 2000
 
     def final_share_coarse(self, realtime: bool) -> float:
-        """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time, 0.8 deterministic."""
+        """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time, 0.6 deterministic (0.8
+        where the steps after each keyframe train at full resolution, ``keyframe_steps_coarse`` false)."""
         if self.final_coarse_share is not None:
             return float(self.final_coarse_share)
-        return 0.95 if realtime else 0.8
+        if realtime:
+            return 0.95
+        return 0.6 if self.keyframe_steps_coarse else 0.8
 
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)

@@ -31,7 +31,8 @@ same way. With ``mapping.train.learn_exposure`` the trainer learns a correction 
 pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change and keeps the learned correction.
 
 **Modes.** Deterministic (:meth:`process_pending`, in the caller's thread): messages in order, a fixed
-``mapping.mapper.iterations_per_keyframe`` steps after each keyframe message; the same map on every CPU run.
+``mapping.mapper.iterations_per_keyframe`` steps after each keyframe message (at the pyramid level of
+``running_max_pixels`` with ``keyframe_steps_coarse``, the default); the same map on every CPU run.
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
@@ -397,8 +398,9 @@ class Mapper:
 
     def final_coarse_share(self) -> float:
         """``mapping.mapper.final_coarse_share``, its null resolved: 0.95 in real time (a mapping thread or process:
-        the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0.8 in the
-        deterministic mode (with its 2,000 final steps)."""
+        the map the camera leaves has had a few dozen steps, and is ready about twice as soon), 0.6 in the
+        deterministic mode (with its 2,000 final steps and coarse steps after each keyframe; 0.8 with those at full
+        resolution)."""
         return self.cfg.final_share_coarse(realtime=self._thread is not None)
 
     def final_iterations(self) -> int:
