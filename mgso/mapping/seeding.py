@@ -402,7 +402,10 @@ def seed_scales(means: np.ndarray, depths: np.ndarray, focal: float, cfg: Seedin
     k = min(cfg.knn, len(pts) - 1)
     if k < 1:
         return hi.copy()
-    d, _ = cKDTree(pts).query(p, k=k + 1)      # the nearest is the point itself (distance 0)
+    # the nearest is the point itself (distance 0). The tree is built for one query of the new points: unbalanced
+    # and without shrinking its nodes' boxes it builds about twice as fast (the query is exact either way: the same
+    # distances), 1,500 seeds among 20,000 neighbours 5.3 -> 3.3 ms (docs/seeding.md)
+    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(p, k=k + 1)
     d = np.asarray(d).reshape(n, k + 1)[:, 1:]
     return np.clip(d.mean(axis=1), lo, hi)
 
