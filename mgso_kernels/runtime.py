@@ -455,8 +455,6 @@ class _Worker:
             raise e
 
 
-
-
 def _workers(n: int) -> list:
     ws = getattr(_local, "workers", None)
     if ws is None:

@@ -1,6 +1,7 @@
 """The render evaluation of a finished run (both protocols), one pass against two; prints one JSON line.
 
-    python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N] [--modes one-pass,per-core,two-pass]
+    python profiles/evaluation.py RUN_DIR [--sequence PATH] [--repeats 2] [--frames N]
+        [--modes one-pass,per-core,two-pass]
 
 ``RUN_DIR`` is an ``mgso run`` output folder (``map.ply``, ``trajectory.txt``, ``keyframes.txt``,
 ``sequence.json`` or ``--sequence``). Its map is rendered at the poses ``mgso run`` renders at

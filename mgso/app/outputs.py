@@ -323,6 +323,7 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
                       progress) -> list:
     """Rendering quality at the final poses (no alignment needed: the map is in their frame)."""
     from mgso.eval import MONOGS, PHOTO_SLAM, evaluate_protocols, select_frames
+    from mgso_kernels import runtime
 
     pose_at = {float(t): T for t, T in zip(render_traj.timestamps, render_traj.cam_to_world)}
     log_ = result.frame_log
@@ -347,7 +348,6 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
             k = pos_of[i]
             w2c = se3_inverse(pose_at[log_.timestamp[k]])
             w2c[:3, :3] = orthonormalize(w2c[:3, :3])
-            from mgso_kernels import runtime
             with runtime.cpu_threads_here(threads):
                 return mapper.render(cam, w2c, exposure=exposure_of(k), rasterizer=rasterizer)
         return render
@@ -377,7 +377,6 @@ def _evaluate_renders(result: SystemResult, mapper: Mapper, seq, cfg: Config, wr
     bar = progress(n_frames, "eval " + " + ".join(p.key for p in selections)) if progress is not None else None
     # on the CPU a frame a core, each rendered on one thread (a rasteriser each): the render's serial parts (sort,
     # projection), the reference image and the metrics then overlap instead of leaving a core idle (docs/evaluation.md)
-    from mgso_kernels import runtime
     workers = min(runtime.cpu_threads(), EVAL_MAX_WORKERS) if str(mapper.gmap.device).startswith("cpu") else 1
     renders = [renderer()] if workers < 2 else [renderer(mapper.new_rasterizer(), 1) for _ in range(workers)]
     try:
