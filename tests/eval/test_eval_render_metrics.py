@@ -295,5 +295,26 @@ def test_evaluate_protocols_names_the_bad_frame_and_stops():
     assert 2 in rendered and max(rendered) <= 8
     with pytest.raises(ValueError, match="no render function"):
         evaluate_protocols({PHOTO_SLAM: [0]}, [], refs.__getitem__)
+    # a signal's KeyboardInterrupt in the caller's render (the first function runs on the caller's thread): raised
+    # here once the other thread has ended its frame
+    import threading
+
+    rendered.clear()
+
+    def interrupted(i):
+        time.sleep(0.005)
+        if i >= 4:
+            raise KeyboardInterrupt
+        return refs[i] + 0.1
+
+    def good(i):
+        time.sleep(0.005)
+        rendered.append(i)
+        return refs[i] + 0.1
+
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_protocols({PHOTO_SLAM: list(range(20))}, [interrupted, good], refs.__getitem__)
+    assert not any(t.name.startswith("mgso-eval-") for t in threading.enumerate())
+    assert max(rendered) <= 10
     with pytest.raises(ValueError, match="selected twice"):
         evaluate_protocols({PHOTO_SLAM: [0], "photo_slam": [1]}, render, refs.__getitem__)
