@@ -478,22 +478,11 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
         return
     if wp.get_device(device).is_cpu:
         return runtime.launch_blocks(adam_step_gaussians_blocks, n, ADAM_BLOCK,
-                                     [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper], _native["on"],
+                                     [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper], runtime.native_flag(),
                                      device, min_chunk=8192)
     runtime.launch_split(adam_step_gaussians, n, [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper],
                          device, min_chunk=8192)
     return None
-
-
-_native = {"on": True}
-
-
-def use_native(on: bool) -> bool:
-    """Whether the CPU's Adam runs its C++ blocks (the default) or the Warp code (the same values bit for bit; for
-    tests and profiles). Returns the previous setting."""
-    before = _native["on"]
-    _native["on"] = bool(on)
-    return before
 
 
 def adam_step_array(param: wp.array, grad: wp.array, exp_avg: wp.array, exp_avg_sq: wp.array, lr: float, step: int,

@@ -34,6 +34,8 @@ import warp as wp
 
 __all__ = [
     "launch_blocks",
+    "use_native",
+    "native_flag",
     "default_cache_dir",
     "init",
     "is_initialised",
@@ -325,6 +327,24 @@ def load_modules(modules: Sequence[Any], device: str) -> None:
     of several seconds (a new install, a new Warp, an edited kernel) would drop."""
     for m in modules:
         wp.load_module(m, device=device)
+
+
+_native = {"on": True}
+
+
+def use_native(on: bool) -> bool:
+    """Whether the CPU's native C++ snippets run where they apply (the default): the tile blends, the pack, binning,
+    projection and sort (:mod:`mgso_kernels.splat`) and Adam's blocks; off, their kernels' own Warp code runs (the
+    same results, bit for bit or to float rounding as each module says; for tests and profiles). Returns the
+    previous setting."""
+    before = _native["on"]
+    _native["on"] = bool(on)
+    return before
+
+
+def native_flag() -> int:
+    """The kernels' ``native`` argument: 1 when :func:`use_native` is on."""
+    return int(_native["on"])
 
 
 def launch_blocks(kernel: Any, n: int, block: int, inputs: Sequence[Any], native: int, device: str, *,

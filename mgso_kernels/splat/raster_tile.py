@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..runtime import native_flag, use_native  # the one switch of the CPU's C++ snippets (re-exported here)
 from . import raster_tile_cpp
 from .camera import TILE_SIZE, Camera
 from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec12, vec16, vec16i
@@ -70,21 +71,7 @@ LN2_HI = wp.constant(0.693359375)  # ln 2 split in two (Cody-Waite): n * LN2_HI 
 LN2_LO = wp.constant(-2.12194440e-4)
 BWD_ACC_ROWS = 10  # running-sum rows of the backward (see rasterize_backward_tile)
 
-_native = {"on": True}
 _status: dict = {}
-
-
-def use_native(on: bool) -> bool:
-    """Whether the tile kernels run their C++ snippets where they apply (the CPU; the default) or their own Warp
-    code (the same results to float rounding; for tests and profiles). Returns the previous setting."""
-    before = _native["on"]
-    _native["on"] = bool(on)
-    return before
-
-
-def native_flag() -> int:
-    """The kernels' ``native`` argument: 1 when :func:`use_native` is on."""
-    return int(_native["on"])
 
 
 def status_buffer(dim: int, device) -> wp.array:

@@ -5,6 +5,7 @@ import pytest
 import warp as wp
 
 from mgso_kernels import adam as wa
+from mgso_kernels import runtime
 from mgso_kernels.reference import adam as ra
 
 RATES = dict(means=1.6e-4, log_scales=5e-3, quats=1e-3, opacity_logits=2.5e-2, sh_dc=2.5e-3, sh_rest=2.5e-3 / 20)
@@ -151,7 +152,7 @@ def test_the_cpus_adam_blocks_update_as_the_kernel_does(wp_device, rng, bias, k,
     step counts equal the Warp kernel's bit for bit over five steps, with runs of equal step counts broken at random
     rows (so cached corrections must be recomputed), three blocks and a part; every block's status is 1. SH above
     degree 0 and the sparse mode decline to the kernel's code (status 0), and the control with the C++ switched off
-    (wa.use_native(False)) runs none."""
+    (runtime.use_native(False), the switch of every C++ snippet) runs none."""
     n = 3 * wa.ADAM_BLOCK + 37
     p0 = _rand_group(rng, n, k)
     steps0 = np.repeat(rng.integers(0, 9, n // 20 + 1), 20)[:n].astype(np.int32)
@@ -163,13 +164,13 @@ def test_the_cpus_adam_blocks_update_as_the_kernel_does(wp_device, rng, bias, k,
                         _to_wp(_rand_group(rng, n, k, 0.0), wp_device))
         steps = wp.array(steps0, dtype=wp.int32, device=wp_device)
         status = []
-        before = wa.use_native(native)
+        before = runtime.use_native(native)
         try:
             for it, g in enumerate(grads):
                 hp = wa.make_hyper(wa.AdamRates(**RATES), bias_correction=bias, global_step=it + 3, sparse=sparse)
                 status.append(wa.adam_step(params, _to_wp(g, wp_device), m, v, steps, hp, device=wp_device))
         finally:
-            wa.use_native(before)
+            runtime.use_native(before)
         out = [getattr(s, f).numpy() for s in (params, m, v) for f in ra.GROUPS] + [steps.numpy()]
         return out, status
 
