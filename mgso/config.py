@@ -269,6 +269,11 @@ class TrackingConfig:
                                                      "this many ms of the frame, even above retrack_threshold (DSO "
                                                      "tries all 31 then: 350-470 ms at 320x240, and the frames "
                                                      "behind are dropped; docs/tracking.md); 0 = DSO's rule always")
+    realtime_current_keyframe_requests: bool = opt(True, "real time only (the odometry's mapping thread): a "
+                                                         "keyframe request counts only if the frame was tracked "
+                                                         "against the newest keyframe (DSO needNewKFAfter): the "
+                                                         "frames tracked while the thread makes a keyframe, against "
+                                                         "the one before, would each ask again (docs/tracking.md)")
     coarse_rotation_hypotheses: bool = opt(True, "after constant/double/half/zero motion also try 26 small "
                                                  "rotations of the constant-motion guess (trackNewCoarse)")
     coarse_rotation_delta: float = opt(0.02, "quaternion component of those rotations, about 2.3 degrees "

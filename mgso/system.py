@@ -214,9 +214,11 @@ class SystemResult:
     tracking_losses: list = field(default_factory=list)    # the odometry's TrackingLost events, in order
     segments: int = 1                                       # tracking segments (a loss starts a new one)
     frame_lags: list = field(default_factory=list)          # real time: seconds each frame waited to be taken
-    # real time, the odometry's mapping thread: keyframe requests it mapped as ordinary frames because a newer frame
-    # waited (DSO's catch-up); None for an odometry without that thread
+    # real time, the odometry's mapping thread: keyframe requests a newer one replaced while frames waited (DSO's
+    # catch-up), and requests dropped as made against a keyframe no longer the newest (DSO's needNewKFAfter); None
+    # for an odometry without that thread
     keyframe_requests_merged: int | None = None
+    keyframe_requests_stale: int | None = None
 
     @property
     def mapper_cpu_share(self) -> float | None:
@@ -565,6 +567,8 @@ class System:
             frame_lags=list(player.lags) if player is not None else [],
             keyframe_requests_merged=(getattr(self.odometry, "num_keyframe_requests_merged", None)
                                       if getattr(self.odometry, "map_thread", False) else None),
+            keyframe_requests_stale=(getattr(self.odometry, "num_keyframe_requests_stale", None)
+                                     if getattr(self.odometry, "map_thread", False) else None),
             pose_updates=self._pose_updates, interrupted=interrupted,
             trajectory=traj, keyframe_trajectory=kf_traj, frame_log=self.frame_log, cloud=cloud,
             mapper=self.mapper.stats if self.mapper is not None else MapperStats(), odometry_seconds=odo_s,

@@ -2,8 +2,9 @@
 rate), once per variant, each in its own process; prints **one JSON line**.
 
 Per sequence and variant: frames read, tracked (processed) and dropped, the fraction tracked, the tracking losses
-(frame and reason), keyframes sent and in the map, mapping steps while the camera ran and in the final refinement,
-the mapper's share of the CPU and its CPU seconds, seconds seeding, training and refining, its longest queue,
+(frame and reason), keyframes sent and in the map, keyframe requests merged and dropped as stale, mapping steps
+while the camera ran and in the final refinement, the mapper's share of the CPU and its CPU seconds, seconds
+seeding, training and refining, its longest queue,
 tracking and end-to-end frames per second, ATE and PSNR (MonoGS protocol), the queue waits, how long the frames
 taken had waited (median and largest, ms; ``system.max_lag_ms``), and the wall time.
 The variants (default ``process`` and ``thread``) differ only by their settings, measured one after the other on
@@ -62,6 +63,8 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "frames_without_pose": fr.get("without_pose"),
         "tracking_losses": [f"{x['frame']}:{x['reason']}" for x in m.get("tracking_losses") or []],
         "keyframes_sent": m.get("keyframes", {}).get("sent"), "keyframes_in_map": m.get("keyframes", {}).get("in_map"),
+        "keyframe_requests_merged": m.get("keyframes", {}).get("requests_merged"),
+        "keyframe_requests_stale": m.get("keyframes", {}).get("requests_stale"),
         "mapping_steps_running": st.get("steps", 0) - st.get("final_steps", 0),
         "mapping_steps_while_behind": st.get("steps_while_behind"), "running_level": st.get("running_level"),
         "mapper_queue_at_end": st.get("stream_ended_at_depth"), "mapper_catch_up_s": st.get("catch_up_seconds"),

@@ -2,8 +2,12 @@
 
 :class:`MappingThread` is fed :class:`~mgso.odometry.records.TrackedFrame` messages by the tracking thread and maps
 them in order with the odometry's ``map_frame``. When frames wait, the older ones are mapped as non-keyframes (traced
-only) and only the newest keeps its keyframe request (DSO ``needToKetchupMapping``): a keyframe's window optimisation
-no longer delays the frames behind it. The messages for the Gaussian mapper that mapping makes (``drain``) wait in
+only) and the newest takes their keyframe request (DSO ``needToKetchupMapping``): a keyframe's window optimisation
+no longer delays the frames behind it. With ``newest_keyframe`` a request counts only if its frame was tracked
+against the window's newest keyframe (DSO ``needNewKFAfter >= frameHessians.back()->shell->id``): while the thread
+makes a keyframe the tracker still tracks against the one before, the flow to it grows, and every frame tracked
+then would ask for a keyframe again (real-time 7-Scenes runs made 116-120 keyframes where the same stream in order
+makes 79; docs/tracking.md, "Keyframe requests against an older reference"). The messages for the Gaussian mapper that mapping makes (``drain``) wait in
 :meth:`MappingThread.take_ready` for the tracking thread. An error on the thread is kept and raised on the tracking
 thread by the next :meth:`submit`, :meth:`wait` or :meth:`stop`; after it, queued frames only give their pyramids
 back (``release``).
@@ -26,15 +30,18 @@ class MappingThread:
     ``release(pyramid)`` gives a frame's pyramid back when it is not mapped."""
 
     def __init__(self, map_frame: Callable[[TrackedFrame], None], drain: Callable[[], list] | None,
-                 release: Callable[[object], None]):
+                 release: Callable[[object], None], newest_keyframe: Callable[[], int] | None = None):
         self._map_frame = map_frame
+        self._newest_keyframe = newest_keyframe   # on the thread: the window's newest keyframe id (-1: none)
+        self._request: tuple[int, str] | None = None   # the open request: (its frame's reference, reason)
         self._drain = drain
         self._release = release
         self._queue: queue.Queue | None = None
         self._worker: threading.Thread | None = None
         self._error: BaseException | None = None
         self._ready: collections.deque = collections.deque()   # messages the thread has made, in order
-        self.num_keyframe_requests_merged = 0   # keyframe requests mapped as non-keyframes by the catch-up
+        self.num_keyframe_requests_merged = 0   # keyframe requests a newer request replaced in the catch-up
+        self.num_keyframe_requests_stale = 0    # requests dropped: tracked against a keyframe no longer the newest
 
     def submit(self, tracked: TrackedFrame) -> None:
         """Queue a tracked frame (the thread starts with the first)."""
@@ -92,9 +99,8 @@ class MappingThread:
                         if tracked.pyramid is not None:
                             self._release(tracked.pyramid)
                         continue
-                    if tracked.need_keyframe and any(t is not None for t in batch[i + 1:]):
-                        tracked.need_keyframe = False  # a newer frame waits: it takes the keyframe request
-                        self.num_keyframe_requests_merged += 1
+                    # the newest frame waiting: none behind it in the batch, and none queued since
+                    self._decide_keyframe(tracked, last=not any(t is not None for t in batch[i + 1:]) and q.empty())
                     self._map_frame(tracked)
                     if self._drain is not None:
                         self._ready.extend(self._drain())
@@ -102,3 +108,20 @@ class MappingThread:
                     self._error = e
                 finally:
                     q.task_done()
+
+    def _decide_keyframe(self, tracked: TrackedFrame, last: bool) -> None:
+        """DSO's ``mappingLoop``: a request waits as the open one (a newer request replaces it) and the newest frame
+        in the queue makes the keyframe, if the request's frame was tracked against the newest keyframe."""
+        if tracked.need_keyframe:
+            if self._request is not None:
+                self.num_keyframe_requests_merged += 1
+            self._request = (tracked.record.tracking_ref, tracked.reason)
+            tracked.need_keyframe = False
+        if not last or self._request is None:
+            return
+        ref, reason = self._request
+        self._request = None
+        if self._newest_keyframe is not None and ref < self._newest_keyframe():
+            self.num_keyframe_requests_stale += 1
+            return
+        tracked.need_keyframe, tracked.reason = True, reason

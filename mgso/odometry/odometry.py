@@ -170,7 +170,9 @@ class Odometry:
                                    enabled=self.emit_messages)
         # DSO's mapping thread (map_thread): map() runs there, the messages it makes wait for process()
         self._mapping = MappingThread(self.map, self.outbox.drain if self.emit_messages else None,
-                                      self._pool.release)
+                                      self._pool.release,
+                                      self._newest_keyframe_id if config.tracking.realtime_current_keyframe_requests
+                                      else None)
 
     @classmethod
     def for_camera(cls, camera, config: Config, **kwargs) -> "Odometry":
@@ -206,6 +208,17 @@ class Odometry:
     def num_keyframe_requests_merged(self) -> int:
         """Keyframe requests the mapping thread mapped as non-keyframes (a newer frame waited: it took them)."""
         return self._mapping.num_keyframe_requests_merged
+
+    @property
+    def num_keyframe_requests_stale(self) -> int:
+        """Keyframe requests the mapping thread dropped: tracked against a keyframe that was no longer the newest
+        (``tracking.realtime_current_keyframe_requests``)."""
+        return self._mapping.num_keyframe_requests_stale
+
+    def _newest_keyframe_id(self) -> int:
+        """The window's newest keyframe id (-1: none); read on the mapping thread, which owns the window."""
+        w = self.window
+        return max((int(w.keyframe_id_[s]) for s in w.order), default=-1)
 
     @property
     def num_lost(self) -> int:

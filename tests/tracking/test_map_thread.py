@@ -10,8 +10,9 @@ import pytest
 from mgso.odometry.map_thread import MappingThread
 
 
-def _frame(i, keyframe=True):
-    return SimpleNamespace(index=i, need_keyframe=keyframe, pyramid=f"pyramid {i}")
+def _frame(i, keyframe=True, ref=0):
+    return SimpleNamespace(index=i, need_keyframe=keyframe, reason="flow" if keyframe else "",
+                           record=SimpleNamespace(tracking_ref=ref), pyramid=f"pyramid {i}")
 
 
 def test_frames_that_waited_give_their_keyframe_request_to_the_newest():
@@ -70,3 +71,65 @@ def test_an_error_on_the_thread_is_raised_on_the_tracking_thread_and_later_frame
     with pytest.raises(RuntimeError, match="frame 1"):
         mt.stop()
     assert mt.take_ready() == []
+
+
+def _keyframe_maker(newest, gate=None, started=None):
+    """A stand-in map_frame: a frame mapped with its request open makes the next keyframe (newest id + 1)."""
+    mapped = []
+
+    def map_frame(t):
+        if started is not None:
+            started.set()
+        if gate is not None:
+            gate.wait(10)
+        mapped.append((t.index, t.need_keyframe, t.reason if t.need_keyframe else ""))
+        if t.need_keyframe:
+            newest[0] += 1
+    return map_frame, mapped
+
+
+@pytest.mark.parametrize("current_only", [True, False])
+def test_requests_made_against_an_older_keyframe_are_dropped(current_only):
+    """Frame 0 (tracked against keyframe 0) makes keyframe 1 while frames 1 and 2 wait, tracked against keyframe 0 as
+    well, each asking again (the flow to keyframe 0 only grows): DSO drops their request (needNewKFAfter 0 < the
+    newest keyframe 1), and frame 3, tracked against keyframe 1, makes keyframe 2. The control
+    (``newest_keyframe=None``, every request counts) makes a keyframe of frame 2 as well."""
+    newest = [0]
+    gate, started = threading.Event(), threading.Event()
+    map_frame, mapped = _keyframe_maker(newest, gate, started)
+    mt = MappingThread(map_frame, None, release=lambda p: None,
+                       newest_keyframe=(lambda: newest[0]) if current_only else None)
+    mt.submit(_frame(0, ref=0))
+    assert started.wait(10)
+    mt.submit(_frame(1, ref=0))
+    mt.submit(_frame(2, ref=0))
+    gate.set()
+    mt.wait()
+    mt.submit(_frame(3, ref=newest[0]))
+    mt.stop()
+    assert mapped[:2] == [(0, True, "flow"), (1, False, "")]
+    assert mt.num_keyframe_requests_merged == 1
+    if current_only:
+        assert mapped[2:] == [(2, False, ""), (3, True, "flow")] and newest[0] == 2
+        assert mt.num_keyframe_requests_stale == 1
+    else:
+        assert mapped[2:] == [(2, True, "flow"), (3, True, "flow")] and newest[0] == 3
+        assert mt.num_keyframe_requests_stale == 0
+
+
+def test_the_newest_frame_takes_a_request_it_did_not_make():
+    """Frame 1 asks for a keyframe (against the newest, 0) while frame 2, queued behind it, does not: the newest frame
+    waiting makes the keyframe, with frame 1's reason (DSO keeps needNewKFAfter, and maps the last frame)."""
+    newest = [0]
+    gate, started = threading.Event(), threading.Event()
+    map_frame, mapped = _keyframe_maker(newest, gate, started)
+    mt = MappingThread(map_frame, None, release=lambda p: None, newest_keyframe=lambda: newest[0])
+    mt.submit(_frame(0, keyframe=False))
+    assert started.wait(10)
+    mt.submit(SimpleNamespace(index=1, need_keyframe=True, reason="brightness",
+                              record=SimpleNamespace(tracking_ref=0), pyramid="pyramid 1"))
+    mt.submit(_frame(2, keyframe=False))
+    gate.set()
+    mt.stop()
+    assert mapped == [(0, False, ""), (1, False, ""), (2, True, "brightness")]
+    assert mt.num_keyframe_requests_merged == 0 and mt.num_keyframe_requests_stale == 0
