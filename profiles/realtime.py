@@ -71,6 +71,8 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "mapping_steps_final": st.get("final_steps"), "queue_waits": st.get("queue_waits"),
         "queue_wait_s": st.get("queue_wait_seconds"), "mapper_queue_max": st.get("max_queue_depth"),
         "mapper_cpu_s": st.get("cpu_seconds"), "mapper_seed_s": st.get("seed_seconds"),
+        "mapper_seed_streaming_s": st.get("seed_seconds_streaming"), "coverage_renders": st.get("coverage_renders"),
+        "stream_s": (m.get("timing_s") or {}).get("frame_loop"),
         "mapper_train_s": st.get("train_seconds"), "mapper_final_s": st.get("final_seconds"),
         "frame_lag_ms_median": rt.get("frame_lag_ms_median"), "frame_lag_ms_max": rt.get("frame_lag_ms_max"),
         "mapper_in": rt.get("mapper_in"), "mapper_cpu_share": rt.get("mapper_cpu_share"),

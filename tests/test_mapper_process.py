@@ -144,6 +144,7 @@ def test_real_time_delivers_every_keyframe_and_its_poses(room, in_process):
     assert st.final_steps == 60 and st.steps > 60 and st.stopped_by == "stop" and st.queue_waits == 0
     assert st.steps_while_streaming >= STEPS_WHILE_STREAMING      # trained while the camera ran (issue 44)
     assert st.stream_ended_at_depth >= 0 and st.catch_up_seconds >= 0     # the mapper saw the stream end
+    assert 0 < st.seed_seconds_streaming <= st.seed_seconds             # keyframes seeded while the camera ran
     assert st.cpu_seconds > 0 and 0 < result.mapper_cpu_share < 1
     assert not system.mapper.running
     if in_process and sys.platform.startswith("linux"):     # system.mapper_sched_idle (default): see below

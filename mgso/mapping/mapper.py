@@ -124,6 +124,8 @@ class MapperStats:
     priority: str = ""
     final_priority: str = ""
     seed_seconds: float = 0.0               # wall time seeding (coverage render, plan, add)
+    seed_seconds_streaming: float = 0.0     # of it before the stream ended (real time: while the camera ran)
+    coverage_renders: int = 0               # seedings that rendered the map's coverage (not: too few points, empty map)
     cpu_seconds: float | None = None        # CPU time of the mapper in real time (its process's, or its thread's)
     queue_waits: int = 0                    # submits that found the queue full and waited (backpressure)
     queue_wait_seconds: float = 0.0
@@ -797,14 +799,19 @@ class Mapper:
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
         t0 = time.perf_counter()
         step = self.trainer.step_count
+        empty = self.gmap.n == 0            # nothing to render: every candidate is uncovered
         if scfg.alpha_downscale is None:
             scfg = dataclasses.replace(scfg, alpha_downscale=self.coverage_downscale())
         if self.cfg.init == "dso":
             res = seed_keyframe(self.gmap, self.trainer.train_step.rasterizer, seed_in, scfg, step)
         else:
             res = self._seed_random(seed_in, scfg, step)
-        self.stats.seed_seconds += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        self.stats.seed_seconds += dt
+        if not self.stream_ended.is_set():
+            self.stats.seed_seconds_streaming += dt
         self.stats.gaussians_seeded += res.num_added
+        self.stats.coverage_renders += int(res.coverage_rendered and not empty and res.status is not SeedStatus.DISABLED)
         self.stats.seeds_skipped_too_few += int(res.skipped_too_few)
         self.stats.points_too_far += res.num_too_far
         self.stats.seed_results.append(res)

@@ -321,6 +321,7 @@ def test_a_mapper_behind_seeds_each_hosts_points_once(wp_device, seq, cam):
     assert st.point_messages == each.stats.point_messages == 6
     assert len(st.seed_results) == 2 + 2 and st.points_coalesced == 4
     assert len(each.stats.seed_results) == 2 + 6 and each.stats.points_coalesced == 0
+    assert st.coverage_renders == 3 and each.stats.coverage_renders == 7    # the first keyframe's map is empty
     assert [r.keyframe_id for r in st.seed_results] == [0, 4, 0, 4]      # the hosts in the order they came
     # the same points reach the map: the waiting ones are distinct points, so little is covered twice
     n_behind, n_each = behind.gmap.n, each.gmap.n
