@@ -777,7 +777,9 @@ class MapperConfig:
                                              "but its last frames at 13.9 dB); null = 2,000 in the deterministic "
                                              "mode (1,300 until 2026-12-06: 2,000 with final_coarse_share 0.8 gave "
                                              "7-Scenes 23.11 against 22.42 dB in less time; docs/mapping.md), "
-                                             "1,300 in real time (the map's wait after the stream); 0 = none")
+                                             "1,600 in real time (the map's wait after the stream; 1,300 until "
+                                             "2026-12-06, when the first 40 % went one level coarser: "
+                                             "final_coarser_share); 0 = none")
     running_max_pixels: int = opt(80_000, "real time: while the stream runs, train each view at the finest level of "
                                           "its pyramid with at most this many pixels (a 640x480 view at 320x240: a "
                                           "step 2.9x cheaper on the 2-core CPU, docs/mgso.md); the final "
@@ -790,6 +792,13 @@ class MapperConfig:
                                                 "final steps and its coarse steps after each keyframe (0.8 with "
                                                 "them at full resolution, until 2026-12-06; 0 with 1,300 final steps "
                                                 "before, where KITTI lost 0.24 dB at 0.8; docs/mapping.md)")
+    final_coarser_share: float | None = opt(None, "the share of the final refinement's steps (its first, within "
+                                                 "final_coarse_share) trained one pyramid level coarser still "
+                                                 "(160x120 for a 640x480 camera); null = 0.4 in real time (the "
+                                                 "replays of its schedule with 1,600 final steps against 1,300: "
+                                                 "+0.43, +0.28, +0.28 dB on 7-Scenes, freiburg1_rpy and KITTI in "
+                                                 "-3.5, -7.7 and +6.4 s; docs/mapping.md), 0 in the deterministic "
+                                                 "mode")
     keyframe_steps_coarse: bool = opt(True, "deterministic mode: the steps after each keyframe train at the level "
                                             "running_max_pixels gives, as the real-time mapper's steps while the "
                                             "stream runs (the final refinement: final_coarse_share); with the "
@@ -873,10 +882,10 @@ class MapperConfig:
                                      "0 = mapping.densify's")
 
     def final_steps(self, realtime: bool) -> int:
-        """``final_iterations`` with its null resolved for the mode: 2,000 deterministic, 1,300 in real time."""
+        """``final_iterations`` with its null resolved for the mode: 2,000 deterministic, 1,600 in real time."""
         if self.final_iterations is not None:
             return int(self.final_iterations)
-        return 1300 if realtime else 2000
+        return 1600 if realtime else 2000
 
     def final_share_coarse(self, realtime: bool) -> float:
         """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time, 0.6 deterministic (0.8
@@ -887,6 +896,12 @@ class MapperConfig:
             return 0.95
         return 0.6 if self.keyframe_steps_coarse else 0.8
 
+    def final_share_coarser(self, realtime: bool) -> float:
+        """``final_coarser_share`` with its null resolved for the mode: 0.4 in real time, 0 deterministic."""
+        if self.final_coarser_share is not None:
+            return float(self.final_coarser_share)
+        return 0.4 if realtime else 0.0
+
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)
         c.ge(0, "iterations_per_keyframe", "refine_every", "running_max_pixels", "defer_seeding_above",
@@ -896,6 +911,8 @@ class MapperConfig:
         c.within(0, 1, "running_train_share", open_hi=True)    # a share of 1 would never handle a message
         if self.final_coarse_share is not None:
             c.within(0, 1, "final_coarse_share")
+        if self.final_coarser_share is not None:
+            c.within(0, 1, "final_coarser_share")
         c.within(0, 1, "prune_opacity", open_hi=True)
         c.ge(0, "grow_grad2d")
         c.ge(1, "queue_size", "min_train_views")

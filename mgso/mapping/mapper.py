@@ -36,7 +36,8 @@ pose update that refines DSO's (a, b) shifts the view's exposure by DSO's change
 Real time (:meth:`start`): a thread drains every pending message, trains one step, and repeats; it blocks on the
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
-the first ``final_coarse_share`` (0.95 in real time) of the final refinement's steps, the rest at full resolution.
+the first ``final_coarse_share`` (0.95 in real time) of the final refinement's steps, the first
+``final_coarser_share`` of them (0.4 in real time) a level coarser still, the rest at full resolution.
 Far behind (``defer_seeding_above``), a keyframe's seeding waits with its marginalised points until the queue is
 empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
@@ -117,6 +118,7 @@ class MapperStats:
     pairs: int = 0
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_coarse_steps: int = 0             # of them at the coarser level (mapping.mapper.final_coarse_share)
+    final_coarser_steps: int = 0            # of those a level coarser still (mapping.mapper.final_coarser_share)
     final_seconds: float = 0.0
     final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
     # the mapper's process: its CPU priority while the camera ran and in the final refinement ("SCHED_IDLE",
@@ -405,8 +407,13 @@ class Mapper:
         resolution)."""
         return self.cfg.final_share_coarse(realtime=self._thread is not None)
 
+    def final_coarser_share(self) -> float:
+        """``mapping.mapper.final_coarser_share``, its null resolved: 0.4 in real time, 0 in the deterministic
+        mode."""
+        return self.cfg.final_share_coarser(realtime=self._thread is not None)
+
     def final_iterations(self) -> int:
-        """``mapping.mapper.final_iterations``, its null resolved: 1,300 in real time (a mapping thread or process:
+        """``mapping.mapper.final_iterations``, its null resolved: 1,600 in real time (a mapping thread or process:
         the map is awaited after the stream), 2,000 in the deterministic mode."""
         return self.cfg.final_steps(realtime=self._thread is not None)
 
@@ -907,7 +914,15 @@ class Mapper:
         level = self.running_level() if coarse > 0 else 0
         if level == 0:
             coarse = 0                  # no coarser level (a small camera, running_max_pixels 0)
-        done = self.train(coarse, level=level)
+        # and the first of those a level coarser still (final_coarser_share; where the camera has one)
+        coarser = min(round(iterations * self.final_coarser_share()), coarse)
+        coarser_level = usable_level(self.views[self._latest_kid].camera, level + 1) if coarser else level
+        if coarser_level == level:
+            coarser = 0
+        done = self.train(coarser, level=coarser_level)
+        self.stats.final_coarser_steps += done
+        if done == coarser:
+            done += self.train(coarse - coarser, level=level)
         self.stats.final_coarse_steps += done
         if done == coarse:              # not interrupted, nor out of views
             done += self.train(iterations - coarse)

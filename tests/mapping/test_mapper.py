@@ -108,7 +108,7 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     21.51 dB with a fifth of the steps on the newest keyframe; since 2026-12-06 2,000 final steps, the first 80 %
     coarse, in the deterministic mode: 23.11 dB; since the fifth session that day the steps after each keyframe
     coarse and the final's first 60 %: 23.10 dB in 27 % less mapping time), was pinned by no test. Run as the mapper
-    runs it: each keyframe trains 20 steps, the final refinement asks for 2,000 (1,300 in real time), and the views
+    runs it: each keyframe trains 20 steps, the final refinement asks for 2,000 (1,600 in real time), and the views
     are drawn uniformly."""
     from mgso.config import Config
     from mgso.mapping.views import NewestOrRandomSampler
@@ -116,7 +116,8 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     mc = Config().mapping.mapper
     assert (mc.sampler, mc.newest_probability, mc.iterations_per_keyframe, mc.final_iterations) == \
         ("random", 0.0, 20, None)
-    assert (mc.final_steps(realtime=False), mc.final_steps(realtime=True)) == (2000, 1300)
+    assert (mc.final_steps(realtime=False), mc.final_steps(realtime=True)) == (2000, 1600)
+    assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.0, 0.4)
     assert (mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True)) == (0.6, 0.95)
     assert mc.keyframe_steps_coarse is True
 
@@ -712,8 +713,46 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     assert levels(kf_full) == ([full] * 2 + [half] * 16 + [full] * 4, 16)       # 0.8 with full keyframe steps
     assert levels() == ([half] * 2 + [half] * 12 + [full] * 8, 12)              # the default, deterministic
     seen, coarse = levels(realtime=True)                                        # the default in real time
-    assert coarse == 19 and seen[-20:] == [half] * 19 + [full], seen
+    assert coarse == 19 and seen[-20:] == [half] * 19 + [full], seen    # 40 x 30: no level coarser with 16 px a side
     assert set(seen[:-20]) <= {half}                                            # its steps while streaming
+
+
+def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
+    """mapping.mapper.final_coarser_share: the first share of the final refinement's steps (within
+    final_coarse_share) a pyramid level coarser than running_max_pixels gives; its default (null) is 0.4 in real time
+    and 0 in the deterministic mode; the control (0) trains them at the running level."""
+    big = synthetic.make_sequence(seed=0, num_frames=1, width=128, height=96)
+    k = big.intrinsics
+    cam = PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+    full, half, quarter = (0, 128, 96), (1, 64, 48), (2, 32, 24)
+
+    def levels(*over, realtime=False):
+        mp = Mapper(_cfg("mapping.mapper.running_max_pixels=3072", "mapping.mapper.iterations_per_keyframe=0",
+                         "mapping.mapper.final_iterations=20", *over), device=wp_device)
+        seen = []
+        step = mp.trainer.step
+
+        def recording(*a, **kw):
+            r = step(*a, **kw)
+            seen.append((r.level, r.width, r.height))
+            return r
+
+        mp.trainer.step = recording
+        if realtime:
+            mp.start()
+        mp.submit(_kf(big, cam, 0))
+        st = mp.stop()
+        assert st.final_steps == 20
+        return seen[-20:], st.final_coarse_steps, st.final_coarser_steps
+
+    share = "mapping.mapper.final_coarse_share=0.9"
+    assert levels(share, "mapping.mapper.final_coarser_share=0.3") == (
+        [quarter] * 6 + [half] * 12 + [full] * 2, 18, 6)
+    assert levels(share, "mapping.mapper.final_coarser_share=0") == ([half] * 18 + [full] * 2, 18, 0)  # the control
+    assert levels(share) == ([half] * 18 + [full] * 2, 18, 0)             # the deterministic default: none
+    assert levels(realtime=True) == ([quarter] * 8 + [half] * 11 + [full], 19, 8)   # real time: 0.4 of 20
+    # within the coarse share: asking for more than it gives the coarse share's steps, all a level coarser
+    assert levels(share, "mapping.mapper.final_coarser_share=1") == ([quarter] * 18 + [full] * 2, 18, 18)
 
 
 def test_the_coverage_render_is_a_quarter_resolution_in_real_time(wp_device, seq, cam, monkeypatch):
