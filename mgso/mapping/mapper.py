@@ -818,7 +818,8 @@ class Mapper:
         if not self.stream_ended.is_set():
             self.stats.seed_seconds_streaming += dt
         self.stats.gaussians_seeded += res.num_added
-        self.stats.coverage_renders += int(res.coverage_rendered and not empty and res.status is not SeedStatus.DISABLED)
+        self.stats.coverage_renders += int(res.coverage_rendered and not empty
+                                           and res.status is not SeedStatus.DISABLED)
         self.stats.seeds_skipped_too_few += int(res.skipped_too_few)
         self.stats.points_too_far += res.num_too_far
         self.stats.seed_results.append(res)

@@ -6,8 +6,9 @@ only) and the newest takes their keyframe request (DSO ``needToKetchupMapping``)
 no longer delays the frames behind it. With ``newest_keyframe`` a request counts only if its frame was tracked
 against the window's newest keyframe (DSO ``needNewKFAfter >= frameHessians.back()->shell->id``): while the thread
 makes a keyframe the tracker still tracks against the one before, the flow to it grows, and every frame tracked
-then would ask for a keyframe again (real-time 7-Scenes runs made 116-120 keyframes where the same stream in order
-makes 79; docs/tracking.md, "Keyframe requests against an older reference"). The messages for the Gaussian mapper that mapping makes (``drain``) wait in
+then would ask for a keyframe again (real-time 7-Scenes runs made 116-130 keyframes where the same stream in order
+makes 79; docs/tracking.md, "Keyframe requests against an older reference"). A request still open when the thread
+stops is dropped. The messages for the Gaussian mapper that mapping makes (``drain``) wait in
 :meth:`MappingThread.take_ready` for the tracking thread. An error on the thread is kept and raised on the tracking
 thread by the next :meth:`submit`, :meth:`wait` or :meth:`stop`; after it, queued frames only give their pyramids
 back (``release``).

@@ -206,7 +206,7 @@ class Odometry:
 
     @property
     def num_keyframe_requests_merged(self) -> int:
-        """Keyframe requests the mapping thread mapped as non-keyframes (a newer frame waited: it took them)."""
+        """Keyframe requests the mapping thread's catch-up replaced by a newer frame's request (DSO keeps the last)."""
         return self._mapping.num_keyframe_requests_merged
 
     @property

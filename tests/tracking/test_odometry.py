@@ -310,7 +310,6 @@ def test_only_real_time_tracking_has_a_hypothesis_deadline(wp_device, seq160):
     """``tracking.realtime_hypothesis_budget_ms`` gives the tracker a deadline with the mapping thread (real time)
     only, the frame's start plus the budget; the deterministic mode keeps DSO's rule (no deadline), and so does a
     budget of 0."""
-
     k = seq160.intrinsics
     for split, budget, expect in ((False, 33.0, False), (True, 33.0, True), (True, 0.0, False)):
         cfg = apply_overrides(Config(), [f"tracking.realtime_hypothesis_budget_ms={budget}"])
