@@ -7,11 +7,10 @@ no longer delays the frames behind it. With ``newest_keyframe`` a request counts
 against the window's newest keyframe (DSO ``needNewKFAfter >= frameHessians.back()->shell->id``): while the thread
 makes a keyframe the tracker still tracks against the one before, the flow to it grows, and every frame tracked
 then would ask for a keyframe again (real-time 7-Scenes runs made 116-130 keyframes where the same stream in order
-makes 79; docs/tracking.md, "Keyframe requests against an older reference"). A request still open when the thread
-stops is dropped. The messages for the Gaussian mapper that mapping makes (``drain``) wait in
-:meth:`MappingThread.take_ready` for the tracking thread. An error on the thread is kept and raised on the tracking
-thread by the next :meth:`submit`, :meth:`wait` or :meth:`stop`; after it, queued frames only give their pyramids
-back (``release``).
+makes 79; docs/tracking.md, "Keyframe requests against an older reference"). The messages for the Gaussian mapper
+that mapping makes (``drain``) wait in :meth:`MappingThread.take_ready` for the tracking thread. An error on the
+thread is kept and raised on the tracking thread by the next :meth:`submit`, :meth:`wait` or :meth:`stop`; after
+it, queued frames only give their pyramids back (``release``).
 """
 
 from __future__ import annotations
@@ -24,6 +23,12 @@ from collections.abc import Callable
 from .records import TrackedFrame
 
 __all__ = ["MappingThread"]
+
+
+def _frames_queued(q: queue.Queue) -> bool:
+    """Whether a frame (not the stop's ``None``) waits in ``q``."""
+    with q.mutex:
+        return any(t is not None for t in q.queue)
 
 
 class MappingThread:
@@ -100,8 +105,10 @@ class MappingThread:
                         if tracked.pyramid is not None:
                             self._release(tracked.pyramid)
                         continue
-                    # the newest frame waiting: none behind it in the batch, and none queued since
-                    self._decide_keyframe(tracked, last=not any(t is not None for t in batch[i + 1:]) and q.empty())
+                    # the newest frame waiting: none behind it in the batch, and none queued since (the stop's
+                    # marker is no frame: the last frame before it still makes its keyframe)
+                    self._decide_keyframe(tracked, last=not any(t is not None for t in batch[i + 1:])
+                                          and not _frames_queued(q))
                     self._map_frame(tracked)
                     if self._drain is not None:
                         self._ready.extend(self._drain())

@@ -133,3 +133,18 @@ def test_the_newest_frame_takes_a_request_it_did_not_make():
     mt.stop()
     assert mapped == [(0, False, ""), (1, False, ""), (2, True, "brightness")]
     assert mt.num_keyframe_requests_merged == 0 and mt.num_keyframe_requests_stale == 0
+
+
+def test_the_stops_marker_is_no_frame_behind_the_last():
+    """The thread asks whether a frame waits behind the one it maps: the stop's ``None`` is not one (the last frame
+    before a stop keeps its keyframe request, whenever the marker arrives), a frame is."""
+    import queue
+
+    from mgso.odometry.map_thread import _frames_queued
+
+    q = queue.Queue()
+    assert not _frames_queued(q)
+    q.put(None)
+    assert not _frames_queued(q)
+    q.put(_frame(7))
+    assert _frames_queued(q)
