@@ -680,6 +680,27 @@ def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, se
     assert refined.trainer.train_step.strategy.extra_refine_steps == frozenset()     # its schedule kept
 
 
+def _final_levels(device, seq, cam, *over, realtime=False):
+    """Run a mapper on keyframe 0 of ``seq`` (20 final steps) and record every training step's (level, width,
+    height); returns them and the mapper's stats."""
+    mp = Mapper(_cfg("mapping.mapper.final_iterations=20", *over), device=device)
+    seen = []
+    step = mp.trainer.step
+
+    def recording(*a, **kw):
+        r = step(*a, **kw)
+        seen.append((r.level, r.width, r.height))
+        return r
+
+    mp.trainer.step = recording
+    if realtime:
+        mp.start()
+    mp.submit(_kf(seq, cam, 0))
+    st = mp.stop()
+    assert st.final_steps == 20
+    return seen, st
+
+
 def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     """mapping.mapper.final_coarse_share: the first share of the final refinement's steps train at the level
     running_max_pixels gives (the real-time mapper's level while the stream runs), the rest at full resolution;
@@ -689,23 +710,9 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     full, half = (0, 80, 60), (1, 40, 30)     # 80x60 views: level 1 is the finest with at most 1,500 pixels
 
     def levels(*over, realtime=False):
-        mp = Mapper(_cfg("mapping.mapper.running_max_pixels=1500", "mapping.mapper.iterations_per_keyframe=2",
-                         "mapping.mapper.final_iterations=20", *over), device=wp_device)
-        seen = []
-        step = mp.trainer.step
-
-        def recording(*a, **k):
-            r = step(*a, **k)
-            seen.append((r.level, r.width, r.height))
-            return r
-
-        mp.trainer.step = recording
-        if realtime:
-            mp.start()
-        mp.submit(_kf(seq, cam, 0))
-        mp.stop()
-        assert mp.stats.final_steps == 20
-        return seen, mp.stats.final_coarse_steps
+        seen, st = _final_levels(wp_device, seq, cam, "mapping.mapper.running_max_pixels=1500",
+                                 "mapping.mapper.iterations_per_keyframe=2", *over, realtime=realtime)
+        return seen, st.final_coarse_steps
 
     kf_full = "mapping.mapper.keyframe_steps_coarse=false"
     assert levels("mapping.mapper.final_coarse_share=0.7", kf_full) == ([full] * 2 + [half] * 14 + [full] * 6, 14)
@@ -727,22 +734,8 @@ def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
     full, half, quarter = (0, 128, 96), (1, 64, 48), (2, 32, 24)
 
     def levels(*over, realtime=False):
-        mp = Mapper(_cfg("mapping.mapper.running_max_pixels=3072", "mapping.mapper.iterations_per_keyframe=0",
-                         "mapping.mapper.final_iterations=20", *over), device=wp_device)
-        seen = []
-        step = mp.trainer.step
-
-        def recording(*a, **kw):
-            r = step(*a, **kw)
-            seen.append((r.level, r.width, r.height))
-            return r
-
-        mp.trainer.step = recording
-        if realtime:
-            mp.start()
-        mp.submit(_kf(big, cam, 0))
-        st = mp.stop()
-        assert st.final_steps == 20
+        seen, st = _final_levels(wp_device, big, cam, "mapping.mapper.running_max_pixels=3072",
+                                 "mapping.mapper.iterations_per_keyframe=0", *over, realtime=realtime)
         return seen[-20:], st.final_coarse_steps, st.final_coarser_steps
 
     share = "mapping.mapper.final_coarse_share=0.9"
