@@ -528,10 +528,12 @@ class OptimConfig:
     lr_means_max_steps: int = opt(30_000, "steps of the log-linear means decay, constant after (3DGS max_steps)")
     lr_means_delay_steps: int = opt(0, "warm-up steps scaled by lr_means_delay_mult (3DGS default 0 = none)")
     lr_means_delay_mult: float = opt(0.01, "means lr factor at step 0 of the warm-up (3DGS position_lr_delay_mult)")
-    lr_log_scales: float = opt(0.005, "log-scale learning rate (3DGS scaling_lr)")
+    lr_log_scales: float = opt(0.01, "log-scale learning rate (twice 3DGS's scaling_lr 0.005: MGSO's map trains a "
+                                     "few thousand steps, not 30,000; docs/mapping.md, \"Rates for a short schedule\")")
     lr_quats: float = opt(0.001, "raw quaternion learning rate (3DGS rotation_lr)")
     lr_opacity: float = opt(0.025, "opacity-logit learning rate (3DGS opacity_lr; 0.05 before the 2024 update)")
-    lr_sh_dc: float = opt(0.0025, "SH DC (base colour) learning rate (3DGS feature_lr)")
+    lr_sh_dc: float = opt(0.01, "SH DC (base colour) learning rate (four times 3DGS's feature_lr 0.0025, for a short "
+                                "schedule as lr_log_scales)")
     lr_sh_rest: float = opt(0.0025 / 20.0, "higher SH bands learning rate (3DGS: feature_lr / 20)")
     beta1: float = opt(0.9, "Adam first-moment decay (3DGS/torch default)")
     beta2: float = opt(0.999, "Adam second-moment decay (3DGS/torch default)")
