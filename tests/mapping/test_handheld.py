@@ -78,13 +78,14 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     constrains is off by 2x and more): the keyframes' median relative depth error against the map 0.54-0.71, as
     DSO's on freiburg1_rpy (0.46-3.8). The defaults of before (a sparse depth term pulling the map to those
     depths, the odometry's poses taken as they are, and the seeding's depth rule seeding every point whose depth
-    the map misses by 10 %) make fog: 4,182 Gaussians of median opacity 0.074, which the summary flags. With the
+    the map misses by 10 %) make fog: 4,171 Gaussians of median opacity 0.078, which the summary flags. With the
     defaults since issue 41 the keyframes after the first are not trusted (their depths miss the map by more than
     the 0.5 median of mapping.seeding.depth_rule_max_median): no re-seeding, no depth term, their poses refined;
-    the map keeps the first keyframes' 223 seeds, median opacity 0.141.
+    the map keeps the first keyframes' 223 seeds, median opacity 0.145, which it does not flag.
 
-    Measured (MonoGS protocol): 26.80 dB before, 24.87 dB now. At this test's budget (15 steps a keyframe + 100
-    final) the compact map is 1.9 dB worse on this scene, the cost of growing by densification alone; on TUM
+    Measured (MonoGS protocol, with the rates for a short schedule of 2026-12-06; 26.80 and 24.87 dB, 0.074 and
+    0.141 before them): 27.99 dB before, 25.79 dB now. At this test's budget (15 steps a keyframe + 100
+    final) the compact map is 2.2 dB worse on this scene, the cost of growing by densification alone; on TUM
     freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera"). With relative noise
     alone (80 %: medians 0.47-0.56, 9 of 19 keyframes trusted at 0.5, median opacity 0.065; 50 %: 0.34-0.41, every
     keyframe trusted) the map fogs: the threshold separates a handheld camera's depths from a moving camera's
@@ -97,6 +98,7 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     hb, hn = before["map_health"], now["map_health"]
     assert hb["median_opacity"] < FOG_MEDIAN_OPACITY and hn["median_opacity"] > 1.5 * hb["median_opacity"]
     assert any("mostly transparent" in w for w in map_warnings(hb))
+    assert not any("mostly transparent" in w for w in map_warnings(hn))
     assert now["num_gaussians"] < before["num_gaussians"] / 5
     assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 2.5
     assert now["ate_refined_all_frames_m"] is not None        # the evaluation's poses: the map's refinement
