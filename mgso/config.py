@@ -521,7 +521,8 @@ class WindowConfig:
 
 @dataclass(frozen=True)
 class OptimConfig:
-    """Adam on the Gaussian parameters (docs/mapping.md; rates from graphdeco 3DGS ``arguments/__init__.py``)."""
+    """Adam on the Gaussian parameters (docs/mapping.md; rates from graphdeco 3DGS ``arguments/__init__.py`` but the
+    colour's and the sizes', raised for MGSO's schedule of a few thousand steps)."""
 
     lr_means_init: float = opt(1.6e-4, "means learning rate at step 0, times scene extent (3DGS position_lr_init)")
     lr_means_final: float = opt(1.6e-6, "means learning rate at lr_means_max_steps, times extent (3DGS final)")
@@ -534,7 +535,8 @@ class OptimConfig:
     lr_opacity: float = opt(0.025, "opacity-logit learning rate (3DGS opacity_lr; 0.05 before the 2024 update)")
     lr_sh_dc: float = opt(0.01, "SH DC (base colour) learning rate (four times 3DGS's feature_lr 0.0025, for a short "
                                 "schedule as lr_log_scales)")
-    lr_sh_rest: float = opt(0.0025 / 20.0, "higher SH bands learning rate (3DGS: feature_lr / 20)")
+    lr_sh_rest: float = opt(0.0025 / 20.0, "higher SH bands learning rate (3DGS's feature_lr / 20; unused at "
+                                           "MGSO's mapping.sh_degree 0)")
     beta1: float = opt(0.9, "Adam first-moment decay (3DGS/torch default)")
     beta2: float = opt(0.999, "Adam second-moment decay (3DGS/torch default)")
     eps: float = opt(1e-15, "Adam epsilon (3DGS uses 1e-15 so tiny colour/opacity gradients still move)")
