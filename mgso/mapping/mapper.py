@@ -806,7 +806,6 @@ class Mapper:
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
         t0 = time.perf_counter()
         step = self.trainer.step_count
-        empty = self.gmap.n == 0            # nothing to render: every candidate is uncovered
         if scfg.alpha_downscale is None:
             scfg = dataclasses.replace(scfg, alpha_downscale=self.coverage_downscale())
         if self.cfg.init == "dso":
@@ -818,8 +817,7 @@ class Mapper:
         if not self.stream_ended.is_set():
             self.stats.seed_seconds_streaming += dt
         self.stats.gaussians_seeded += res.num_added
-        self.stats.coverage_renders += int(res.coverage_rendered and not empty
-                                           and res.status is not SeedStatus.DISABLED)
+        self.stats.coverage_renders += int(res.coverage_rendered)
         self.stats.seeds_skipped_too_few += int(res.skipped_too_few)
         self.stats.points_too_far += res.num_too_far
         self.stats.seed_results.append(res)
@@ -835,7 +833,7 @@ class Mapper:
         alpha, depth, neighbours = map_seen_from(gmap, self.trainer.train_step.rasterizer, seed_in, scfg)
         plan = plan_seeds(seed_in, scfg, alpha, neighbours, sh_degree=gmap.sh_degree, depth=depth)
         n = min(plan.gaussians.n, gmap.capacity - gmap.n)
-        res = plan.result
+        res = dataclasses.replace(plan.result, coverage_rendered=alpha is not None)
         if n <= 0:
             return dataclasses.replace(res, num_added=0)
         cam = seed_in.camera

@@ -458,7 +458,8 @@ class SeedResult:
     num_added: int = 0
     num_dropped_capacity: int = 0
     seconds: float = 0.0
-    coverage_rendered: bool = True      # False: fewer candidates than min_new_gaussians or a full map (no render)
+    coverage_rendered: bool = True      # False: no render (seeding off, an empty map, fewer candidates than
+                                        # min_new_gaussians, a full map)
     # the depth rule (depth_tolerance > 0): the median relative depth error of the covered candidates
     # (depth_rule_max_median > 0) and the tolerance applied (inf: skipped, the median above that); None: no rule
     depth_error_median: float | None = None
@@ -625,7 +626,7 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
     """
     t0 = time.perf_counter()
     if not cfg.enabled:
-        return SeedResult(msg.keyframe_id, SeedStatus.DISABLED, num_points_in=msg.num_points)
+        return SeedResult(msg.keyframe_id, SeedStatus.DISABLED, num_points_in=msg.num_points, coverage_rendered=False)
     if gmap.n >= gmap.capacity:
         # nothing can be added, so nothing is rendered or planned (a long real-time run's map at its capacity spent a
         # coverage render of 500,000 Gaussians on each of its last 51 seedings); the points offered count as dropped
@@ -644,7 +645,7 @@ def seed_keyframe(gmap: GaussianMap, rasterizer, msg: KeyframeSeedInput, cfg: Se
                         seconds=time.perf_counter() - t0)
     alpha, depth, neighbours = map_seen_from(gmap, rasterizer, msg, cfg)
     plan = plan_seeds(msg, cfg, alpha, neighbours, sh_degree=gmap.sh_degree, depth=depth, candidates=cand)
-    res = plan.result
+    res = _replace(plan.result, coverage_rendered=alpha is not None)     # None: an empty map, nothing rendered
     g = plan.gaussians
     if g.n == 0:
         return _replace(res, seconds=time.perf_counter() - t0)

@@ -388,13 +388,14 @@ def test_seed_keyframe_adds_nothing_where_the_map_covers_the_view(seq, cam, rast
     r0 = sd.seed_keyframe(empty, rast, msg, cfg, step=7)
     assert r0.status is sd.SeedStatus.ADDED and r0.num_added == r0.num_candidates == empty.n > 500
     assert r0.num_rejected_visibility == 0 and np.all(empty.created_step.numpy() == 7)
+    assert not r0.coverage_rendered                     # nothing to render (MapperStats.coverage_renders counts it)
     # a map covering the whole view (placed on the true surface of frame 0, seen from the nearby frame 1)
     cov = sd.render_coverage(_covering_map(seq, cam, wp_device), rast, cam, msg.world_to_cam, 2)
     assert np.mean(cov.alpha > 0.5) > 0.97
     gm = _covering_map(seq, cam, wp_device)
     n0 = gm.n
     r1 = sd.seed_keyframe(gm, rast, msg, cfg, step=8)
-    assert gm.n == n0 and r1.num_added == 0 and r1.status is sd.SeedStatus.TOO_FEW
+    assert gm.n == n0 and r1.num_added == 0 and r1.status is sd.SeedStatus.TOO_FEW and r1.coverage_rendered
     assert r1.num_rejected_visibility >= r1.num_candidates - 30
     # bypassing the filter (threshold 1: nothing is ever covered enough) would add them all
     r_bypass = sd.seed_keyframe(gm, rast, msg, dataclasses.replace(cfg, visibility_threshold=1.0), step=8)
@@ -467,13 +468,19 @@ def test_seed_keyframe_respects_the_capacity(seq, cam, rast, wp_device):
     assert r2.status is sd.SeedStatus.MAP_FULL and gm.n == 300
     # a full map is not rendered (nothing could be added): every point offered counts as dropped
     assert not r2.coverage_rendered and r2.num_dropped_capacity == r2.num_points_in == len(uv)
-    assert r.coverage_rendered                      # the control: a map with room renders its coverage
+    # the control: a map with Gaussians and room renders its coverage (the first seeding's empty map had nothing to
+    # render)
+    assert not r.coverage_rendered
+    roomy = GaussianMap(2 * len(uv), 0, wp_device)
+    sd.seed_keyframe(roomy, rast, msg, SeedingConfig(fill=False), step=0)
+    r3 = sd.seed_keyframe(roomy, rast, _message(seq, cam, uv, frame=1), SeedingConfig(visibility_threshold=1.0), 1)
+    assert r3.coverage_rendered and r3.status is sd.SeedStatus.ADDED
 
 
 def test_disabled_seeding_adds_nothing(seq, cam, rast, wp_device):
     gm = GaussianMap(100, 0, wp_device)
     r = sd.seed_keyframe(gm, rast, _message(seq, cam, _grid_points(cam)), SeedingConfig(enabled=False), 0)
-    assert r.status is sd.SeedStatus.DISABLED and gm.n == 0
+    assert r.status is sd.SeedStatus.DISABLED and gm.n == 0 and not r.coverage_rendered
 
 
 def test_depth_tolerance_seeds_where_the_covering_map_has_the_wrong_depth(seq, cam, rast, wp_device):
