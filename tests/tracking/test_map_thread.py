@@ -126,8 +126,9 @@ def test_the_newest_frame_takes_a_request_it_did_not_make():
     mt = MappingThread(map_frame, None, release=lambda p: None, newest_keyframe=lambda: newest[0])
     mt.submit(_frame(0, keyframe=False))
     assert started.wait(10)
-    mt.submit(SimpleNamespace(index=1, need_keyframe=True, reason="brightness",
-                              record=SimpleNamespace(tracking_ref=0), pyramid="pyramid 1"))
+    asks = _frame(1, ref=0)
+    asks.reason = "brightness"
+    mt.submit(asks)
     mt.submit(_frame(2, keyframe=False))
     gate.set()
     mt.stop()
