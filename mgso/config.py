@@ -824,6 +824,11 @@ class MapperConfig:
                                         "camera catches up on its messages and the queue does not fill (on 2 cores "
                                         "it filled in 80 s of a 640x480 camera and the odometry waited; "
                                         "docs/mgso.md); 0 = never")
+    seed_points_settled: bool = opt(True, "real time: a host keyframe's marginalised points wait until it has left the "
+                                          "odometry's window (its pose updates no longer name it), so that one "
+                                          "coverage render seeds them all, instead of one render for each keyframe "
+                                          "that marginalised some (docs/seeding.md); false: seeded whenever the "
+                                          "queue is empty")
     queue_size: int = opt(1024, "bounded message queue (odometry -> mapper): a few hundred keyframes of a typical run "
                                 "with their pose updates fit, so the odometry waits only when the mapper is hopelessly "
                                 "behind (each wait is counted and reported)")

@@ -227,6 +227,9 @@ class Mapper:
     #: mapping.seeding.distrust_median: keyframes whose median relative depth error passes it before the run's
     #: odometry is judged untrusted (one could be a bad keyframe; freiburg1_rpy gives 180-220 such seedings)
     DISTRUST_KEYFRAMES = 3
+    # real time: a host's waiting points are seeded after this many keyframes even while the odometry's pose updates
+    # still name it (DSO's window holds 7 keyframes; _settled)
+    SETTLE_KEYFRAMES = 8
 
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
                  messages: "queue.Queue | None" = None, board: SnapshotBoard | None = None,
@@ -300,6 +303,12 @@ class Mapper:
         # Real time, behind the camera: keyframes' own seedings, waiting with their points (mapping.mapper.
         # defer_seeding_above); each keyframe also holds its place in _pending_points' order.
         self._pending_keyframes: dict[int, KeyframeSeedInput] = {}
+        # Real time: the keyframes of the odometry's window (its latest PoseUpdate), and for each host with points
+        # waiting the keyframe count when they first arrived. A host still in the window marginalises more points
+        # with each keyframe (about 5 hosts a keyframe on 7-Scenes): its points wait until it leaves the window
+        # (mapping.mapper.seed_points_settled), so that one coverage render seeds all of them.
+        self._window: frozenset[int] | None = None
+        self._pending_since: dict[int, int] = {}
 
     def load_kernels(self) -> None:
         """Compile or load every kernel module the mapper launches, now (real time: before the camera plays; a
@@ -631,6 +640,8 @@ class Mapper:
 
     def _on_pose_update(self, msg: PoseUpdate) -> None:
         self.stats.pose_updates += 1
+        if msg.cam_to_world:
+            self._window = frozenset(msg.cam_to_world)
         for kid, c2w in msg.cam_to_world.items():
             if kid not in self.views:
                 self.stats.poses_unknown += 1
@@ -709,6 +720,7 @@ class Mapper:
             pending = self._pending_points.setdefault(msg.host_keyframe_id, [])
             if pending:
                 self.stats.points_coalesced += 1
+            self._pending_since.setdefault(msg.host_keyframe_id, self.stats.keyframes)
             pending.append(points)
             return
         self._seed_points(msg.host_keyframe_id, [points])
@@ -724,20 +736,35 @@ class Mapper:
     def _flush_waiting(self, budget: float | None = None) -> None:
         """Seed what waited (real time), host by host in the order they first arrived: a keyframe's own seeding
         deferred while the mapper was behind (from the view's pose now: a pose update in between moved it), then
-        its points. ``budget``: seconds after which the rest waits for the next call (None: everything)."""
+        its points. ``budget``: seconds after which the rest waits for the next call (None: everything, the points
+        of hosts still in the odometry's window included). With a budget and ``mapping.mapper.seed_points_settled``
+        a host's points wait while it is in the window (:meth:`_settled`)."""
         t0 = time.perf_counter()
-        while self._pending_points:
+        settled_only = budget is not None and self.cfg.seed_points_settled
+        for host in list(self._pending_points):
             if budget is not None and time.perf_counter() - t0 >= budget:
                 return
-            host = next(iter(self._pending_points))
-            parts = self._pending_points.pop(host)
             seed_in = self._pending_keyframes.pop(host, None)
             if host not in self.views:
+                self._pending_points.pop(host, None)
+                self._pending_since.pop(host, None)
                 continue
             if seed_in is not None:
                 self._seed(dataclasses.replace(seed_in, cam_to_world=self.views[host].cam_to_world), self.mc.seeding)
+            if settled_only and not self._settled(host):
+                continue
+            parts = self._pending_points.pop(host)
+            self._pending_since.pop(host, None)
             if parts:
                 self._seed_points(host, parts)
+
+    def _settled(self, host: int) -> bool:
+        """Whether ``host`` will marginalise no more points: it has left the odometry's window (not in its latest
+        pose update), or its first points waited through ``SETTLE_KEYFRAMES`` keyframes (an odometry whose pose
+        updates do not name its window)."""
+        if self._window is None or host not in self._window:
+            return True
+        return self.stats.keyframes - self._pending_since.get(host, self.stats.keyframes) >= self.SETTLE_KEYFRAMES
 
     def exposure_for(self, affine: tuple[float, float], exposure_ms: float | None) -> tuple[float, float]:
         """The trainer's exposure ``(a', b')`` of an image with the odometry's affine brightness ``affine`` (0-255)

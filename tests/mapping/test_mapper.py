@@ -329,6 +329,50 @@ def test_a_mapper_behind_seeds_each_hosts_points_once(wp_device, seq, cam):
     assert n_each > 0 and 0.9 * n_each <= n_behind <= 1.1 * n_each, (n_behind, n_each)
 
 
+def test_a_hosts_points_wait_until_it_leaves_the_window(wp_device, seq, cam):
+    """Real time: a host keyframe marginalises points with each keyframe while it is in the odometry's window (about
+    5 hosts a keyframe), and each seeding renders the map's coverage from the host. Its points wait until a pose
+    update no longer names it (or SETTLE_KEYFRAMES keyframes passed), then one seeding takes them all."""
+    def mapper(settled):
+        mp = Mapper(_cfg("mapping.mapper.iterations_per_keyframe=0", "mapping.seeding.min_new_gaussians=1",
+                         f"mapping.mapper.seed_points_settled={str(settled).lower()}"), device=wp_device)
+        mp._coalesce_points = True                  # as the real-time loop runs it
+        msgs = _backlog(seq, cam)                    # keyframes 0 and 4, then three point messages of each host
+        kf0, kf4, points = msgs[0], msgs[1], msgs[2:]
+        for m in (kf0, PoseUpdate({0: kf0.cam_to_world}), *points[0::2]):
+            mp.submit(m)                             # host 0's points while the window is {0}
+        mp.process_pending()
+        return mp, kf4, points
+
+    mp, kf4, points = mapper(True)
+    assert len(mp.stats.seed_results) == 1           # the keyframe's own seeding
+    mp._flush_waiting(budget=1.0)                    # the queue is empty, but host 0 is still in the window
+    assert len(mp.stats.seed_results) == 1 and sum(len(p[0]) for p in mp._pending_points[0]) > 0
+    for m in (kf4, PoseUpdate({4: kf4.cam_to_world}), points[1]):
+        mp.submit(m)                                 # host 0 left the window; host 4 is in it
+    mp.process_pending()
+    mp._flush_waiting(budget=1.0)
+    assert [r.keyframe_id for r in mp.stats.seed_results] == [0, 4, 0]       # host 0's points, in one seeding
+    assert mp.stats.seed_results[-1].num_points_in == sum(len(m.points) for m in points[0::2])
+    assert list(mp._pending_points) == [4]
+    mp._flush_waiting()                              # the end of the stream: everything
+    assert [r.keyframe_id for r in mp.stats.seed_results] == [0, 4, 0, 4] and not mp._pending_points
+
+    # an odometry whose pose updates name every keyframe: the points are seeded after SETTLE_KEYFRAMES keyframes
+    mp, kf4, points = mapper(True)
+    mp.SETTLE_KEYFRAMES = 1
+    for m in (kf4, PoseUpdate({0: mp.views[0].cam_to_world, 4: kf4.cam_to_world})):
+        mp.submit(m)
+    mp.process_pending()
+    mp._flush_waiting(budget=1.0)
+    assert [r.keyframe_id for r in mp.stats.seed_results] == [0, 4, 0]
+
+    # the control: seed_points_settled off, the points are seeded as soon as the queue is empty
+    mp, kf4, points = mapper(False)
+    mp._flush_waiting(budget=1.0)
+    assert [r.keyframe_id for r in mp.stats.seed_results] == [0, 0] and not mp._pending_points
+
+
 def test_a_mapper_far_behind_defers_keyframe_seedings_to_their_points(wp_device, seq, cam):
     """With the queue deep, a keyframe becomes a view at once and its seeding waits with its host's points, so the
     mapper gets through its messages (on 2 cores the queue filled in 80 s of a 640x480 camera and the odometry
