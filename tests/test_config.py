@@ -206,7 +206,7 @@ BAD = {
     "mapping.mapper.refine_every": [-1], "mapping.mapper.running_max_pixels": [-1],
     "mapping.mapper.final_refine_after": [-1], "mapping.mapper.final_coarse_share": [-0.1, 1.5],
     "mapping.mapper.final_coarser_share": [-0.1, 1.5],
-    "mapping.mapper.defer_seeding_above": [-1],
+    "mapping.mapper.defer_seeding_above": [-1], "mapping.mapper.final_budget_s": [-1.0],
     "mapping.mapper.running_train_share": [-0.1, 1.0], "mapping.mapper.prune_opacity": [-0.1, 1],
     "mapping.mapper.sampler": ["newest"], "mapping.mapper.grow_grad2d": [-0.001],
     "mapping.train.refine_poses": ["sometimes", 2],

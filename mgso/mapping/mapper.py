@@ -119,6 +119,7 @@ class MapperStats:
     final_steps: int = 0                    # steps of the final refinement (included in steps)
     final_coarse_steps: int = 0             # of them at the coarser level (mapping.mapper.final_coarse_share)
     final_coarser_steps: int = 0            # of those a level coarser still (mapping.mapper.final_coarser_share)
+    final_budget_s: float = 0.0             # the final refinement's time budget (mapping.mapper.final_budget_s; 0: none)
     final_seconds: float = 0.0
     final_threads: int = 0                  # CPU threads of the final refinement's kernel launches (0: none ran)
     # the mapper's process: its CPU priority while the camera ran and in the final refinement ("SCHED_IDLE",
@@ -426,6 +427,13 @@ class Mapper:
         the map is awaited after the stream), 2,000 in the deterministic mode."""
         return self.cfg.final_steps(realtime=self._thread is not None)
 
+    def final_budget(self) -> float:
+        """``mapping.mapper.final_budget_s``, its null resolved: 55 s in real time (a mapping thread or process) with
+        the map on the CPU, 0 (the step count alone) on CUDA and in the deterministic mode."""
+        import warp as wp
+
+        return self.cfg.final_budget(realtime=self._thread is not None, cpu=wp.get_device(self.device).is_cpu)
+
     def running_level(self) -> int:
         """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most
         ``running_max_pixels`` pixels (0: off), at least 16 pixels a side (the newest view's size)."""
@@ -555,7 +563,7 @@ class Mapper:
             self._take_final_resources()
             steps = self.final_iterations()
             self.stats.final_threads = runtime.cpu_threads() if steps > 0 else 0
-            self.refine(steps)
+            self.refine(steps, seconds=self.final_budget())
             # an interrupt during the refinement ends it early (train() checks it between steps)
             self.stats.stopped_by = "interrupt" if self._interrupt.is_set() else "stop"
             if not self._interrupt.is_set():
@@ -930,9 +938,14 @@ class Mapper:
             done += 1
         return done
 
-    def refine(self, iterations: int) -> int:
-        """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice)."""
+    def refine(self, iterations: int, seconds: float = 0.0) -> int:
+        """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice). With ``seconds`` > 0
+        (``mapping.mapper.final_budget_s``) the coarse steps go on past their share of the steps while that time
+        allows (:meth:`_train_within`): as many as fit before the full-resolution steps at the end (reckoned at the
+        cost of one of them: ``BUDGET_PROBE_STEPS`` are taken first), up to ``BUDGET_MAX_FACTOR`` times as many as
+        planned, never fewer."""
         t0 = time.perf_counter()
+        self.stats.final_budget_s = float(seconds)
         self._bring_refining_forward()
         # its first share at the real-time level (coarse to fine: the untrained map's first steps need no fine
         # detail; a step at 320x240 costs about a third of one at 640x480), then at full resolution
@@ -945,16 +958,61 @@ class Mapper:
         coarser_level = usable_level(self.views[self._latest_kid].camera, level + 1) if coarser else level
         if coarser_level == level:
             coarser = 0
+        budget = seconds > 0 and coarse > 0
         done = self.train(coarser, level=coarser_level)
         self.stats.final_coarser_steps += done
-        if done == coarser:
-            done += self.train(coarse - coarser, level=level)
-        self.stats.final_coarse_steps += done
-        if done == coarse:              # not interrupted, nor out of views
-            done += self.train(iterations - coarse)
+        full = not self._interrupt.is_set() and self.can_train()
+        tail = iterations - coarse      # the full-resolution steps at the end
+        if full and budget:
+            # two of them now, each timed: the time the coarse steps leave the rest is reckoned at the cheaper (the
+            # first full-resolution step of a run grows buffers and costs more)
+            probe, cost = 0, math.inf
+            while full and probe < min(self.BUDGET_PROBE_STEPS, tail):
+                t = time.perf_counter()
+                full = self.train(1) == 1
+                cost = min(cost, time.perf_counter() - t)
+                probe += int(full)
+            reserve = (tail - probe) * cost if tail > probe else 0.0
+            if full:
+                n, full = self._train_within(t0 + seconds, level, reserve, least=coarse - coarser,
+                                             most=round(self.BUDGET_MAX_FACTOR * (coarse - coarser)))
+                done += n
+            self.stats.final_coarse_steps += done
+            done += probe
+            tail -= probe
+        else:
+            if full:
+                n = self.train(coarse - coarser, level=level)
+                full = n == coarse - coarser
+                done += n
+            self.stats.final_coarse_steps += done
+        if full:                        # not interrupted, nor out of views
+            done += self.train(tail)
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done
+
+    #: with a time budget, the full-resolution steps taken first and timed (the rest reckoned at the cheaper)
+    BUDGET_PROBE_STEPS = 2
+    #: with a time budget, the coarse steps at most this many times their planned count (a small map or a fast
+    #: machine does not train on for the whole budget)
+    BUDGET_MAX_FACTOR = 2.0
+
+    def _train_within(self, deadline: float, level: int, reserve: float, least: int, most: int) -> tuple[int, bool]:
+        """``least`` steps at ``level``, then more, at most ``most``, while the time before ``deadline``
+        (``time.perf_counter``) holds one more (at the mean of these) and ``reserve`` seconds after it. Returns the
+        steps and whether training may go on (not interrupted, views to train)."""
+        t_start = time.perf_counter()
+        done = 0
+        while done < most:
+            now = time.perf_counter()
+            per = (now - t_start) / done if done else 0.0
+            if done >= least and now + per + reserve >= deadline:
+                return done, True
+            if self.train(1, level=level) == 0:
+                return done, False
+            done += 1
+        return done, True
 
     def _bring_refining_forward(self) -> None:
         """Before the final refinement: where the stream left the map unrefined (real time on a small CPU: a few

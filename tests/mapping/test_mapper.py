@@ -120,6 +120,9 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.0, 0.4)
     assert (mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True)) == (0.6, 0.95)
     assert mc.keyframe_steps_coarse is True
+    # real time on the CPU: the final refinement's coarse steps fill 55 s (the map ready in issue 42's 60 s)
+    assert (mc.final_budget(realtime=True, cpu=True), mc.final_budget(realtime=True, cpu=False),
+            mc.final_budget(realtime=False, cpu=True)) == (55.0, 0.0, 0.0)
 
     def drawn(*over) -> np.ndarray:
         mp = Mapper(load_config(None, ["mapping.capacity=20000", *over]), device=wp_device)
@@ -133,9 +136,9 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     assert type(mp.sampler) is NewestOrRandomSampler and mp.stats.steps == 3 * 20
     assert np.all(np.abs(share - 1 / 3) < 0.04), share           # uniform: the newest no more than the others
     asked = []
-    mp.refine = lambda n: asked.append(n) or 0                     # what the final refinement is asked for
+    mp.refine = lambda n, seconds=0.0: asked.append((n, seconds)) or 0     # what the final refinement is asked for
     mp.stop()
-    assert asked == [2000] and mp.final_coarse_share() == 0.6
+    assert asked == [(2000, 0.0)] and mp.final_coarse_share() == 0.6    # the deterministic mode: no time budget
     assert Mapper(load_config(None, ["mapping.mapper.keyframe_steps_coarse=false"]),
                   device=wp_device).final_coarse_share() == 0.8       # with full-resolution steps after keyframes
     _, share = drawn("mapping.mapper.newest_probability=0.2", "mapping.mapper.iterations_per_keyframe=0")
@@ -726,8 +729,8 @@ def test_a_final_refinement_after_an_unrefined_stream_prunes_early(wp_device, se
 
 def _final_levels(device, seq, cam, *over, realtime=False):
     """Run a mapper on keyframe 0 of ``seq`` (20 final steps) and record every training step's (level, width,
-    height); returns them and the mapper's stats."""
-    mp = Mapper(_cfg("mapping.mapper.final_iterations=20", *over), device=device)
+    height); returns them and the mapper's stats. The step count's schedule: no time budget (its own test)."""
+    mp = Mapper(_cfg("mapping.mapper.final_iterations=20", "mapping.mapper.final_budget_s=0", *over), device=device)
     seen = []
     step = mp.trainer.step
 
@@ -766,6 +769,58 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     seen, coarse = levels(realtime=True)                                        # the default in real time
     assert coarse == 19 and seen[-20:] == [half] * 19 + [full], seen    # 40 x 30: no level coarser with 16 px a side
     assert set(seen[:-20]) <= {half}                                            # its steps while streaming
+
+
+def test_a_time_budget_fills_the_final_refinement_with_coarse_steps(wp_device, seq, cam, monkeypatch):
+    """mapping.mapper.final_budget_s: the final refinement's coarse steps go on past their planned count while the
+    time left holds one more and the full-resolution steps at its end (reckoned at the cheaper of two of them, taken
+    first), up to BUDGET_MAX_FACTOR times their planned count, never fewer; the steps at full resolution always run.
+    On a clock that only the steps move: a coarse step 1 s, a full one 3 s."""
+    from types import SimpleNamespace
+
+    import mgso.mapping.mapper as mapper_mod
+
+    def refined(seconds, tail=2, first=3.0):
+        mp = Mapper(_cfg("mapping.mapper.running_max_pixels=1500", "mapping.mapper.iterations_per_keyframe=0",
+                         f"mapping.mapper.final_coarse_share={1 - tail / 20}"), device=wp_device)
+        mp.submit(_kf(seq, cam, 0))
+        mp.process_pending()
+        clock = [0.0]
+        monkeypatch.setattr(mapper_mod, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+        seen = []
+        step = mp.trainer.step
+
+        def timed(*a, **kw):
+            r = step(*a, **kw)
+            clock[0] += 1.0 if r.level else (first if 0 not in seen else 3.0)
+            seen.append(r.level)
+            return r
+
+        mp.trainer.step = timed
+        done = mp.refine(20, seconds=seconds)            # planned: 18 at 40x30, then 2 at 80x60
+        monkeypatch.undo()
+        assert done == len(seen) == mp.stats.final_steps and mp.stats.final_budget_s == seconds
+        if seconds:                                   # two full-resolution steps timed, the coarse ones, the rest
+            rest = len(seen) - (tail - 2)
+            assert seen[:2] == [0, 0] and set(seen[2:rest]) == {1} and seen[rest:] == [0] * (tail - 2)
+        else:
+            assert seen[-tail:] == [0] * tail and set(seen[:-tail]) == {1}
+        return mp.stats.final_coarse_steps, clock[0]
+
+    assert refined(0.0) == (18, 24.0)                 # the control: no budget, the planned steps
+    assert refined(40.0) == (33, 39.0)                # 2 x 3 + 33 + 1 = 40: a 34th would end at the budget
+    assert refined(10.0) == (18, 24.0)                # short: the planned steps (the budget only adds)
+    assert refined(1000.0) == (36, 42.0)              # long: at most twice the planned coarse steps
+    # the full-resolution steps still to come are reckoned at the cheaper of the two timed ones: 4 of them, the first
+    # 9 s (a run's first step at a size grows its buffers): 9 + 3, then 21 coarse, + 1 + 2 x 3 = 40 (at 9 s: only 9)
+    assert refined(40.0, tail=4, first=9.0) == (21, 39.0)
+    assert Mapper(_cfg(), device=wp_device).final_budget() == 0.0     # the deterministic mode: the step count alone
+    rt = Mapper(_cfg(), device=wp_device)
+    rt.start()
+    try:
+        assert rt.final_budget() == 55.0                # real time with the map on the CPU
+    finally:
+        rt.stop(refine=False, timeout=60)
 
 
 def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
