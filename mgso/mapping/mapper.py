@@ -942,8 +942,8 @@ class Mapper:
         """The final refinement: ``iterations`` steps over all keyframes (the sampler's choice). With ``seconds`` > 0
         (``mapping.mapper.final_budget_s``) the coarse steps go on past their share of the steps while that time
         allows (:meth:`_train_within`): as many as fit before the full-resolution steps at the end (reckoned at the
-        cost of one of them: ``BUDGET_PROBE_STEPS`` are taken first), up to ``BUDGET_MAX_FACTOR`` times as many as
-        planned, never fewer."""
+        cheaper of the ``BUDGET_PROBE_STEPS`` of them taken first, each timed), up to ``BUDGET_MAX_FACTOR`` times as
+        many as planned, never fewer."""
         t0 = time.perf_counter()
         self.stats.final_budget_s = float(seconds)
         self._bring_refining_forward()

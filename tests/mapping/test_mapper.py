@@ -120,7 +120,7 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.0, 0.4)
     assert (mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True)) == (0.6, 0.95)
     assert mc.keyframe_steps_coarse is True
-    # real time on the CPU: the final refinement's coarse steps fill 55 s (the map ready in issue 42's 60 s)
+    # real time on the CPU: the final refinement's coarse steps may fill 55 s (the map within issue 42's 60 s)
     assert (mc.final_budget(realtime=True, cpu=True), mc.final_budget(realtime=True, cpu=False),
             mc.final_budget(realtime=False, cpu=True)) == (55.0, 0.0, 0.0)
 
@@ -812,7 +812,8 @@ def test_a_time_budget_fills_the_final_refinement_with_coarse_steps(wp_device, s
     assert refined(10.0) == (18, 24.0)                # short: the planned steps (the budget only adds)
     assert refined(1000.0) == (36, 42.0)              # long: at most twice the planned coarse steps
     # the full-resolution steps still to come are reckoned at the cheaper of the two timed ones: 4 of them, the first
-    # 9 s (a run's first step at a size grows its buffers): 9 + 3, then 21 coarse, + 1 + 2 x 3 = 40 (at 9 s: only 9)
+    # 9 s (a run's first step at a size grows its buffers): 9 + 3, then 21 coarse, + 1 + 2 x 3 = 40 (reckoned at 9 s:
+    # the planned 16 only)
     assert refined(40.0, tail=4, first=9.0) == (21, 39.0)
     assert Mapper(_cfg(), device=wp_device).final_budget() == 0.0     # the deterministic mode: the step count alone
     rt = Mapper(_cfg(), device=wp_device)
