@@ -74,6 +74,10 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "mapper_seed_streaming_s": st.get("seed_seconds_streaming"), "coverage_renders": st.get("coverage_renders"),
         "stream_s": (m.get("timing_s") or {}).get("frame_loop"),
         "mapper_train_s": st.get("train_seconds"), "mapper_final_s": st.get("final_seconds"),
+        "mapper_final_budget_s": st.get("final_budget_s"),
+        "seed_share_of_stream": (round(st["seed_seconds_streaming"] / m["timing_s"]["frame_loop"], 3)
+                                 if st.get("seed_seconds_streaming") is not None
+                                 and (m.get("timing_s") or {}).get("frame_loop") else None),
         "frame_lag_ms_median": rt.get("frame_lag_ms_median"), "frame_lag_ms_max": rt.get("frame_lag_ms_max"),
         "mapper_in": rt.get("mapper_in"), "mapper_cpu_share": rt.get("mapper_cpu_share"),
         "tracking_fps": m.get("tracking_fps"), "end_to_end_fps": m.get("end_to_end_fps"),
