@@ -55,6 +55,7 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
     st = m.get("mapper", {})
     fr = m.get("frames", {})
     rt = m.get("realtime") or {}
+    stream_s = (m.get("timing_s") or {}).get("frame_loop")
     read = fr.get("read") or 0
     return {
         "exit_code": proc.returncode, "wall_s": round(wall, 2),
@@ -72,12 +73,11 @@ def _run(path: str, out: Path, overrides: list[str], realtime: bool) -> dict:
         "queue_wait_s": st.get("queue_wait_seconds"), "mapper_queue_max": st.get("max_queue_depth"),
         "mapper_cpu_s": st.get("cpu_seconds"), "mapper_seed_s": st.get("seed_seconds"),
         "mapper_seed_streaming_s": st.get("seed_seconds_streaming"), "coverage_renders": st.get("coverage_renders"),
-        "stream_s": (m.get("timing_s") or {}).get("frame_loop"),
+        "stream_s": stream_s,
         "mapper_train_s": st.get("train_seconds"), "mapper_final_s": st.get("final_seconds"),
         "mapper_final_budget_s": st.get("final_budget_s"),
-        "seed_share_of_stream": (round(st["seed_seconds_streaming"] / m["timing_s"]["frame_loop"], 3)
-                                 if st.get("seed_seconds_streaming") is not None
-                                 and (m.get("timing_s") or {}).get("frame_loop") else None),
+        "seed_share_of_stream": (round(st["seed_seconds_streaming"] / stream_s, 3)
+                                 if st.get("seed_seconds_streaming") is not None and stream_s else None),
         "frame_lag_ms_median": rt.get("frame_lag_ms_median"), "frame_lag_ms_max": rt.get("frame_lag_ms_max"),
         "mapper_in": rt.get("mapper_in"), "mapper_cpu_share": rt.get("mapper_cpu_share"),
         "tracking_fps": m.get("tracking_fps"), "end_to_end_fps": m.get("end_to_end_fps"),

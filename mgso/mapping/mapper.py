@@ -231,6 +231,11 @@ class Mapper:
     # real time: a host's waiting points are seeded after this many keyframes even while the odometry's pose updates
     # still name it (DSO's window holds 7 keyframes; _settled)
     SETTLE_KEYFRAMES = 8
+    #: mapping.mapper.final_budget_s: the full-resolution steps taken first and timed (the rest reckoned at the
+    #: cheaper), and the most coarse steps, as a multiple of their planned count (a small map or a fast machine does
+    #: not train on for the whole budget)
+    BUDGET_PROBE_STEPS = 2
+    BUDGET_MAX_FACTOR = 2.0
 
     def __init__(self, config: Config, *, device: str | None = None, observer: Observer | None = None,
                  messages: "queue.Queue | None" = None, board: SnapshotBoard | None = None,
@@ -963,40 +968,29 @@ class Mapper:
         self.stats.final_coarser_steps += done
         full = not self._interrupt.is_set() and self.can_train()
         tail = iterations - coarse      # the full-resolution steps at the end
+        probe, reserve = 0, 0.0
         if full and budget:
             # two of them now, each timed: the time the coarse steps leave the rest is reckoned at the cheaper (the
             # first full-resolution step of a run grows buffers and costs more)
-            probe, cost = 0, math.inf
+            cost = math.inf
             while full and probe < min(self.BUDGET_PROBE_STEPS, tail):
                 t = time.perf_counter()
                 full = self.train(1) == 1
                 cost = min(cost, time.perf_counter() - t)
                 probe += int(full)
             reserve = (tail - probe) * cost if tail > probe else 0.0
-            if full:
-                n, full = self._train_within(t0 + seconds, level, reserve, least=coarse - coarser,
-                                             most=round(self.BUDGET_MAX_FACTOR * (coarse - coarser)))
-                done += n
-            self.stats.final_coarse_steps += done
-            done += probe
-            tail -= probe
-        else:
-            if full:
-                n = self.train(coarse - coarser, level=level)
-                full = n == coarse - coarser
-                done += n
-            self.stats.final_coarse_steps += done
+        if full:                        # the planned coarse steps; with a budget up to BUDGET_MAX_FACTOR times as many
+            planned = coarse - coarser
+            n, full = self._train_within(t0 + seconds if budget else math.inf, level, reserve, least=planned,
+                                         most=round(self.BUDGET_MAX_FACTOR * planned) if budget else planned)
+            done += n
+        self.stats.final_coarse_steps += done
+        done += probe
         if full:                        # not interrupted, nor out of views
-            done += self.train(tail)
+            done += self.train(tail - probe)
         self.stats.final_steps += done
         self.stats.final_seconds += time.perf_counter() - t0
         return done
-
-    #: with a time budget, the full-resolution steps taken first and timed (the rest reckoned at the cheaper)
-    BUDGET_PROBE_STEPS = 2
-    #: with a time budget, the coarse steps at most this many times their planned count (a small map or a fast
-    #: machine does not train on for the whole budget)
-    BUDGET_MAX_FACTOR = 2.0
 
     def _train_within(self, deadline: float, level: int, reserve: float, least: int, most: int) -> tuple[int, bool]:
         """``least`` steps at ``level``, then more, at most ``most``, while the time before ``deadline``
