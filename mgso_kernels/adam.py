@@ -212,8 +212,8 @@ def adam_step_gaussians(offset: int, params: GaussianParams, grads: GaussianPara
 
 # The CPU's dense Adam in C++ blocks of up to ADAM_BLOCK Gaussians: adam_row's arithmetic in the same order (so the
 # same parameters and moments bit for bit), with two changes of order of work: each Gaussian's bias corrections
-# (two float64 pow, about half of the kernel's time with per-Gaussian steps) are computed once for each run of equal
-# step counts (Gaussians seeded together have the same), and each parameter group is updated 16 floats a vector
+# (two float64 pow, about half of the kernel's time with per-Gaussian steps) are computed once for each step count
+# of a block (Gaussians seeded together have the same; a table of 64 keeps them), and each parameter group is updated 16 floats a vector
 # (sqrt and division as one IEEE instruction each, the values of the scalar ones). The sparse mode and SH of degree
 # above 0 decline (return 0) to adam_row.
 _ADAM_CPP = r"""
@@ -230,25 +230,28 @@ if (!(MGSO_ADAM_OK(params) && MGSO_ADAM_OK(grads) && MGSO_ADAM_OK(exp_avg) && MG
 typedef float vf __attribute__((ext_vector_type(16)));
 const float b1 = hp.beta1, b2 = hp.beta2, eps = hp.eps;
 const float ob1 = 1.0f - b1, ob2 = 1.0f - b2;
-// the rows' bias corrections
+// the rows' bias corrections, each step count's once: a table of 64 step counts (by t mod 64) holds the last
+// computed for each slot, so rows of a few ages in any order (a map in spatial order) reuse them
 float BC1[BLK], BC2[BLK];
 int* ST = (int*)steps.data;
-int last_t = 0;
-float c1 = 1.0f, c2 = 1.0f;
-bool have = false;
+int CT[64];
+float CC1[64], CC2[64];
+bool HAVE[64];
+for (int k = 0; k < 64; ++k) { CT[k] = 0; CC1[k] = 1.0f; CC2[k] = 1.0f; HAVE[k] = false; }
 for (int r = 0; r < n; ++r) {
     int t = ST[lo + r] + 1;
     ST[lo + r] = t;
     if (hp.bias_correction == 1) t = hp.global_step;
     if (hp.bias_correction != 0) {
-        if (!have || t != last_t) {
+        const int k = t & 63;
+        if (!HAVE[k] || CT[k] != t) {
             const double tt = (double)t;
-            c1 = (float)(1.0 - ::pow((double)b1, tt));
-            c2 = (float)::sqrt(1.0 - ::pow((double)b2, tt));
-            last_t = t;
-            have = true;
+            CC1[k] = (float)(1.0 - ::pow((double)b1, tt));
+            CC2[k] = (float)::sqrt(1.0 - ::pow((double)b2, tt));
+            CT[k] = t;
+            HAVE[k] = true;
         }
-        BC1[r] = c1; BC2[r] = c2;
+        BC1[r] = CC1[k]; BC2[r] = CC2[k];
     } else {
         BC1[r] = 1.0f; BC2[r] = 1.0f;
     }

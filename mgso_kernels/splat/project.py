@@ -434,6 +434,22 @@ float* OP = (float*)v_pose_partial.data;
 const float t0 = cam.t[0], t1 = cam.t[1], t2 = cam.t[2];
 for (int g0 = lo; g0 < hi; g0 += 16) {
     const int m = hi - g0 < 16 ? hi - g0 : 16;
+    // a group none of whose Gaussians this view shows (most of a real map's, in runs of the seeding order): zeros,
+    // as its lanes below would write, without the arithmetic
+    int shown = 0;
+    for (int j = 0; j < m; ++j) shown |= RD[g0 + j];
+    if (shown == 0) {
+        for (int j = 0; j < m; ++j) {
+            const long gi = g0 + j;
+            OM[3 * gi] = 0.0f; OM[3 * gi + 1] = 0.0f; OM[3 * gi + 2] = 0.0f;
+            OL[3 * gi] = 0.0f; OL[3 * gi + 1] = 0.0f; OL[3 * gi + 2] = 0.0f;
+            OQ[4 * gi] = 0.0f; OQ[4 * gi + 1] = 0.0f; OQ[4 * gi + 2] = 0.0f; OQ[4 * gi + 3] = 0.0f;
+            OO[gi] = 0.0f;
+            float* pp = OP + 6 * gi;
+            pp[0] = 0.0f; pp[1] = 0.0f; pp[2] = 0.0f; pp[3] = 0.0f; pp[4] = 0.0f; pp[5] = 0.0f;
+        }
+        continue;
+    }
     vf p0, p1, p2, q0, q1, q2, q3, l0, l1, l2, ol, vm0, vm1, va, vb, vc, vdep, vop;
     for (int j = 0; j < 16; ++j) {
         const long g = g0 + (j < m ? j : 0);
@@ -659,6 +675,26 @@ for (int g0 = lo; g0 < hi; g0 += 16) {
         q0[j] = PQ[4 * g]; q1[j] = PQ[4 * g + 1]; q2[j] = PQ[4 * g + 2]; q3[j] = PQ[4 * g + 3];
         l0[j] = PL[3 * g]; l1[j] = PL[3 * g + 1]; l2[j] = PL[3 * g + 2];
     }
+    {
+        // a group that lies wholly off the image (most of a real map's, once it is in spatial order: see
+        // GaussianMap.sort_spatially) is passed over before its covariances: its screen extent is at most
+        // sqrt(r2 (|J row|^2 s_max^2 + eps2d)) with r2 at opacity 1 and s_max <= 2^ceil(log2(e) max log-scale), both
+        // with a margin, and a pixel more; where that extent misses the image the lane's exact test below misses it
+        // too, so the outputs are those already written (a NaN or infinite scale is never shown either)
+        const vf lmax = fmx(fmx(l0, l1), l2);
+        const vf e2 = fmn(fmx(__builtin_elementwise_ceil(lmax * 1.4427f + 0.01f), (vf)-126.0f), (vf)127.0f);
+        const vf smax = (vf)((__builtin_convertvector(e2, vi) + 127) << 23);
+        const vf s2 = smax * smax * 1.01f;
+        const vf rx = x / z, ry = y / z;
+        const vf bx = sqrtv(@R2_BOUND@ * (fx * fx / (z * z) * (1.0f + rx * rx) * s2 + eps2d)) + 1.0f;
+        const vf by = sqrtv(@R2_BOUND@ * (fy * fy / (z * z) * (1.0f + ry * ry) * s2 + eps2d)) + 1.0f;
+        const vf bmx = fx * x / z + cx, bmy = fy * y / z + cy;
+        const vi off = (bmx + bx < 0.0f) | (bmx - bx > Wm1) | (bmy + by < 0.0f) | (bmy - by > Hm1);
+        const vi maybe = go & ~off;
+        int shown = 0;
+        for (int j = 0; j < m; ++j) shown |= maybe[j];
+        if (!shown) continue;
+    }
     // normalize(vec4): q / length(q) where length > 0, else the zero vector
     const vf len = sqrtv(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
     const vi pos = len > 0.0f;
@@ -707,7 +743,8 @@ return 0;
 #endif
 """
 for _name, _value in (("@COMMON@", _PROJECT_COMMON_CPP), ("@ALPHA_MIN@", ALPHA_MIN), ("@R2_REL@", R2_REL_MARGIN),
-                      ("@R2_ABS@", R2_ABS_MARGIN)):
+                      ("@R2_ABS@", R2_ABS_MARGIN),
+                      ("@R2_BOUND@", 1.001 * (2.0 * np.log(255.0) * (1.0 + R2_REL_MARGIN) + R2_ABS_MARGIN))):
     _PROJECT_FWD_CPP = _PROJECT_FWD_CPP.replace(
         _name, _value if isinstance(_value, str) else repr(float(np.float32(_value))) + "f")
 del _name, _value

@@ -475,15 +475,55 @@ for (int jj = 0; jj < n_max; ++jj) {
     // 16 columns, each by raster_tile's tree (v[k] + v[k + 8], then + 4, then (0 + 2) + (1 + 3)) as vector halves
     // added, where 13 scalar trees of 15 additions each took a sixth of the backward blend
     const v16f dx16 = *(const v16f*)dxl, a0 = *(const v16f*)ACC[0], a1 = *(const v16f*)ACC[1];
+    float* pg = grads + 12L * slot_p[j];
+#if @W@ == 16
+    // the twelve trees at once, transposed: each level adds the same lane pairs as tree16 for up to 16 vectors
+    // together, two vectors' halves side by side in one register (two permutes and an add a level and pair), so every
+    // sum is tree16's bit for bit in a third of the instructions; lane k of the result is the sum of input k
+    const v16f z16 = 0.0f;
+    const v16f in0 = dx16 * a0, in1 = dx16 * dx16 * a0, in2 = a1, in3 = dx16 * a1, in4 = *(const v16f*)ACC[2];
+    const v16f in5 = *(const v16f*)ACC[3], in6 = *(const v16f*)ACC[4], in7 = *(const v16f*)ACC[5];
+    const v16f in8 = *(const v16f*)ACC[6], in9 = *(const v16f*)ACC[7];
+    const v16f in10 = @ABSGRAD@ ? *(const v16f*)ACC[8] : z16, in11 = @ABSGRAD@ ? *(const v16f*)ACC[9] : z16;
+    // level 1: [v0..7 + v8..15 of A | the same of B]
+    auto l1 = [](v16f A, v16f B) -> v16f {
+        return __builtin_shufflevector(A, B, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23)
+               + __builtin_shufflevector(A, B, 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31);
+    };
+    // level 2: four halves of 8 -> four quarters of 4 (h0..3 + h4..7)
+    auto l2 = [](v16f X, v16f Y) -> v16f {
+        return __builtin_shufflevector(X, Y, 0, 1, 2, 3, 8, 9, 10, 11, 16, 17, 18, 19, 24, 25, 26, 27)
+               + __builtin_shufflevector(X, Y, 4, 5, 6, 7, 12, 13, 14, 15, 20, 21, 22, 23, 28, 29, 30, 31);
+    };
+    // level 3: eight quarters of 4 -> eight pairs (q0, q1 + q2, q3)
+    auto l3 = [](v16f X, v16f Y) -> v16f {
+        return __builtin_shufflevector(X, Y, 0, 1, 4, 5, 8, 9, 12, 13, 16, 17, 20, 21, 24, 25, 28, 29)
+               + __builtin_shufflevector(X, Y, 2, 3, 6, 7, 10, 11, 14, 15, 18, 19, 22, 23, 26, 27, 30, 31);
+    };
+    // level 4: sixteen pairs -> sixteen sums (r0 + r1)
+    auto l4 = [](v16f X, v16f Y) -> v16f {
+        return __builtin_shufflevector(X, Y, 0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30)
+               + __builtin_shufflevector(X, Y, 1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+    };
+    const v16f F = l4(l3(l2(l1(in0, in1), l1(in2, in3)), l2(l1(in4, in5), l1(in6, in7))),
+                      l3(l2(l1(in8, in9), l1(in10, in11)), z16));
+    const float P1 = F[0], P2 = F[1], Q1 = F[2], Q2 = F[3], Q3 = F[4];
+    pg[0] = pg[0] + (a * P1 + b * Q1);
+    pg[1] = pg[1] + (b * P1 + c * Q1);
+    pg[2] = pg[2] + -0.5f * P2;
+    pg[3] = pg[3] + -Q2;
+    pg[4] = pg[4] + -0.5f * Q3;
+    for (int t = 3; t < 10; ++t) pg[t + 2] = pg[t + 2] + F[t + 2];
+#else
     const float P1 = tree16(dx16 * a0), P2 = tree16(dx16 * dx16 * a0), Q1 = tree16(a1), Q2 = tree16(dx16 * a1);
     const float Q3 = tree16(*(const v16f*)ACC[2]);
-    float* pg = grads + 12L * slot_p[j];
     pg[0] = pg[0] + (a * P1 + b * Q1);
     pg[1] = pg[1] + (b * P1 + c * Q1);
     pg[2] = pg[2] + -0.5f * P2;
     pg[3] = pg[3] + -Q2;
     pg[4] = pg[4] + -0.5f * Q3;
     for (int t = 3; t < 10; ++t) pg[t + 2] = pg[t + 2] + tree16(*(const v16f*)ACC[t]);
+#endif
 }
 return 1;
 """

@@ -332,6 +332,7 @@ def _random_splats(rng, n, width, height, big=False):
     r2 = 2.0 * np.log(255.0 * op) * 1.001 + 0.01
     splats = np.stack([means[:, 0], means[:, 1], a, b, cc, op, np.exp(-a), r2], 1).astype(np.float32)
     radii = np.where(rng.random(n) < 0.05, 0, 1 + rng.integers(0, 50, n)).astype(np.int32)
+    radii[16:40] = 0                    # a whole group of 16 culled (the C++ blocks pass over it) and part of one
     depths = rng.uniform(0.1, 30.0, n).astype(np.float32)
     return splats, radii, depths
 
@@ -341,7 +342,8 @@ def _random_splats(rng, n, width, height, big=False):
 def test_the_cpus_binning_blocks_list_the_kernels_pairs(wp_device, size, n, big):
     """On the CPU the binning (count_tiles, emit_pairs) runs in C++ blocks of BIN_BLOCK Gaussians whose row and column
     ranges are computed 16 at a time: the same tiles_touched, keys, slots and pair_gauss bit for bit as the Warp
-    kernels (CUDA's path) on Gaussians inside, across and off the image borders, culled ones, several blocks, and
+    kernels (CUDA's path) on Gaussians inside, across and off the image borders, culled ones (a whole group of 16
+    among them, which the blocks pass over), several blocks, and
     tall images whose ellipses reach hundreds of tile rows (a block's items flushed more than once); every block's
     status is 1, except beyond 1024 tile rows (16,400 px), where the block declines (status 0) and the kernels' own
     loop gives the same pairs; with the C++ switched off (the control) status 0 and the same pairs."""
@@ -410,7 +412,8 @@ def test_the_cpus_projection_blocks_compute_the_kernels_values(wp_device, n, ant
     means2d, conics, depths, opacities, radii and blend records, and the same gradients (means, log-scales,
     quaternions, opacity logits, pose terms), bit for bit, as the thread-per-Gaussian Warp kernels (CUDA's path), on
     Gaussians behind the camera and beyond the far plane, off the image, faint (culled by opacity), with zero
-    quaternions, and culled ones in the backward; every block's status is 1. The antialiased mode is not in C++:
+    quaternions, and culled ones in the backward (whole groups of 16 off the image among them, which the blocks pass
+    over: the forward by a bound on the screen extent, the backward by the radii); every block's status is 1. The antialiased mode is not in C++:
     its blocks decline (status 0) and give the kernels' values. The control (C++ switched off): status 0, the same
     values."""
     from mgso_kernels.splat import project as proj
