@@ -592,6 +592,9 @@ class DensifyConfig:
     max_aspect: float = opt(0.0, "at each refine, shorten axes longer than this x the Gaussian's shortest axis "
                                  "(needles that disagreeing views stretch become discs); 0 = off (3DGS)")
     prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")
+    sort_spatially: bool = opt(True, "after each refine, put the map's rows in the Z-order of their means, so that a "
+                                     "view culls whole runs of rows (the CPU's per-Gaussian kernels pass over them; "
+                                     "docs/mapping.md); false = rows stay in the order they were made")
 
     def __post_init__(self):
         c = _Checks("mapping.densify", self)

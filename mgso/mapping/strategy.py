@@ -40,6 +40,8 @@ Rules (graphdeco 3DGS ``densify_and_prune`` / gsplat ``DefaultStrategy``; units 
   Gaussians once a reset has made them earn their opacity back, and the mapper's scene extent, taken from camera
   centres that hardly move in a handheld recording, is no measure of the scene's size (docs/mapping.md, "The
   size prune needs a reset"). Gaussians younger than ``prune_min_age`` steps are kept.
+- After a refine the rows are put in the Z-order of their means (``sort_spatially``; not in 3DGS): a view then
+  culls whole runs of rows, which the CPU's per-Gaussian kernels pass over.
 - Statistics are reset after every refine. Every ``reset_every`` steps (while refining is on) opacities are clamped
   to ``reset_opacity_value`` and their Adam moments zeroed.
 """
@@ -153,6 +155,8 @@ class DefaultStrategy:
             cloned, split, skipped = self._grow(gmap, state, step, extent)
             p_opa, p_world, p_screen = self._prune(gmap, step, extent)
             clamped = self.clamp_aspect(gmap)
+            if c.sort_spatially:
+                gmap.sort_spatially()
             gmap.reset_stats()
             state.refines += 1
             res = dataclasses.replace(res, refined=True, cloned=cloned, split=split, skipped_capacity=skipped,

@@ -49,9 +49,15 @@ def _ids(gm):
     return list(gm.means.numpy()[:, 0].astype(int))
 
 
+def _cfg(**kw):
+    """The rules' settings with the rows left in the order the rules make them (these tests follow rows by place;
+    the spatial order after a refine is tested on its own)."""
+    return DensifyConfig(sort_spatially=False, **kw)
+
+
 def test_refine_clones_splits_prunes(wp_device):
     gm = _map(wp_device, ROWS)
-    strat = DefaultStrategy(DensifyConfig())
+    strat = DefaultStrategy(_cfg())
     st = strat.initialize_state(seed=1)
     res = strat.step_post_backward(gm, st, 3100)   # > 500, % 100 == 0, after the first reset (3000)
     assert res.refined and not res.opacity_reset
@@ -66,8 +72,27 @@ def test_refine_clones_splits_prunes(wp_device):
     assert not np.any(gm.stats.grad2d_sum.numpy()) and not np.any(gm.stats.vis_count.numpy())   # stats reset
 
 
+def test_a_refine_puts_the_rows_in_spatial_order_when_set(wp_device):
+    """With sort_spatially (the default) a refine ends with the rows in the Z-order of their means: the same rows
+    as without it (the control above keeps the rules' order), permuted by spatial_order."""
+    from mgso.mapping.gaussian_map import spatial_order
+
+    rows = ROWS * 3
+    plain, ordered = _map(wp_device, rows), _map(wp_device, rows)
+    for gm, on in ((plain, False), (ordered, True)):
+        gm.means.assign(np.random.default_rng(3).uniform(-1, 1, (len(rows), 3)).astype(np.float32))
+        strat = DefaultStrategy(DensifyConfig(sort_spatially=on))
+        res = strat.step_post_backward(gm, strat.initialize_state(seed=1), 3100)
+        assert res.refined and res.n_after == gm.n
+    a, b = plain.state_numpy(), ordered.state_numpy()
+    order = spatial_order(a["params.means"])
+    assert not np.array_equal(order, np.arange(len(order)))
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name][order], err_msg=name)
+
+
 def test_no_size_pruning_before_first_reset_and_no_refine_off_schedule(wp_device):
-    strat = DefaultStrategy(DensifyConfig())
+    strat = DefaultStrategy(_cfg())
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 1000)
     assert res.refined and res.pruned_world == 0 and res.pruned_opacity == 1
@@ -81,7 +106,7 @@ def test_no_size_pruning_without_opacity_resets(wp_device):
     """Without resets (MGSO's mapper: reset_every 0) there is no first reset, so the world-size and screen-size
     prunes never run; the opacity prune does. Control: the same rows with resets on are pruned for size."""
     for reset_every, world in ((0, 0), (3000, 1)):
-        strat = DefaultStrategy(DensifyConfig(reset_every=reset_every, refine_stop_step=0, prune_screen_px=1.0))
+        strat = DefaultStrategy(_cfg(reset_every=reset_every, refine_stop_step=0, prune_screen_px=1.0))
         for step in (600, 3100, 50_000):
             gm = _map(wp_device, ROWS)
             gm.stats.max_radius_px.assign(np.full(7, 5.0, np.float32))   # every row above 1 px on screen
@@ -94,7 +119,7 @@ def test_no_size_pruning_without_opacity_resets(wp_device):
 
 
 def test_opacity_reset(wp_device):
-    strat = DefaultStrategy(DensifyConfig())
+    strat = DefaultStrategy(_cfg())
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 6000)
     assert res.opacity_reset and res.refined
@@ -102,17 +127,17 @@ def test_opacity_reset(wp_device):
     assert np.all(op <= 0.01 + 1e-6)
     gm = _map(wp_device, ROWS)
     assert not strat.step_post_backward(gm, strat.initialize_state(), 6001).opacity_reset
-    paused = DefaultStrategy(DensifyConfig(pause_refine_after_reset=200))
+    paused = DefaultStrategy(_cfg(pause_refine_after_reset=200))
     assert not paused.step_post_backward(_map(wp_device, ROWS), paused.initialize_state(), 6100).refined
     assert paused.step_post_backward(_map(wp_device, ROWS), paused.initialize_state(), 6200).refined
 
 
 def test_absgrad_modes(wp_device):
-    strat = DefaultStrategy(DensifyConfig(grad_mode="absgrad"))     # abs grad decides both, threshold 0.0008
+    strat = DefaultStrategy(_cfg(grad_mode="absgrad"))     # abs grad decides both, threshold 0.0008
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
     assert (res.cloned, res.split) == (0, 1) and 3 not in _ids(gm)[:4]
-    strat = DefaultStrategy(DensifyConfig(grad_mode="absgs"))       # clone by grad, split by abs grad > 0.0004
+    strat = DefaultStrategy(_cfg(grad_mode="absgs"))       # clone by grad, split by abs grad > 0.0004
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
     assert (res.cloned, res.split) == (1, 1) and _ids(gm)[:4] == [0, 1, 2, 6]
@@ -121,25 +146,25 @@ def test_absgrad_modes(wp_device):
 def test_capacity_bounds_growth_by_priority(wp_device):
     rows = [(SMALL, 0.5, g, 0.0, 2) for g in (3e-4, 9e-4, 5e-4, 1e-4)]
     gm = _map(wp_device, rows, capacity=6)
-    strat = DefaultStrategy(DensifyConfig())
+    strat = DefaultStrategy(_cfg())
     res = strat.step_post_backward(gm, strat.initialize_state(), 600)
     assert res.cloned == 2 and res.skipped_capacity == 1 and gm.n == 6
     assert _ids(gm)[4:] == [1, 2]      # the two largest gradients grew
 
 
 def test_min_views_and_min_age(wp_device):
-    strat = DefaultStrategy(DensifyConfig(grow_min_views=5))
+    strat = DefaultStrategy(_cfg(grow_min_views=5))
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
     assert res.cloned == 0 and res.split == 0
-    strat = DefaultStrategy(DensifyConfig(prune_min_age=5000))
+    strat = DefaultStrategy(_cfg(prune_min_age=5000))
     gm = _map(wp_device, ROWS)
     res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
     assert res.pruned == 0
 
 
 def test_screen_size_pruning(wp_device):
-    strat = DefaultStrategy(DensifyConfig(prune_screen_px=20.0))
+    strat = DefaultStrategy(_cfg(prune_screen_px=20.0))
     gm = _map(wp_device, ROWS)
     gm.stats.max_radius_px.assign(np.array([25, 0, 0, 0, 0, 0, 30], np.float32))
     res = strat.step_post_backward(gm, strat.initialize_state(), 3100)
@@ -155,14 +180,14 @@ def test_pixel_gradients_are_converted_to_ndc(wp_device):
     for _ in range(3):
         gm.accumulate_stats(wp.array(v, dtype=wp.vec2, device=wp_device),
                             wp.array(np.ones(2, np.float32), device=wp_device), W, H)
-    strat = DefaultStrategy(DensifyConfig())
+    strat = DefaultStrategy(_cfg())
     res = strat.step_post_backward(gm, strat.initialize_state(), 600)
     assert res.cloned == 1 and _ids(gm) == [0, 1, 0]
 
 
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="refine_every"):
-        DefaultStrategy(DensifyConfig(refine_every=0))
+        DefaultStrategy(_cfg(refine_every=0))
     with pytest.raises(ValueError, match="grad_mode"):
         DefaultStrategy(dataclasses.replace(DensifyConfig(), grad_mode="nope"))
 
@@ -174,9 +199,9 @@ def test_max_aspect_turns_needles_into_discs_only_when_set(wp_device):
     for aspect, want in ((0.0, np.exp(ls)), (10.0, [[1, 1, 1], [1, 2, 10], [0.1, 1.0, 0.3], [0.2, 0.2, 1.9]])):
         gm = GaussianMap(capacity=8, sh_degree=0, device=wp_device, scene_extent=EXTENT)
         gm.add(np.zeros((4, 3)), ls, np.tile([1, 0, 0, 0], (4, 1)), np.zeros(4), np.zeros((4, 3)), step=0)
-        strat = DefaultStrategy(DensifyConfig(refine_start_step=0, refine_every=10, max_aspect=aspect))
+        strat = DefaultStrategy(_cfg(refine_start_step=0, refine_every=10, max_aspect=aspect))
         res = strat.step_post_backward(gm, strat.initialize_state(0), 10)
         assert res.refined and res.clamped_aspect == (2 if aspect else 0)
         np.testing.assert_allclose(np.exp(gm.log_scales.numpy()), want, rtol=1e-5)
     with pytest.raises(ValueError, match="max_aspect"):
-        DefaultStrategy(DensifyConfig(max_aspect=0.5))
+        DefaultStrategy(_cfg(max_aspect=0.5))
