@@ -177,6 +177,10 @@ def _render(device, scene, cam, ups, absgrad, native: bool) -> dict:
             r[f"coverage_depth_{t_stop}"] = np.stack([a.alpha.numpy(), a.depth.numpy()])
             r[f"status_coverage_depth_{t_stop}"] = raster_tile.status_buffer(dim, device).numpy().copy()
         out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+        rast.backward(out, *ups, absgrad=absgrad)
+        # the tile snippet stores into the pairs (no add): NaN left in the pairs' buffer by anything before must not
+        # reach the gradients
+        rast.pair_grads_.full.fill_(wp.types.vector(12, wp.float32)(*([float("nan")] * 12)))
         g = rast.backward(out, *ups, absgrad=absgrad)
         r["status_backward"] = raster_tile.status_buffer(dim, device).numpy().copy()
         for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
@@ -215,6 +219,40 @@ def test_cpp_tile_blend_equals_the_warp_kernels_to_rounding(wp_device, size, n, 
             np.testing.assert_allclose(value, warp_code[key], rtol=0, atol=5e-6 * np.abs(value).max(), err_msg=key)
         else:  # the same Warp code twice; its float atomics add in a varying order
             np.testing.assert_allclose(value, warp_code[key], rtol=1e-4, atol=1e-6 * np.abs(value).max(), err_msg=key)
+
+
+def test_the_tile_backward_writes_every_pair_of_its_tile(wp_device):
+    """The tile backward's snippet stores each pair's sums (a store, not an add) into the pairs the launcher zeroed;
+    a pair it visits without a pixel to take it, and those past every pixel's last contributor, stay zero. One 16x16
+    tile: three opaque bars a row stop the top half's pixels, a translucent bar behind them in the top half (listed,
+    visited, no live pixel), and translucent bars over the bottom half, some behind it; the pairs' buffer holds NaN
+    before the backward (_render). The C++ snippet and the kernel's own Warp code give the same finite gradients, the
+    hidden bar's zero."""
+    f, z0 = 20.0, np.array([1.0, 1.01, 1.02])
+    rows = []   # (row centre, sigma_y px, opacity logit, z)
+    for r in range(8):
+        rows += [(float(r), 0.5, 10.0, z) for z in z0]
+    hidden = len(rows)
+    rows.append((3.0, 0.5, 0.0, 3.0))
+    rows += [(11.5, 4.0, -0.85, z) for z in np.linspace(1.5, 5.5, 8)]
+    n = len(rows)
+    c, sy, logit, z = (np.array(v, np.float64) for v in zip(*rows))
+    scene = {"means": np.stack([np.zeros(n), (c - 7.5) * z / f, z], 1).astype(np.float32),
+             "log_scales": np.log(np.stack([30.0 * z / f, sy * z / f, np.full(n, 1e-3)], 1)).astype(np.float32),
+             "quats": np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+             "opacity_logits": logit.astype(np.float32),
+             "sh": np.random.default_rng(2).normal(size=(n, 1, 3)).astype(np.float32)}
+    cam = make_camera(f, f, 7.5, 7.5, 16, 16, np.eye(4))
+    rng = np.random.default_rng(5)
+    ups = [rng.normal(size=s).astype(np.float32) for s in ((16, 16, 3), (16, 16), (16, 16))]
+    cpp, warp_code = _render_both_ways(wp_device, scene, cam, ups, True)
+    assert (cpp["n_contrib"][:8] <= 3 * 8).all() and (cpp["n_contrib"][8:] > hidden).any()   # top stopped early
+    for key, value in cpp.items():
+        if key.startswith("status"):
+            continue
+        assert np.isfinite(value).all(), key
+        np.testing.assert_allclose(value, warp_code[key], rtol=0, atol=5e-6 * np.abs(value).max(), err_msg=key)
+    assert cpp["v_opacity_logits"][hidden] == 0 and np.abs(cpp["v_opacity_logits"][hidden + 1:]).max() > 0
 
 
 @pytest.mark.parametrize("with_color", [0, 1, 2])
