@@ -93,13 +93,25 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
     if (yy >= 0 && yy < H) {
         const float* xr = row_of(img.x, yy);
         const float* tr = row_of(img.y, yy);
-        for (int i = 0; i < n + 2 * HALO; ++i) {
-            const long f = f0 - HALO + i;
-            const bool in = f >= 0 && f < F;
-            const float xv = in ? xr[in ? f : 0] * gain + bias : 0.0f;
-            const float tv = in ? tr[in ? f : 0] : 0.0f;
-            xin[i] = xv; tin[i] = tv;
-            xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
+        if (f0 - HALO >= 0 && f0 - HALO + n + 2 * HALO <= F) {
+            // a block inside the row: no bounds to test (the same values)
+            const float* xs = xr + (f0 - HALO);
+            const float* ts = tr + (f0 - HALO);
+            for (int i = 0; i < n + 2 * HALO; ++i) {
+                const float xv = xs[i] * gain + bias;
+                const float tv = ts[i];
+                xin[i] = xv; tin[i] = tv;
+                xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
+            }
+        } else {
+            for (int i = 0; i < n + 2 * HALO; ++i) {
+                const long f = f0 - HALO + i;
+                const bool in = f >= 0 && f < F;
+                const float xv = in ? xr[in ? f : 0] * gain + bias : 0.0f;
+                const float tv = in ? tr[in ? f : 0] : 0.0f;
+                xin[i] = xv; tin[i] = tv;
+                xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
+            }
         }
         hwin(xin, ring[slot][0]);
         hwin(tin, ring[slot][1]);
@@ -189,13 +201,22 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
         const float* ar = row_of(adj.d_mu_x, yy);
         const float* br = row_of(adj.d_xx, yy);
         const float* cr = row_of(adj.d_xy, yy);
-        for (int i = 0; i < n + 2 * HALO; ++i) {
-            const long f = f0 - HALO + i;
-            const bool in = f >= 0 && f < F;
-            const long fi = in ? f : 0;
-            ain[i] = in ? ar[fi] : 0.0f;
-            bin[i] = in ? br[fi] : 0.0f;
-            cin[i] = in ? cr[fi] : 0.0f;
+        if (f0 - HALO >= 0 && f0 - HALO + n + 2 * HALO <= F) {
+            // a block inside the row: no bounds to test (the same values)
+            for (int i = 0; i < n + 2 * HALO; ++i) {
+                ain[i] = ar[f0 - HALO + i];
+                bin[i] = br[f0 - HALO + i];
+                cin[i] = cr[f0 - HALO + i];
+            }
+        } else {
+            for (int i = 0; i < n + 2 * HALO; ++i) {
+                const long f = f0 - HALO + i;
+                const bool in = f >= 0 && f < F;
+                const long fi = in ? f : 0;
+                ain[i] = in ? ar[fi] : 0.0f;
+                bin[i] = in ? br[fi] : 0.0f;
+                cin[i] = in ? cr[fi] : 0.0f;
+            }
         }
         hwin(ain, ring[slot][0]);
         hwin(bin, ring[slot][1]);
