@@ -157,6 +157,9 @@ def run_scene(run: str, views: int, device: str, downscale: int = 1):
     from mgso.io.trajectory import read_tum
 
     d = Path(run)
+    for name in ("map.ply", "sequence.json", "trajectory.txt"):
+        if not (d / name).is_file():
+            raise SystemExit(f"splat_raster: {d / name}: missing (--run needs a finished `mgso run` folder)")
     g = read_gaussians_ply(d / "map.ply")
     info = _json.loads((d / "sequence.json").read_text())
     k = info["intrinsics"]
