@@ -16,7 +16,7 @@ Kernels (each with a NumPy twin in :mod:`mgso_kernels.reference.adam`):
   The update is torch.optim.Adam's: ``m = b1 m + (1-b1) g``, ``v = b2 v + (1-b2) g^2``,
   ``p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps)`` with ``bc_k = 1 - b_k^t`` (1 without bias correction).
   On the CPU the dense mode with SH degree 0 (MGSO's) runs as C++ blocks (``adam_step_gaussians_blocks``): the
-  same values bit for bit, the bias corrections once per run of equal step counts (docs/rasteriser.md).
+  same values bit for bit, the bias corrections once per step count of a block (docs/rasteriser.md).
 - ``adam_step_flat``: the same update on a flat float array with one global step (per-keyframe exposures, poses).
 - ``gather_rows`` / ``gather_rows_2d``: ``dst[i] = src[index[i]]``, the one primitive the Gaussian map uses to
   remove, clone and split rows of parameters, moments and statistics together.
@@ -213,9 +213,9 @@ def adam_step_gaussians(offset: int, params: GaussianParams, grads: GaussianPara
 # The CPU's dense Adam in C++ blocks of up to ADAM_BLOCK Gaussians: adam_row's arithmetic in the same order (so the
 # same parameters and moments bit for bit), with two changes of order of work: each Gaussian's bias corrections
 # (two float64 pow, about half of the kernel's time with per-Gaussian steps) are computed once for each step count
-# of a block (Gaussians seeded together have the same; a table of 64 keeps them), and each parameter group is updated 16 floats a vector
-# (sqrt and division as one IEEE instruction each, the values of the scalar ones). The sparse mode and SH of degree
-# above 0 decline (return 0) to adam_row.
+# of a block (Gaussians seeded together have the same; a table of 64 keeps them), and each parameter group is
+# updated 16 floats a vector (sqrt and division as one IEEE instruction each, the values of the scalar ones). The
+# sparse mode and SH of degree above 0 decline (return 0) to adam_row.
 _ADAM_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 enum { BLK = 256 };

@@ -261,8 +261,8 @@ auto flush = [&]() {
     ni = 0;
 };
 for (int k0 = 0; k0 < n; k0 += V) {
-    // a group none of whose Gaussians this view shows (most of a real map's, in runs of the seeding order) lists
-    // no item: count 0, without the arithmetic
+    // a group none of whose Gaussians this view shows (many of a real map's once it is in spatial order:
+    // GaussianMap.sort_spatially) lists no item: count 0, without the arithmetic
     int shown = 0;
     for (int k = k0; k < k0 + V && k < n; ++k) shown |= R[lo + k];
     if (shown == 0) {

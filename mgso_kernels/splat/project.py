@@ -434,8 +434,8 @@ float* OP = (float*)v_pose_partial.data;
 const float t0 = cam.t[0], t1 = cam.t[1], t2 = cam.t[2];
 for (int g0 = lo; g0 < hi; g0 += 16) {
     const int m = hi - g0 < 16 ? hi - g0 : 16;
-    // a group none of whose Gaussians this view shows (most of a real map's, in runs of the seeding order): zeros,
-    // as its lanes below would write, without the arithmetic
+    // a group none of whose Gaussians this view shows (many of a real map's once it is in spatial order:
+    // GaussianMap.sort_spatially): zeros, as its lanes below would write, without the arithmetic
     int shown = 0;
     for (int j = 0; j < m; ++j) shown |= RD[g0 + j];
     if (shown == 0) {
@@ -676,7 +676,7 @@ for (int g0 = lo; g0 < hi; g0 += 16) {
         l0[j] = PL[3 * g]; l1[j] = PL[3 * g + 1]; l2[j] = PL[3 * g + 2];
     }
     {
-        // a group that lies wholly off the image (most of a real map's, once it is in spatial order: see
+        // a group that lies wholly off the image (many of a real map's once it is in spatial order: see
         // GaussianMap.sort_spatially) is passed over before its covariances: its screen extent is at most
         // sqrt(r2 (|J row|^2 s_max^2 + eps2d)) with r2 at opacity 1 and s_max <= 2^ceil(log2(e) max log-scale), both
         // with a margin, and a pixel more; where that extent misses the image the lane's exact test below misses it
