@@ -151,9 +151,9 @@ def test_the_cpus_adam_blocks_update_as_the_kernel_does(wp_device, rng, bias, k,
     corrections once per step count of a block, in a table of 64 by the count mod 64; each group 16 floats a vector):
     parameters, both moments and the step counts equal the Warp kernel's bit for bit over five steps, with runs of
     equal step counts broken at random rows and counts 64 apart in one slot (so cached corrections must be
-    recomputed), three blocks and a part; every block's status is 1. SH above
-    degree 0 and the sparse mode decline to the kernel's code (status 0), and the control with the C++ switched off
-    (runtime.use_native(False), the switch of every C++ snippet) runs none."""
+    recomputed), three blocks and a part; every block's status is 1. SH above degree 0 and the sparse mode decline
+    to the kernel's code (status 0), and the control with the C++ switched off (runtime.use_native(False), the
+    switch of every C++ snippet) runs none."""
     n = 3 * wa.ADAM_BLOCK + 37
     p0 = _rand_group(rng, n, k)
     steps0 = np.repeat(rng.integers(0, 9, n // 20 + 1), 20)[:n].astype(np.int32)

@@ -221,7 +221,7 @@ def test_cpp_tile_blend_equals_the_warp_kernels_to_rounding(wp_device, size, n, 
             np.testing.assert_allclose(value, warp_code[key], rtol=1e-4, atol=1e-6 * np.abs(value).max(), err_msg=key)
 
 
-def test_the_tile_backward_writes_every_pair_of_its_tile(wp_device):
+def test_the_tile_backward_stores_each_pair_whatever_its_buffer_held(wp_device):
     """The tile backward's snippet stores each pair's sums (a store, not an add) into the pairs the launcher zeroed;
     a pair it visits without a pixel to take it, and those past every pixel's last contributor, stay zero. One 16x16
     tile: three opaque bars a row stop the top half's pixels, a translucent bar behind them in the top half (listed,
@@ -381,10 +381,10 @@ def test_the_cpus_binning_blocks_list_the_kernels_pairs(wp_device, size, n, big)
     """On the CPU the binning (count_tiles, emit_pairs) runs in C++ blocks of BIN_BLOCK Gaussians whose row and column
     ranges are computed 16 at a time: the same tiles_touched, keys, slots and pair_gauss bit for bit as the Warp
     kernels (CUDA's path) on Gaussians inside, across and off the image borders, culled ones (a whole group of 16
-    among them, which the blocks pass over), several blocks, and
-    tall images whose ellipses reach hundreds of tile rows (a block's items flushed more than once); every block's
-    status is 1, except beyond 1024 tile rows (16,400 px), where the block declines (status 0) and the kernels' own
-    loop gives the same pairs; with the C++ switched off (the control) status 0 and the same pairs."""
+    among them, which the blocks pass over), several blocks, and tall images whose ellipses reach hundreds of tile
+    rows (a block's items flushed more than once); every block's status is 1, except beyond 1024 tile rows (16,400
+    px), where the block declines (status 0) and the kernels' own loop gives the same pairs; with the C++ switched
+    off (the control) status 0 and the same pairs."""
     from mgso_kernels.splat import bin as binning
     from mgso_kernels.splat import raster
 
@@ -451,9 +451,9 @@ def test_the_cpus_projection_blocks_compute_the_kernels_values(wp_device, n, ant
     quaternions, opacity logits, pose terms), bit for bit, as the thread-per-Gaussian Warp kernels (CUDA's path), on
     Gaussians behind the camera and beyond the far plane, off the image, faint (culled by opacity), with zero
     quaternions, and culled ones in the backward (whole groups of 16 off the image among them, which the blocks pass
-    over: the forward by a bound on the screen extent, the backward by the radii); every block's status is 1. The antialiased mode is not in C++:
-    its blocks decline (status 0) and give the kernels' values. The control (C++ switched off): status 0, the same
-    values."""
+    over: the forward by a bound on the screen extent, the backward by the radii); every block's status is 1. The
+    antialiased mode is not in C++: its blocks decline (status 0) and give the kernels' values. The control (C++
+    switched off): status 0, the same values."""
     from mgso_kernels.splat import project as proj
     from mgso_kernels.splat.common import vec6, vec8
 
