@@ -52,6 +52,11 @@ const long F = 16L * nch;                          // floats of a chunk row
 const int c_end = c0 + BW / 16 < nch ? c0 + BW / 16 : nch;
 const int n = 16 * (c_end - c0);                   // floats of this block
 const long f0 = 16L * c0;
+// the block's input floats of a row, [f0 - HALO, f0 + n + HALO) (NIN of them), are in the row at [I0, I1)
+const int NIN = n + 2 * HALO;
+const long FS = f0 - HALO;
+const int I0 = FS >= 0 ? 0 : (int)(-FS < NIN ? -FS : NIN);
+const int I1 = F - FS >= NIN ? NIN : (F - FS > I0 ? (int)(F - FS) : I0);
 const int y1 = y0 + band < H ? y0 + band : H;
 // out[k] = in[k] G0 + (in[k - 3] + in[k + 3]) G1 + ... (the chunk kernels' hwindow; in[] has HALO floats before k=0)
 auto hwin = [&](const float* in, float* out) {
@@ -93,25 +98,13 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
     if (yy >= 0 && yy < H) {
         const float* xr = row_of(img.x, yy);
         const float* tr = row_of(img.y, yy);
-        if (f0 - HALO >= 0 && f0 - HALO + n + 2 * HALO <= F) {
-            // a block inside the row: no bounds to test (the same values)
-            const float* xs = xr + (f0 - HALO);
-            const float* ts = tr + (f0 - HALO);
-            for (int i = 0; i < n + 2 * HALO; ++i) {
-                const float xv = xs[i] * gain + bias;
-                const float tv = ts[i];
-                xin[i] = xv; tin[i] = tv;
-                xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
-            }
-        } else {
-            for (int i = 0; i < n + 2 * HALO; ++i) {
-                const long f = f0 - HALO + i;
-                const bool in = f >= 0 && f < F;
-                const float xv = in ? xr[in ? f : 0] * gain + bias : 0.0f;
-                const float tv = in ? tr[in ? f : 0] : 0.0f;
-                xin[i] = xv; tin[i] = tv;
-                xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
-            }
+        for (int i = 0; i < NIN; ++i)     // the block's floats of the row: zero outside it, no bounds test inside
+            if (i < I0 || i >= I1) { xin[i] = 0.0f; tin[i] = 0.0f; xx[i] = 0.0f; tt[i] = 0.0f; xt[i] = 0.0f; }
+        for (int i = I0; i < I1; ++i) {
+            const float xv = xr[FS + i] * gain + bias;
+            const float tv = tr[FS + i];
+            xin[i] = xv; tin[i] = tv;
+            xx[i] = xv * xv; tt[i] = tv * tv; xt[i] = xv * tv;
         }
         hwin(xin, ring[slot][0]);
         hwin(tin, ring[slot][1]);
@@ -201,22 +194,12 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
         const float* ar = row_of(adj.d_mu_x, yy);
         const float* br = row_of(adj.d_xx, yy);
         const float* cr = row_of(adj.d_xy, yy);
-        if (f0 - HALO >= 0 && f0 - HALO + n + 2 * HALO <= F) {
-            // a block inside the row: no bounds to test (the same values)
-            for (int i = 0; i < n + 2 * HALO; ++i) {
-                ain[i] = ar[f0 - HALO + i];
-                bin[i] = br[f0 - HALO + i];
-                cin[i] = cr[f0 - HALO + i];
-            }
-        } else {
-            for (int i = 0; i < n + 2 * HALO; ++i) {
-                const long f = f0 - HALO + i;
-                const bool in = f >= 0 && f < F;
-                const long fi = in ? f : 0;
-                ain[i] = in ? ar[fi] : 0.0f;
-                bin[i] = in ? br[fi] : 0.0f;
-                cin[i] = in ? cr[fi] : 0.0f;
-            }
+        for (int i = 0; i < NIN; ++i)     // the block's floats of the row: zero outside it, no bounds test inside
+            if (i < I0 || i >= I1) { ain[i] = 0.0f; bin[i] = 0.0f; cin[i] = 0.0f; }
+        for (int i = I0; i < I1; ++i) {
+            ain[i] = ar[FS + i];
+            bin[i] = br[FS + i];
+            cin[i] = cr[FS + i];
         }
         hwin(ain, ring[slot][0]);
         hwin(bin, ring[slot][1]);

@@ -508,6 +508,14 @@ for (int jj = 0; jj < n_max; ++jj) {
     const v16f F = l4(l3(l2(l1(in0, in1), l1(in2, in3)), l2(l1(in4, in5), l1(in6, in7))),
                       l3(l2(l1(in8, in9), l1(in10, in11)), z16));
     const float P1 = F[0], P2 = F[1], Q1 = F[2], Q2 = F[3], Q3 = F[4];
+    float R[7];                 // the sums of ACC[3..9]
+    for (int t = 0; t < 7; ++t) R[t] = F[t + 5];
+#else
+    const float P1 = tree16(dx16 * a0), P2 = tree16(dx16 * dx16 * a0), Q1 = tree16(a1), Q2 = tree16(dx16 * a1);
+    const float Q3 = tree16(*(const v16f*)ACC[2]);
+    float R[7];
+    for (int t = 0; t < 7; ++t) R[t] = tree16(*(const v16f*)ACC[t + 3]);
+#endif
     // stores, not adds: a pair is one tile's and visited once, into the zeroed pairs (a zero plus x is x, and a -0
     // stored where the add made +0 sums alike in the gather, whose sum starts at +0), and a store reads nothing: the
     // read of a random pair before its add cost 6-15 % of the backward blend (docs/rasteriser.md)
@@ -516,17 +524,7 @@ for (int jj = 0; jj < n_max; ++jj) {
     pg[2] = -0.5f * P2;
     pg[3] = -Q2;
     pg[4] = -0.5f * Q3;
-    for (int t = 3; t < 10; ++t) pg[t + 2] = F[t + 2];
-#else
-    const float P1 = tree16(dx16 * a0), P2 = tree16(dx16 * dx16 * a0), Q1 = tree16(a1), Q2 = tree16(dx16 * a1);
-    const float Q3 = tree16(*(const v16f*)ACC[2]);
-    pg[0] = a * P1 + b * Q1;   // stores: see above
-    pg[1] = b * P1 + c * Q1;
-    pg[2] = -0.5f * P2;
-    pg[3] = -Q2;
-    pg[4] = -0.5f * Q3;
-    for (int t = 3; t < 10; ++t) pg[t + 2] = tree16(*(const v16f*)ACC[t]);
-#endif
+    for (int t = 0; t < 7; ++t) pg[t + 5] = R[t];
 }
 return 1;
 """
