@@ -351,7 +351,10 @@ class TrackingConfig:
     lost_min_rmse: float = opt(6.0, "... but never below this RMSE (intensity units), so a very clean reference "
                                     "does not make small residuals a loss")
     lost_min_inlier_ratio: float = opt(0.25, "tracking is lost when fewer than this share of the reference's "
-                                             "level-0 points project into the frame within the cutoff")
+                                             "level-0 points that project into the frame are within the cutoff "
+                                             "(points the frame has turned away from are no loss: a fast-turning "
+                                             "camera sees few of its reference's points and fits them; until "
+                                             "2026-12-06 a share of all the reference's points, docs/tracking.md)")
     lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
                                      "that has lost its points leaves the pose unconstrained however small the RMSE)")
     lost_max_speed_factor: float = opt(10.0, "tracking is lost when a frame moves more than this x the segment's "

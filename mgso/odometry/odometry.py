@@ -609,7 +609,7 @@ class Odometry:
         base = max(baseline, cfg.lost_min_rmse)
         if tr.rmse0 > cfg.lost_rmse_factor * base:
             return LossReason.RESIDUAL
-        if tr.inlier_ratio < cfg.lost_min_inlier_ratio or tr.num_inliers < cfg.lost_min_inliers:
+        if tr.fit_ratio < cfg.lost_min_inlier_ratio or tr.num_inliers < cfg.lost_min_inliers:
             return LossReason.INLIERS
         ref = self.tracker.reference
         depth = min(ref.median_depth, self._segment_median_depth)  # a map drifted to infinity must not excuse it
@@ -635,7 +635,8 @@ class Odometry:
         baseline = tr.baseline_rmse if tr.baseline_rmse > 0 else self._init_rmse
         ev = TrackingLost(rec.index, rec.timestamp, self.segment, reason, tr.rmse0, baseline,
                           tr.inlier_ratio, f"tracking lost at frame {rec.index} ({reason.value}: rmse {tr.rmse0:.2f}, "
-                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f}{self._loss_detail})")
+                          f"first rmse {baseline:.2f}, inliers {tr.inlier_ratio:.2f}, in view {tr.view_ratio:.2f}"
+                          f"{self._loss_detail})")
         log.warning(ev.message)
         self.losses.append(ev)
         rec.status = FrameStatus.LOST

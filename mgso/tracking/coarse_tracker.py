@@ -366,6 +366,18 @@ class TrackResult:
         """Level-0 residuals within the cutoff / reference points at level 0."""
         return self.num_inliers / self.num_reference_points if self.num_reference_points else 0.0
 
+    @property
+    def view_ratio(self) -> float:
+        """Level-0 residuals in bounds (the reference's points that project into the frame) / reference points at
+        level 0: the overlap of the frame with its reference."""
+        return self.num_terms / self.num_reference_points if self.num_reference_points else 0.0
+
+    @property
+    def fit_ratio(self) -> float:
+        """Level-0 residuals within the cutoff / those in bounds: how well the points the frame sees fit it,
+        whatever share of the reference's points it sees (:attr:`view_ratio`)."""
+        return self.num_inliers / self.num_terms if self.num_terms else 0.0
+
 
 class CoarseTracker:
     """Tracks frames against a :class:`TrackingReference` (DSO ``CoarseTracker``). Owns its workspaces and the

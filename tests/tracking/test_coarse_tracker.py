@@ -235,3 +235,40 @@ def test_tracker_reports_failure_on_a_black_frame(wp_device, seq320):
     assert not r.ok or r.inlier_ratio < 0.25 or r.rmse0 > 20  # whichever way, the odometry will see a loss
     with pytest.raises(RuntimeError, match="reference"):
         CoarseTracker(geo, cfg).track_frame(pyr, 0.0, [np.eye(4)])
+
+
+def test_a_frame_turned_away_from_its_reference_is_tracked_not_lost(wp_device, seq320):
+    """A handheld camera that turns fast (freiburg1_rpy; in real time the next keyframe comes frames late): a frame
+    55 degrees of yaw from its reference sees a fifth of the reference's points, all of them fitting, and is tracked
+    to a thousandth of a radian. The odometry's loss rule keeps it (``Odometry._loss``: ``lost_min_inlier_ratio`` is
+    a share of the points the frame sees, ``TrackResult.fit_ratio``); by the share of all the reference's points
+    (``inlier_ratio``, the rule before 2026-12-06) it was a loss, which in real time cost a re-initialisation and the
+    frames dropped meanwhile. Controls: the same frame with its points in view fitting below the share, or with fewer
+    inliers than ``lost_min_inliers``, is lost."""
+    import dataclasses
+
+    from mgso import synthetic
+    from mgso.config import Config
+    from mgso.odometry.odometry import Odometry
+    from mgso.odometry.records import LossReason
+
+    cfg = Config()
+    geo, ref = reference_from_true_depth(seq320, cfg.tracking)
+    tracker = CoarseTracker(geo, cfg.tracking)
+    tracker.set_reference(ref)
+    turn = np.eye(4)
+    turn[:3, :3] = so3_exp(np.array([0.0, np.radians(55.0), 0.0]))
+    rgb, _ = synthetic.render(seq320.scene, seq320.intrinsics, seq320.cam_to_world[0] @ turn)
+    start = se3_exp([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(1.0)]) @ se3_inverse(turn)   # a degree off
+    r = tracker.track_frame(ImagePyramid(geo).build(gray_of(rgb)), 0.0, [start])
+    err = se3_log(turn @ r.ref_to_new)
+    assert r.ok and np.linalg.norm(err[3:]) < 1e-3 and np.linalg.norm(err[:3]) < 0.01, err
+    assert 0.1 < r.view_ratio < 0.25 and r.fit_ratio > 0.9 and r.num_inliers > 1000, (r.view_ratio, r.fit_ratio)
+    assert r.inlier_ratio < cfg.tracking.lost_min_inlier_ratio          # the rule before: a loss
+    odo = Odometry(geo, cfg)
+    odo.tracker.set_reference(ref)      # the loss rule's distance check reads the reference's depth
+    assert odo._loss(r) is None
+    poor = dataclasses.replace(r, num_inliers=int(0.2 * r.num_terms))
+    assert odo._loss(poor) == LossReason.INLIERS
+    few = dataclasses.replace(r, num_terms=cfg.tracking.lost_min_inliers, num_inliers=cfg.tracking.lost_min_inliers - 1)
+    assert few.fit_ratio > 0.9 and odo._loss(few) == LossReason.INLIERS
