@@ -355,8 +355,10 @@ class TrackingConfig:
                                              "(points the frame has turned away from are no loss: a fast-turning "
                                              "camera sees few of its reference's points and fits them; until "
                                              "2026-12-06 a share of all the reference's points, docs/tracking.md)")
-    lost_min_inliers: int = opt(100, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
-                                     "that has lost its points leaves the pose unconstrained however small the RMSE)")
+    lost_min_inliers: int = opt(30, "tracking is lost when fewer level-0 residuals than this are inliers (a map "
+                                    "that has lost its points leaves the pose unconstrained however small the RMSE; "
+                                    "100 until 2026-12-06, which lost freiburg1_rpy's frames against keyframes that "
+                                    "the turning camera had left with 30-100 points, all fitting: docs/tracking.md)")
     lost_max_speed_factor: float = opt(10.0, "tracking is lost when a frame moves more than this x the segment's "
                                              "recent median motion per frame (at least 1 % of the reference's median "
                                              "depth), after 5 tracked frames: a sudden jump of the estimate, not of "
