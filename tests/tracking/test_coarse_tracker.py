@@ -240,7 +240,7 @@ def test_tracker_reports_failure_on_a_black_frame(wp_device, seq320):
 def test_a_frame_turned_away_from_its_reference_is_tracked_not_lost(wp_device, seq320):
     """A handheld camera that turns fast (freiburg1_rpy; in real time the next keyframe comes frames late): a frame
     55 degrees of yaw from its reference sees a fifth of the reference's points, all of them fitting, and is tracked
-    to a thousandth of a radian. The odometry's loss rule keeps it (``Odometry._loss``: ``lost_min_inlier_ratio`` is
+    to 0.2 milliradians. The odometry's loss rule keeps it (``Odometry._loss``: ``lost_min_inlier_ratio`` is
     a share of the points the frame sees, ``TrackResult.fit_ratio``); by the share of all the reference's points
     (``inlier_ratio``, the rule before 2026-12-06) it was a loss, which in real time cost a re-initialisation and the
     frames dropped meanwhile. Controls: the same frame with its points in view fitting below the share, or with fewer
@@ -262,7 +262,7 @@ def test_a_frame_turned_away_from_its_reference_is_tracked_not_lost(wp_device, s
     start = se3_exp([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(1.0)]) @ se3_inverse(turn)   # a degree off
     r = tracker.track_frame(ImagePyramid(geo).build(gray_of(rgb)), 0.0, [start])
     err = se3_log(turn @ r.ref_to_new)
-    assert r.ok and np.linalg.norm(err[3:]) < 1e-3 and np.linalg.norm(err[:3]) < 0.01, err
+    assert r.ok and np.linalg.norm(err[3:]) < 5e-4 and np.linalg.norm(err[:3]) < 1.5e-3, err     # 1.9e-4, 5.0e-4
     assert 0.1 < r.view_ratio < 0.25 and r.fit_ratio > 0.9 and r.num_inliers > 1000, (r.view_ratio, r.fit_ratio)
     assert r.inlier_ratio < cfg.tracking.lost_min_inlier_ratio          # the rule before: a loss
     odo = Odometry(geo, cfg)
