@@ -231,25 +231,24 @@ typedef float vf __attribute__((ext_vector_type(16)));
 const float b1 = hp.beta1, b2 = hp.beta2, eps = hp.eps;
 const float ob1 = 1.0f - b1, ob2 = 1.0f - b2;
 // the rows' bias corrections, each step count's once: a table of 64 step counts (by t mod 64) holds the last
-// computed for each slot, so rows of a few ages in any order (a map in spatial order) reuse them
+// computed for each slot (-1: none; a count is never negative), so rows of a few ages in any order (a map in
+// spatial order) reuse them
 float BC1[BLK], BC2[BLK];
 int* ST = (int*)steps.data;
 int CT[64];
 float CC1[64], CC2[64];
-bool HAVE[64];
-for (int k = 0; k < 64; ++k) { CT[k] = 0; CC1[k] = 1.0f; CC2[k] = 1.0f; HAVE[k] = false; }
+for (int k = 0; k < 64; ++k) { CT[k] = -1; CC1[k] = 1.0f; CC2[k] = 1.0f; }
 for (int r = 0; r < n; ++r) {
     int t = ST[lo + r] + 1;
     ST[lo + r] = t;
     if (hp.bias_correction == 1) t = hp.global_step;
     if (hp.bias_correction != 0) {
         const int k = t & 63;
-        if (!HAVE[k] || CT[k] != t) {
+        if (CT[k] != t) {
             const double tt = (double)t;
             CC1[k] = (float)(1.0 - ::pow((double)b1, tt));
             CC2[k] = (float)::sqrt(1.0 - ::pow((double)b2, tt));
             CT[k] = t;
-            HAVE[k] = true;
         }
         BC1[r] = CC1[k]; BC2[r] = CC2[k];
     } else {

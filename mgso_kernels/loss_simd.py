@@ -98,8 +98,9 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
     if (yy >= 0 && yy < H) {
         const float* xr = row_of(img.x, yy);
         const float* tr = row_of(img.y, yy);
-        for (int i = 0; i < NIN; ++i)     // the block's floats of the row: zero outside it, no bounds test inside
-            if (i < I0 || i >= I1) { xin[i] = 0.0f; tin[i] = 0.0f; xx[i] = 0.0f; tt[i] = 0.0f; xt[i] = 0.0f; }
+        // the block's floats of the row: zero outside it, no bounds test inside
+        for (int i = 0; i < I0; ++i) { xin[i] = 0.0f; tin[i] = 0.0f; xx[i] = 0.0f; tt[i] = 0.0f; xt[i] = 0.0f; }
+        for (int i = I1; i < NIN; ++i) { xin[i] = 0.0f; tin[i] = 0.0f; xx[i] = 0.0f; tt[i] = 0.0f; xt[i] = 0.0f; }
         for (int i = I0; i < I1; ++i) {
             const float xv = xr[FS + i] * gain + bias;
             const float tv = tr[FS + i];
@@ -194,8 +195,9 @@ for (int yy = y0 - 5; yy < y1 + 5; ++yy) {
         const float* ar = row_of(adj.d_mu_x, yy);
         const float* br = row_of(adj.d_xx, yy);
         const float* cr = row_of(adj.d_xy, yy);
-        for (int i = 0; i < NIN; ++i)     // the block's floats of the row: zero outside it, no bounds test inside
-            if (i < I0 || i >= I1) { ain[i] = 0.0f; bin[i] = 0.0f; cin[i] = 0.0f; }
+        // the block's floats of the row: zero outside it, no bounds test inside
+        for (int i = 0; i < I0; ++i) { ain[i] = 0.0f; bin[i] = 0.0f; cin[i] = 0.0f; }
+        for (int i = I1; i < NIN; ++i) { ain[i] = 0.0f; bin[i] = 0.0f; cin[i] = 0.0f; }
         for (int i = I0; i < I1; ++i) {
             ain[i] = ar[FS + i];
             bin[i] = br[FS + i];
