@@ -202,6 +202,7 @@ BAD = {
     "mapping.seeding.scale_max_px": [0.4],
     "mapping.mapper.iterations_per_keyframe": [-1], "mapping.mapper.final_iterations": [-1],
     "mapping.mapper.queue_size": [0], "mapping.mapper.newest_probability": [-0.01, 1.01],
+    "mapping.mapper.loss_share": [-0.01, 1.01],
     "mapping.mapper.init": ["grid"], "mapping.mapper.min_train_views": [0], "mapping.mapper.exposure": ["auto"],
     "mapping.mapper.refine_every": [-1], "mapping.mapper.running_max_pixels": [-1],
     "mapping.mapper.final_refine_after": [-1], "mapping.mapper.final_coarse_share": [-0.1, 1.5],

@@ -19,7 +19,8 @@ The :class:`Mapper` owns the Gaussian map (:class:`~mgso.mapping.gaussian_map.Ga
 
 Between messages it trains: :class:`~mgso.mapping.trainer.Trainer` with the
 :class:`~mgso.mapping.views.NewestOrRandomSampler` (the newest keyframe with ``mapping.mapper.newest_probability``,
-0 by default, otherwise any, uniformly; ``mapping.mapper.sampler``
+0 by default, otherwise any: in the deterministic mode half of each draw in proportion to the keyframes' latest losses,
+``mapping.mapper.loss_share``, in real time uniformly; ``mapping.mapper.sampler``
 ``least_used``: :class:`~mgso.mapping.views.LeastUsedSampler`), Gaussian-pyramid levels
 (``mapping.train.pyramid_levels``) and densification / pruning by the strategy (``mapping.densify``).
 
@@ -253,8 +254,12 @@ class Mapper:
         self.gmap = GaussianMap(mc.capacity, mc.sh_degree, device=device, optim=mc.optim)
         self.device = self.gmap.device
         self.views = ViewSet()
-        sampler = NewestOrRandomSampler if self.cfg.sampler == "random" else LeastUsedSampler
-        self.sampler = sampler(self.cfg.newest_probability, seed=seed)
+        if self.cfg.sampler == "random":
+            # the deterministic mode's share; start() and run_here() set the real-time one
+            self.sampler: LeastUsedSampler = NewestOrRandomSampler(
+                self.cfg.newest_probability, seed=seed, loss_share=self.cfg.draw_loss_share(realtime=False))
+        else:
+            self.sampler = LeastUsedSampler(self.cfg.newest_probability, seed=seed)
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
         # the mapper's own densification settings, where set (0: mapping.densify's, what `mgso fit` uses)
         own = {k: getattr(self.cfg, k) for k in ("refine_every", "prune_opacity", "grow_grad2d")}
@@ -397,6 +402,7 @@ class Mapper:
         if self._thread is not None:
             raise RuntimeError("Mapper.start: already started")
         self._thread = threading.Thread(target=self._run, name="mgso-mapper", daemon=True)
+        self._real_time_sampler()
         self._thread.start()
 
     def run_here(self) -> BaseException | None:
@@ -406,9 +412,15 @@ class Mapper:
         if self._thread is not None:
             raise RuntimeError("Mapper.run_here: already started")
         self._thread = threading.current_thread()
+        self._real_time_sampler()
         self._run()
         err, self._error = self._error, None
         return err
+
+    def _real_time_sampler(self) -> None:
+        """The keyframe draw's ``mapping.mapper.loss_share`` for real time (its null: uniform)."""
+        if isinstance(self.sampler, NewestOrRandomSampler):
+            self.sampler.loss_share = self.cfg.draw_loss_share(realtime=True)
 
     def interrupt(self) -> None:
         """Stop as soon as the queued messages are applied (views, poses, seeds), without training on; in real

@@ -326,6 +326,9 @@ class Trainer:
                                  with_psnr=every > 0 and self.step_count % every == 0)
         view.uses += 1
         self.step_count += 1
+        observe = getattr(self.sampler, "observe", None)
+        if observe is not None:
+            observe(vid, result.loss, result.level)
         return result
 
     def train(self, iterations: int, callback: Callable[[StepResult], object] | None = None,

@@ -27,6 +27,7 @@ used least, and the newest view more often (the shape of MGSO's keyframe choice)
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Iterator, Protocol
@@ -347,5 +348,39 @@ class NewestOrRandomSampler(LeastUsedSampler):
     the newest view every step until it has as many uses as the others, so an old view is not trained again before
     the final refinement and the map forgets it (docs/mapping.md)."""
 
+    #: the share of each choice made in proportion to the views' latest losses (0: uniform over all views)
+    loss_share: float = 0.0
+    _loss: dict = field(default_factory=dict, init=False, repr=False)   # view id -> (pyramid level, loss)
+    _level: int = field(default=0, init=False, repr=False)              # the level of the latest step
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not 0.0 <= self.loss_share <= 1.0:
+            raise ValueError(f"loss_share must be in [0, 1], got {self.loss_share}")
+
+    def observe(self, view_id: int, loss: float, level: int = 0) -> None:
+        """The loss of a step on ``view_id`` at pyramid ``level`` (what :attr:`loss_share` weighs by). Losses are
+        compared only at one level (a coarser render has a lower loss): a view without a loss at the latest step's
+        level weighs as much as the highest there, so that each view is scored again soon after the level changes,
+        and a new view soon after it comes."""
+        if math.isfinite(loss):
+            self._loss[int(view_id)] = (int(level), float(loss))
+            self._level = int(level)
+
+    def other_probabilities(self, ids: list[int]) -> np.ndarray:
+        """The chance of each of ``ids`` when the newest is not taken: ``1 - loss_share`` of it uniform, the rest in
+        proportion to the latest losses at the latest step's level."""
+        n = len(ids)
+        if self.loss_share <= 0.0 or n < 2:
+            return np.full(n, 1.0 / max(n, 1))
+        at = [self._loss.get(i) for i in ids]
+        known = [x[1] for x in at if x is not None and x[0] == self._level]
+        top = max(known) if known else 1.0
+        w = np.array([x[1] if x is not None and x[0] == self._level else top for x in at], np.float64)
+        p = (1.0 - self.loss_share) / n + self.loss_share * w / max(float(w.sum()), 1e-30)
+        return p / p.sum()
+
     def _other(self, views: ViewSet, ids: list[int]) -> int:
-        return ids[int(self.rng.integers(len(ids)))]
+        if self.loss_share <= 0.0 or len(ids) < 2:
+            return ids[int(self.rng.integers(len(ids)))]   # the uniform draw as before (the same random stream)
+        return ids[int(self.rng.choice(len(ids), p=self.other_probabilities(ids)))]

@@ -109,13 +109,17 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     coarse, in the deterministic mode: 23.11 dB; since the fifth session that day the steps after each keyframe
     coarse and the final's first 60 %: 23.10 dB in 27 % less mapping time), was pinned by no test. Run as the mapper
     runs it: each keyframe trains 20 steps, the final refinement asks for 2,000 (1,600 in real time), and the views
-    are drawn uniformly."""
+    are drawn half uniformly, half by their latest losses (since 2026-12-07; uniformly in real time and with
+    loss_share 0)."""
     from mgso.config import Config
     from mgso.mapping.views import NewestOrRandomSampler
 
     mc = Config().mapping.mapper
     assert (mc.sampler, mc.newest_probability, mc.iterations_per_keyframe, mc.final_iterations) == \
         ("random", 0.0, 20, None)
+    # half of each draw by the keyframes' losses in the deterministic mode (2026-12-07), uniform in real time
+    assert mc.loss_share is None
+    assert (mc.draw_loss_share(realtime=False), mc.draw_loss_share(realtime=True)) == (0.5, 0.0)
     assert (mc.final_steps(realtime=False), mc.final_steps(realtime=True)) == (2000, 1600)
     assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.0, 0.4)
     assert (mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True)) == (0.6, 0.95)
@@ -132,7 +136,7 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
         ids = [mp.keyframe_ids.index(mp.sampler.next_view(mp.views)) for _ in range(3000)]
         return mp, np.bincount(ids, minlength=3) / 3000
 
-    mp, share = drawn()
+    mp, share = drawn("mapping.mapper.loss_share=0")
     assert type(mp.sampler) is NewestOrRandomSampler and mp.stats.steps == 3 * 20
     assert np.all(np.abs(share - 1 / 3) < 0.04), share           # uniform: the newest no more than the others
     asked = []
@@ -143,6 +147,10 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
                   device=wp_device).final_coarse_share() == 0.8       # with full-resolution steps after keyframes
     _, share = drawn("mapping.mapper.newest_probability=0.2", "mapping.mapper.iterations_per_keyframe=0")
     assert share[2] > 1 / 3 + 0.1                                  # the control: the newest favoured is seen
+    # mapping.mapper.loss_share: the steps tell the sampler their losses, and it draws by them
+    mp, share = drawn("mapping.mapper.loss_share=1")
+    p = mp.sampler.other_probabilities(mp.keyframe_ids)
+    assert mp.sampler.loss_share == 1.0 and np.ptp(p) > 0.01 and np.all(np.abs(share - p) < 0.04), (p, share)
 
 
 def test_keyframes_seed_views_and_train(wp_device, seq, cam):
@@ -274,8 +282,9 @@ def test_stop_without_refinement_applies_pending_messages_only(wp_device, seq, c
 # --------------------------------------------------------------------------------------------- real time
 def test_real_time_thread_applies_every_message_and_counts_backpressure(wp_device, seq, cam):
     mp = Mapper(_cfg("mapping.mapper.queue_size=1", "mapping.mapper.final_iterations=2"), device=wp_device)
+    assert mp.sampler.loss_share == 0.5
     mp.start()
-    assert mp.running
+    assert mp.running and mp.sampler.loss_share == 0.0      # real time draws the keyframes uniformly
     truth = {}
     for i in range(0, 9, 2):
         mp.submit(_kf(seq, cam, i, pose=seq.cam_to_world[i] @ se3_exp([0.03, 0, 0, 0, 0, 0])))

@@ -143,6 +143,44 @@ def test_samplers():
         NewestOrRandomSampler(newest_probability=1.5)
 
 
+def test_the_random_sampler_weighs_keyframes_by_their_loss_at_one_level():
+    """mapping.mapper.loss_share: that share of each choice in proportion to the views' latest losses at the latest
+    step's pyramid level, the rest uniform; a view without a loss at that level weighs as the highest there. The
+    control (share 0) draws uniformly whatever the losses."""
+    views = ViewSet()
+    cam = PinholeCamera(10, 10, 7.5, 7.5, 16, 16)
+    img = np.zeros((16, 16, 3), np.float32)
+    for i in range(4):
+        views.add(TrainView(i, img, cam, np.eye(4)))
+
+    def shares(s) -> np.ndarray:
+        return np.bincount([s.next_view(views) for _ in range(6000)], minlength=4) / 6000
+
+    def sampler(share: float):
+        s = NewestOrRandomSampler(newest_probability=0.0, seed=2, loss_share=share)
+        for vid, loss in enumerate((0.1, 0.1, 0.1, 0.3)):
+            s.observe(vid, loss, level=1)
+        return s
+
+    # share 1: 1:1:1:3
+    np.testing.assert_allclose(shares(sampler(1.0)), [1 / 6, 1 / 6, 1 / 6, 1 / 2], atol=0.025)
+    # share 0.5: half uniform (1/8 each), half by loss
+    np.testing.assert_allclose(shares(sampler(0.5)), [0.125 + 1 / 12] * 3 + [0.125 + 0.25], atol=0.025)
+    # the control: uniform
+    np.testing.assert_allclose(shares(sampler(0.0)), [0.25] * 4, atol=0.025)
+    # a step at another level: the level-1 losses no longer count; view 2 is the only one scored at level 0, the
+    # others weigh as much as it does (uniform again), and then view 1 is scored higher
+    s = sampler(1.0)
+    s.observe(2, 0.2, level=0)
+    np.testing.assert_allclose(shares(s), [0.25] * 4, atol=0.025)
+    s.observe(1, 0.6, level=0)
+    np.testing.assert_allclose(shares(s), [0.3, 0.3, 0.1, 0.3], atol=0.025)
+    s.observe(3, float("nan"), level=0)          # a non-finite loss is not recorded
+    np.testing.assert_allclose(shares(s), [0.3, 0.3, 0.1, 0.3], atol=0.025)
+    with pytest.raises(ValueError, match="loss_share"):
+        NewestOrRandomSampler(loss_share=1.5)
+
+
 def test_split_frames_holds_out_every_fifth():
     train, held = split_frames(23, 5)
     assert held == [0, 5, 10, 15, 20] and len(train) == 18 and not set(train) & set(held)
@@ -167,8 +205,11 @@ def test_scene_extent_and_pyramid_schedule(room, wp_device):
         levels.append(tr.pyramid_level(v))
     assert levels == [1, 1, 1, 1, 0, 0]          # level 2 would be 16x12: limited to >= 16 px
     v.uses = 0
+    seen = []
+    tr.sampler.observe = lambda *a: seen.append(a)      # the step tells its sampler the loss and level it saw
     r = tr.step(4)
     assert (r.level, r.width, r.height) == (1, W // 2, H // 2) and v.uses == 1
+    assert seen == [(4, r.loss, 1)] and r.loss > 0
 
 
 def test_config_tuple_overrides_and_checks():
