@@ -864,8 +864,8 @@ class MapperConfig:
                                          "see, the stream's first and last) are trained more often; null = 0.5 in "
                                          "the deterministic mode (its replays +0.08, +0.66 and +0.13 dB on "
                                          "7-Scenes, freiburg1_rpy and KITTI), 0 (uniform, the default before "
-                                         "2026-12-07) in real time, where two pairs of freiburg1_rpy runs came out "
-                                         "below (docs/mapping.md, \"Keyframes drawn by their loss\")")
+                                         "2026-12-07) in real time, where three pairs of freiburg1_rpy runs came "
+                                         "out below (docs/mapping.md, \"Keyframes drawn by their loss\")")
     init: Literal["dso", "random"] = opt(
         "dso", "dso: seed Gaussians from DSO's points (MGSO); random: as many random points in the keyframe's "
                "frustum as DSO seeding would add there, depth uniform over its points' depth range (the comparison "
