@@ -280,7 +280,9 @@ class ViewSet:
 
 # ------------------------------------------------------------------------------------------------ samplers
 class ViewSampler(Protocol):
-    """Chooses the view of the next training step. Must return an id present in ``views`` (non-empty)."""
+    """Chooses the view of the next training step. Must return an id present in ``views`` (non-empty). A sampler
+    may also have ``observe(view_id, loss, level)``, which :meth:`Trainer.step` calls after each step with the step's
+    loss and pyramid level (:class:`NewestOrRandomSampler` weighs its draw by them)."""
 
     def next_view(self, views: ViewSet) -> int: ...
 
