@@ -444,8 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", help="dataset folder, image folder or video file (layout detected), or a live source: "
                                 "camera:N (OpenCV's camera N), rtsp:// http:// udp:// ... (with --calib)")
     p.add_argument("--out", help="output folder (default runs/<name>-<time>)")
-    p.add_argument("--calib", help="calibration file (DSO camera.txt, or 'fx fy cx cy [k1 k2 p1 p2]') when the "
-                                   "dataset has none")
+    p.add_argument("--calib", help="calibration when the dataset has none: a file (DSO camera.txt, EuRoC sensor.yaml, "
+                                   "KITTI calib.txt, or one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]') or those numbers "
+                                   "themselves, e.g. --calib '525 525 319.5 239.5'")
     p.add_argument("--groundtruth", help="ground-truth trajectory file (TUM or KITTI) of camera poses")
     p.add_argument("--stage", choices=STAGES, default=None,
                    help=f"how far to go (default {DEFAULT_STAGE}): " + "; ".join(STAGE_HELP[s] for s in STAGES))

@@ -21,8 +21,8 @@ from typing import Callable
 from ..camera import (RECTIFY_MODES, Calibration, CalibrationError, CameraModel, CameraSpec, EquidistantCamera,
                       FOVCamera, OutputSpec, PhotometricCalibration, PinholeCamera, RadTanCamera)
 
-__all__ = ["read_camera_file", "read_dso_camera_txt", "read_plain_intrinsics", "load_calibration", "numbers",
-           "abs_intrinsics", "CalibrationFormat", "register_calibration_format"]
+__all__ = ["read_camera_file", "read_dso_camera_txt", "read_plain_intrinsics", "plain_intrinsics", "inline_intrinsics",
+           "load_calibration", "numbers", "abs_intrinsics", "CalibrationFormat", "register_calibration_format"]
 
 
 def numbers(line: str) -> list[float] | None:
@@ -147,14 +147,20 @@ def read_plain_intrinsics(path: str | Path, image_size: tuple[int, int] | None) 
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file not found")
     text = " ".join(ln.split("#")[0] for ln in path.read_text(encoding="utf-8", errors="replace").splitlines())
+    return plain_intrinsics(text, str(path), image_size)
+
+
+def plain_intrinsics(text: str, source: str, image_size: tuple[int, int] | None) -> CameraSpec:
+    """``fx fy cx cy [k1 k2 p1 p2 [k3]]`` given as text (a plain intrinsics file's content, or the numbers
+    themselves: ``mgso run VIDEO --calib "525 525 319.5 239.5"``); errors name ``source``."""
     vals = numbers(text)
     if vals is None:
-        raise CalibrationError(f"{path}: expected numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {text.strip()[:80]!r}")
+        raise CalibrationError(f"{source}: expected numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {text.strip()[:80]!r}")
     if len(vals) not in (4, 8, 9):
-        raise CalibrationError(f"{path}: expected 4 (fx fy cx cy), 8 (+ k1 k2 p1 p2) or 9 (+ k3) numbers, got "
+        raise CalibrationError(f"{source}: expected 4 (fx fy cx cy), 8 (+ k1 k2 p1 p2) or 9 (+ k3) numbers, got "
                                f"{len(vals)}")
     if image_size is None:
-        raise CalibrationError(f"{path}: a plain intrinsics file holds no image size; it is needed from the images")
+        raise CalibrationError(f"{source}: plain intrinsics hold no image size; it is needed from the images")
     w, h = image_size
     p = abs_intrinsics(vals, w, h)
     try:
@@ -163,9 +169,15 @@ def read_plain_intrinsics(path: str | Path, image_size: tuple[int, int] | None) 
         else:
             model = RadTanCamera(p[0], p[1], p[2], p[3], w, h, *p[4:])
     except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    return CameraSpec(model, OutputSpec(mode="keep" if model.has_distortion else "none"), str(path))
+        raise CalibrationError(f"{source}: {exc}") from None
+    return CameraSpec(model, OutputSpec(mode="keep" if model.has_distortion else "none"), source)
 
+
+def inline_intrinsics(text: str) -> bool:
+    """Whether a calibration argument is the intrinsics themselves rather than a file: numbers only (how many is
+    :func:`plain_intrinsics`' to judge) and no file of that name."""
+    vals = numbers(str(text))
+    return bool(vals) and not Path(str(text)).exists()
 
 
 @dataclass(frozen=True)
@@ -193,8 +205,11 @@ def register_calibration_format(fmt: CalibrationFormat) -> CalibrationFormat:
 def read_camera_file(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraSpec:
     """Read any supported calibration file, recognised by its content: the dataset formats registered by their
     readers (EuRoC ``sensor.yaml``, KITTI ``calib.txt`` (``P0:``), Replica ``cam_params.json``), DSO
-    ``camera.txt``, or a plain ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` file. ``image_size`` ``(width, height)`` is
-    needed by formats that hold no size (KITTI, plain)."""
+    ``camera.txt``, or a plain ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` file; or those 4, 8 or 9 numbers themselves in
+    place of a path (:func:`inline_intrinsics`). ``image_size`` ``(width, height)`` is needed by formats that hold
+    no size (KITTI, plain)."""
+    if inline_intrinsics(str(path)):
+        return plain_intrinsics(str(path), f"calibration {str(path).strip()!r}", image_size)
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file not found")

@@ -55,7 +55,7 @@ def open_sequence(path: str | Path, calib: CalibArg = None, config: InputConfig 
     :class:`~mgso.io.live.LiveSource` (no length, no end of its own, ``calib`` required; docs/live.md).
 
     ``calib``: a calibration file (DSO camera.txt, EuRoC sensor.yaml, KITTI calib.txt, Replica cam_params.json,
-    ``fx fy cx cy [k1 k2 p1 p2 [k3]]``), a :class:`~mgso.camera.CameraSpec` or a ready
+    ``fx fy cx cy [k1 k2 p1 p2 [k3]]``) or those numbers as a string, a :class:`~mgso.camera.CameraSpec` or a ready
     :class:`~mgso.camera.Calibration`; it overrides what the dataset brings. ``config``: frame selection,
     undistortion output, camera choice (:class:`~mgso.config.InputConfig`). ``layout``: skip detection (a key of
     :data:`LAYOUTS`). ``groundtruth``: a TUM or KITTI file of *camera* poses, overriding the dataset's own.

@@ -9,8 +9,9 @@ from io_fakes import H, W, poses, textured
 from mgso.camera import EquidistantCamera, FOVCamera, RadTanCamera
 from mgso.config import InputConfig
 from mgso.geometry import orthonormalize
-from mgso.io import (EurocSequence, ImageFolderSequence, KittiSequence, ReplicaSequence, SevenScenesSequence,
-                     TumMonoSequence, TumRgbdSequence, VideoSequence, detect_layout, open_sequence, read_tum)
+from mgso.io import (DatasetError, EurocSequence, ImageFolderSequence, KittiSequence, ReplicaSequence,
+                     SevenScenesSequence, TumMonoSequence, TumRgbdSequence, VideoSequence, detect_layout, open_sequence,
+                     read_tum)
 
 DESCRIBE_KEYS = {"layout", "name", "path", "frames", "frames_total", "image_size_in", "image_size_out", "intrinsics",
                  "camera_model", "distortion", "photometric", "groundtruth", "time_span", "fps", "rectify",
@@ -275,6 +276,25 @@ def test_image_folder_times_txt_and_calib_argument(fakes, tmp_path):
     seq = open_sequence(d, calib=calib)
     assert seq.timestamp(3) == pytest.approx(100.12)
     assert isinstance(seq.calibration.input, RadTanCamera) and seq.calibration.output_mode == "keep"
+
+
+def test_the_calibration_given_as_numbers(fakes, tmp_path, monkeypatch):
+    """``calib=`` may be the numbers of a plain intrinsics file themselves (``mgso run clip.mp4 --calib "fx fy cx
+    cy"``): the same camera as the file; a wrong count names the numbers; a file of that name wins."""
+    d = fakes.image_folder(n=3, calib=None)
+    inline = open_sequence(d, calib="28 29 19.5 14.5 -0.05 0.01 0 0")
+    (tmp_path / "cam.txt").write_text("28 29 19.5 14.5 -0.05 0.01 0 0\n")
+    from_file = open_sequence(d, calib=tmp_path / "cam.txt")
+    assert inline.calibration.input == from_file.calibration.input
+    assert isinstance(inline.calibration.input, RadTanCamera) and inline.calibration.output_mode == "keep"
+    assert open_sequence(d, calib="30,30,19.5,14.5").calibration.input.fx == 30.0
+    with pytest.raises(DatasetError, match=r"'30 30 19\.5': expected 4 \(fx fy cx cy\), 8 .* got 3"):
+        open_sequence(d, calib="30 30 19.5")
+    with pytest.raises(DatasetError, match="not found"):
+        open_sequence(d, calib="cam2.txt")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "31").write_text("31 31 19.5 14.5\n")   # a file named like a number is read as the file
+    assert open_sequence(d, calib="31").calibration.input.fx == 31.0
 
 
 def test_video(fakes):
