@@ -358,3 +358,19 @@ def test_a_run_started_with_a_relative_path_exports_from_anywhere(run, tmp_path,
     del info["path_absolute"]
     (rel_out / "sequence.json").write_text(json.dumps(info))
     assert main(["export", str(rel_out), "--format", "colmap", "--out", str(tmp_path / "e2"), "-q"]) == 1
+
+
+def test_a_run_given_the_intrinsics_as_numbers_exports_with_them(run, tmp_path):
+    """``mgso run ... --calib "fx fy cx cy"``: sequence.json keeps the numbers as the calibration's source and the
+    export opens the input with them again (not with the folder's own camera.txt, whose fx differs)."""
+    room, out = run
+    num_out = tmp_path / "num"
+    assert main(["run", str(room), "--out", str(num_out), "--stage", "check", "-q", "--calib", "70 70 47.5 35.5"]) == 0
+    info = json.loads((num_out / "sequence.json").read_text())
+    assert info["calibration_source"] == "70 70 47.5 35.5" and info["intrinsics"]["fx"] == 70.0
+    for name in ("keyframes.txt", "trajectory.txt", "points.ply"):
+        shutil.copy(out / name, num_out / name)
+    assert main(["export", str(num_out), "--format", "colmap", "--out", str(tmp_path / "col"), "-q"]) == 0
+    m = read_colmap_text(tmp_path / "col" / "sparse" / "0")
+    assert np.allclose(m["K"], (70.0, 70.0, 48.0, 36.0), atol=1e-9)
+    assert not np.allclose(json.loads((out / "sequence.json").read_text())["intrinsics"]["fx"], 70.0)

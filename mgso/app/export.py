@@ -104,12 +104,17 @@ def _read_run(run_dir: Path):
 
 def _calibration_arg(info: dict, old_input: Path, calib: str | None) -> str | None:
     """The run's ``--calib`` file, when it had one: a calibration source outside the input folder that names a file
-    (one inside the folder is found again by the dataset's reader, and a built-in default is a description)."""
+    (one inside the folder is found again by the dataset's reader, and a built-in default is a description), or
+    the numbers themselves where the run was given them."""
     if calib is not None:
         return calib
     src = info.get("calibration_source")
     if not src:
         return None
+    from mgso.io.calibration import inline_intrinsics
+
+    if inline_intrinsics(src):      # the run's --calib was the numbers themselves
+        return src
     p = Path(src)
     if not p.is_absolute() and info.get("run_cwd"):   # relative to where the run was started
         p = Path(info["run_cwd"]) / p

@@ -209,7 +209,7 @@ def read_camera_file(path: str | Path, image_size: tuple[int, int] | None = None
     place of a path (:func:`inline_intrinsics`). ``image_size`` ``(width, height)`` is needed by formats that hold
     no size (KITTI, plain)."""
     if inline_intrinsics(str(path)):
-        return plain_intrinsics(str(path), f"calibration {str(path).strip()!r}", image_size)
+        return plain_intrinsics(str(path), str(path).strip(), image_size)   # the numbers: a run's source, reusable
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file not found")

@@ -288,7 +288,7 @@ def test_the_calibration_given_as_numbers(fakes, tmp_path, monkeypatch):
     assert inline.calibration.input == from_file.calibration.input
     assert isinstance(inline.calibration.input, RadTanCamera) and inline.calibration.output_mode == "keep"
     assert open_sequence(d, calib="30,30,19.5,14.5").calibration.input.fx == 30.0
-    with pytest.raises(DatasetError, match=r"'30 30 19\.5': expected 4 \(fx fy cx cy\), 8 .* got 3"):
+    with pytest.raises(DatasetError, match=r"30 30 19\.5: expected 4 \(fx fy cx cy\), 8 .* got 3"):
         open_sequence(d, calib="30 30 19.5")
     with pytest.raises(DatasetError, match="not found"):
         open_sequence(d, calib="cam2.txt")
