@@ -31,6 +31,38 @@ def test_run_check_writes_outputs(tiny_folder, tmp_path, capsys):
     assert len(gt) == 6
 
 
+def test_run_downscale_halves_the_frames(tiny_folder, tmp_path, capsys):
+    """``mgso run --downscale 2`` reads the frames at half the width and height (the intrinsics with them); 1 leaves
+    them as they are; 0 or a size under 16x16 is a one-line error before any work."""
+    out = tmp_path / "half"
+    assert main(["run", str(tiny_folder), "--out", str(out), "--stage", "check", "-q", "--downscale", "2"]) == 0
+    info = json.loads((out / "sequence.json").read_text())
+    assert info["image_size_out"] == [48, 36] and info["intrinsics"]["fx"] < 40
+    assert main(["run", str(tiny_folder), "--out", str(tmp_path / "same"), "--stage", "check", "-q",
+                 "--downscale", "1"]) == 0
+    assert json.loads((tmp_path / "same" / "sequence.json").read_text())["image_size_out"] == [96, 72]
+    for bad, msg in (("0", "must be >= 1"), ("5", "smaller than 16x16")):
+        assert main(["run", str(tiny_folder), "--out", str(tmp_path / f"b{bad}"), "--stage", "check",
+                     "--downscale", bad]) == 1
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err and not (tmp_path / f"b{bad}").exists()
+
+
+def test_large_frames_on_the_cpu_get_a_hint(caplog):
+    """A full run of frames much larger than 640x480 on the CPU says once how to train at a smaller size; 640x480
+    frames get no word (the control)."""
+    from mgso.app import cli
+    from mgso.camera import PinholeCamera
+    from mgso.config import load_config
+
+    cfg = load_config(None, ["runtime.device=cpu"])
+    with caplog.at_level("WARNING", logger="mgso"):
+        cli._hint_large_frames(PinholeCamera(1552.0, 1549.0, 955.8, 586.0, 1920, 1080), cfg)
+        cli._hint_large_frames(PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480), cfg)
+    hints = [r.getMessage() for r in caplog.records]
+    assert len(hints) == 1 and "1920x1080 frames on the CPU" in hints[0] and "--downscale 3 runs at 640x360" in hints[0]
+
+
 def test_errors_are_one_line_and_exit_1(tmp_path, capsys):
     assert main(["info", str(tmp_path / "nothing")]) == 1
     err = capsys.readouterr().err

@@ -191,6 +191,15 @@ def cmd_run(args) -> int:
     if args.out:                        # so is an output folder that cannot be used (nothing made yet)
         check_out_dir(args.out)
     seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
+    if getattr(args, "downscale", None) is not None:
+        size = _downscaled_size(seq.calibration.output, args.downscale, "run")
+        if size is not None:
+            seq.close()
+            args.set = list(args.set or []) + [f"input.width={size[0]}", f"input.height={size[1]}"]
+            cfg = _live_and_limits(args, _load_cfg(args))
+            seq = _open(args.path, args.calib, cfg, groundtruth=args.groundtruth)
+    elif (args.stage or "full") == "full":
+        _hint_large_frames(seq.calibration.output, cfg)
     writer = RunWriter(args.out or Path("runs") / f"{seq.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     writer.write_config(cfg)
     if getattr(seq, "live", False):
@@ -281,6 +290,46 @@ def cmd_demo(args) -> int:
     return cmd_run(args)
 
 
+def _downscaled_size(cam, factor: int, command: str) -> tuple[int, int] | None:
+    """``--downscale N``: the frames' size (``cam``, the calibration's output camera) divided by N, as
+    ``input.width`` / ``input.height`` (None for 1: the size as it is)."""
+    if factor < 1:
+        raise CliError(f"{command}: --downscale must be >= 1, got {factor}")
+    if factor == 1:
+        return None
+    w, h = int(cam.width // factor), int(cam.height // factor)
+    if w < 16 or h < 16:
+        raise CliError(f"{command}: --downscale {factor} makes {cam.width}x{cam.height} images smaller than 16x16")
+    return w, h
+
+
+#: Pixels a frame above which a run on the CPU says how to train at a smaller size (twice 640x480: the size the
+#: defaults and docs/measured.md's figures are for)
+LARGE_FRAME_PIXELS = 2 * 640 * 480
+
+
+def _hint_large_frames(cam, cfg: Config) -> None:
+    """One warning when frames much larger than 640x480 are mapped (the full stage) on the CPU, where a training step's cost grows with
+    the pixels (a 1920x1080 clip of 20 frames spent 5 minutes in its final refinement on 2 cores): how to train at a
+    smaller size (``--downscale``)."""
+    from mgso_kernels.runtime import resolve_device
+
+    w, h = int(cam.width), int(cam.height)
+    if w * h <= LARGE_FRAME_PIXELS:
+        return
+    try:
+        if not resolve_device(cfg.runtime.device).startswith("cpu"):
+            return
+    except Exception:   # an unusable device is reported where the run starts it
+        return
+    k = 2
+    while (w // k) * (h // k) > LARGE_FRAME_PIXELS // 2:
+        k += 1
+    log.warning("%dx%d frames on the CPU: each mapping step costs about %.0fx one at 640x480 and the map can take many "
+                "minutes after the last frame; --downscale %d runs at %dx%d", w, h, w * h / (640 * 480), k, w // k,
+                h // k)
+
+
 def cmd_fit(args) -> int:
     from mgso.mapping.fit import fit_sequence
 
@@ -296,15 +345,12 @@ def cmd_fit(args) -> int:
     if args.out:
         check_out_dir(args.out)
     if args.downscale is not None:
-        if args.downscale < 1:
-            raise CliError(f"fit: --downscale must be >= 1, got {args.downscale}")
-        if args.downscale > 1:
-            cam = _open(args.path, args.calib, cfg, groundtruth=args.poses).calibration.output
-            w, h = int(cam.width // args.downscale), int(cam.height // args.downscale)
-            if w < 16 or h < 16:
-                raise CliError(f"fit: --downscale {args.downscale} makes {cam.width}x{cam.height} images smaller "
-                               "than 16x16")
-            args.set += [f"input.width={w}", f"input.height={h}"]
+        size = None
+        if args.downscale != 1:
+            size = _downscaled_size(_open(args.path, args.calib, cfg, groundtruth=args.poses).calibration.output,
+                                    args.downscale, "fit")
+        if size is not None:
+            args.set += [f"input.width={size[0]}", f"input.height={size[1]}"]
             cfg = _load_cfg(args)
     seq = _open(args.path, args.calib, cfg, groundtruth=args.poses)
     init = args.init
@@ -448,6 +494,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "KITTI calib.txt, or one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]') or those numbers "
                                    "themselves, e.g. --calib '525 525 319.5 239.5'")
     p.add_argument("--groundtruth", help="ground-truth trajectory file (TUM or KITTI) of camera poses")
+    p.add_argument("--downscale", type=int, help="divide the frames' size by this (2 = half width and height; sets "
+                                                 "input.width/height): a large camera's frames on a CPU")
     p.add_argument("--stage", choices=STAGES, default=None,
                    help=f"how far to go (default {DEFAULT_STAGE}): " + "; ".join(STAGE_HELP[s] for s in STAGES))
     p.add_argument("--realtime", action="store_true",
