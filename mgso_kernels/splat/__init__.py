@@ -169,6 +169,7 @@ class Rasterizer:
                  pixels_per_thread: int | None = None, threads: int | None = None, min_chunk: int = 4096,
                  profile: bool = False):
         self.device = runtime.device_or_cpu(device)
+        self.device_is_cpu = wp.get_device(self.device).is_cpu
         self.eps2d = float(eps2d)
         self.antialiased = bool(antialiased)
         self.threads = threads
@@ -308,9 +309,15 @@ class Rasterizer:
                                n_pairs, dev, **sp)
         t = self._stage("bin_keys", t)
         n_tiles = camera.tiles_x * camera.tiles_y
+        self._ensure(self.ranges_, n_tiles)
+        if self.device_is_cpu:
+            # one move of the pairs, from the Gaussians' side, and the ranges with it (bin.sort_pairs_and_ranges)
+            _bin.sort_pairs_and_ranges(keys, slots, n_pairs, n_tiles, offsets[:n], touched[:n],
+                                       self.ranges_.view(n_tiles))
+            self._stage("sort", t)
+            return n_pairs
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)
         t = self._stage("sort", t)
-        self._ensure(self.ranges_, n_tiles)
         _bin.launch_tile_ranges(keys, n_pairs, self.ranges_.view(n_tiles), dev, **sp)
         self._stage("ranges", t)
         return n_pairs

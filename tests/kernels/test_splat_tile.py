@@ -352,6 +352,73 @@ def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
         assert ran == (1 if native and str(wp_device).startswith("cpu") else 0)
 
 
+@pytest.mark.parametrize("n_tiles", [3, 1200, 70000])
+def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges(n_tiles):
+    """bin.sort_pairs_and_ranges on the rasteriser's layout (Gaussian g's pairs at its slots, all with g's depth bits,
+    one a tile): on the CPU it sorts the Gaussians by depth and places their pairs tile by tile (returns 2); the keys,
+    slots and tile ranges are those of the radix sort of the pairs' keys and tile_ranges bit for bit (ties in depth
+    keep the slot order; Gaussians without pairs; tiles without pairs stay [0, 0)). The control with the C++
+    switched off takes that other path and returns 1 or 0; a key whose tile is outside [0, n_tiles) makes the C++
+    decline (the other path then sorts)."""
+    from mgso_kernels.splat import bin as binning
+
+    rng = np.random.default_rng(n_tiles)
+    n = 4000
+    touched = np.minimum(rng.integers(0, 9, n), n_tiles).astype(np.int32)   # a pair a tile
+    touched[rng.random(n) < 0.2] = 0
+    offsets = np.concatenate([[0], np.cumsum(touched)[:-1]]).astype(np.int32)
+    m = int(touched.sum())
+    depth = (rng.choice(np.float32([0.5, 1.0, 2.5]), n) if n_tiles == 3 else
+             rng.random(n, dtype=np.float32) * 5 + 0.1).astype(np.float32)
+    depth_bits = depth.view(np.uint32).astype(np.int64)
+    keys = np.concatenate([(np.sort(rng.choice(n_tiles, touched[g], replace=False)).astype(np.int64) << 32)
+                           | depth_bits[g] for g in range(n)])
+    assert len(keys) == m
+    slots = np.arange(m, dtype=np.int32)
+
+    def arrays(k0):
+        return (wp.array(np.concatenate([k0, k0]), dtype=wp.int64, device="cpu"),
+                wp.array(np.concatenate([slots, slots]), dtype=wp.int32, device="cpu"),
+                wp.array(np.full((n_tiles, 2), -7, np.int32), device="cpu"))
+
+    def run(native):
+        k, v, r = arrays(keys)
+        before = raster_tile.use_native(native)
+        try:
+            ran = binning.sort_pairs_and_ranges(k, v, m, n_tiles, wp.array(offsets, device="cpu"),
+                                                wp.array(touched, device="cpu"), r)
+        finally:
+            raster_tile.use_native(before)
+        return k.numpy()[:m], v.numpy()[:m], r.numpy(), ran
+
+    # the reference: the pairs' keys sorted stably (numpy's stable argsort), the ranges from them
+    order = np.argsort(keys, kind="stable")
+    want_k, want_v = keys[order], slots[order]
+    want_r = np.zeros((n_tiles, 2), np.int32)
+    t_of = (want_k >> 32).astype(np.int64)
+    for t in np.unique(t_of):
+        idx = np.flatnonzero(t_of == t)
+        want_r[t] = (idx[0], idx[-1] + 1)
+    got_k, got_v, got_r, ran = run(True)
+    assert ran == 2
+    np.testing.assert_array_equal(got_k, want_k)
+    np.testing.assert_array_equal(got_v, want_v)
+    np.testing.assert_array_equal(got_r, want_r)
+    off_k, off_v, off_r, off_ran = run(False)
+    assert off_ran in (0, 1)
+    np.testing.assert_array_equal(off_k, want_k)
+    np.testing.assert_array_equal(off_v, want_v)
+    np.testing.assert_array_equal(off_r, want_r)
+    bad = keys.copy()
+    bad[m // 2] = (np.int64(n_tiles) << 32) | (bad[m // 2] & 0xFFFFFFFF)
+    k, v, r = arrays(bad)
+    status = wp.zeros(1, dtype=wp.int32, device="cpu")
+    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, status],
+              device="cpu")
+    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], bad) and np.all(r.numpy() == -7)
+
+
 def _random_splats(rng, n, width, height, big=False):
     """Projected Gaussians as the projection writes them (mean, conic, opacity, exp(-a), cut-off r2), a few culled:
     means inside the image, on its borders and off it; ``big``: ellipses many tile rows tall."""
