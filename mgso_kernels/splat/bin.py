@@ -659,7 +659,7 @@ def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets,
     if device.is_cpu and n_pairs > 0:
         from .raster_tile import native_flag
 
-        n = int(tiles_touched.shape[0])
+        n = tiles_touched.shape[0]
         status = wp.zeros(1, dtype=wp.int32, device=device)   # a call's own (renders may sort on two threads)
         wp.launch(sort_by_gaussian_cpu, dim=1, inputs=[n, n_pairs, n_tiles, pair_offsets, tiles_touched, keys, slots,
                                                         ranges, native_flag(), status], device=device)
