@@ -313,7 +313,7 @@ class Rasterizer:
         if self.device_is_cpu:
             # one move of the pairs, from the Gaussians' side, and the ranges with it (bin.sort_pairs_and_ranges)
             _bin.sort_pairs_and_ranges(keys, slots, n_pairs, n_tiles, offsets[:n], touched[:n],
-                                       self.ranges_.view(n_tiles))
+                                       self.ranges_.view(n_tiles), keys_sorted=False)
             self._stage("sort", t)
             return n_pairs
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)

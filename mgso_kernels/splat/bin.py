@@ -604,16 +604,24 @@ int* gi = (int*)__builtin_malloc(4L * (2L * nv + 1));
         start += c;
     }
 }
-for (int v = 0; v < nv; ++v) {
-    const int g = gi[v];
-    const int j1 = off[g] + tt[g];
-    for (int j = off[g]; j < j1; ++j) {
-        const unsigned o = tc[K[j] >> 32]++;
-        K2[o] = K[j];
-        V2[o] = V[j];
+if (with_keys != 0) {
+    for (int v = 0; v < nv; ++v) {
+        const int g = gi[v];
+        const int j1 = off[g] + tt[g];
+        for (int j = off[g]; j < j1; ++j) {
+            const unsigned o = tc[K[j] >> 32]++;
+            K2[o] = K[j];
+            V2[o] = V[j];
+        }
+    }
+    __builtin_memcpy(K, K2, 8L * m);
+} else {            // the values only (the keys stay as they were: the rasteriser reads none after the sort)
+    for (int v = 0; v < nv; ++v) {
+        const int g = gi[v];
+        const int j1 = off[g] + tt[g];
+        for (int j = off[g]; j < j1; ++j) V2[tc[K[j] >> 32]++] = V[j];
     }
 }
-__builtin_memcpy(K, K2, 8L * m);
 __builtin_memcpy(V, V2, 4L * m);
 __builtin_free(tc);
 __builtin_free(dk);
@@ -628,31 +636,33 @@ return 0;
 @wp.func_native(_SORT_BY_GAUSSIAN_CPP)
 def sort_by_gaussian_cpp(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
-                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32)) -> int:
-    """The per-Gaussian sort above of the first ``m`` pairs of ``n`` Gaussians, in place, and the tiles' ranges.
-    Returns 1, or 0 (nothing written) where it does not apply."""
+                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int) -> int:
+    """The per-Gaussian sort above of the first ``m`` pairs of ``n`` Gaussians, in place (the keys too where
+    ``with_keys``), and the tiles' ranges. Returns 1, or 0 (nothing written) where it does not apply."""
     ...
 
 
 @wp.kernel
 def sort_by_gaussian_cpu(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
-                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), native: int,
-                         status: wp.array(dtype=wp.int32)):
+                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int,
+                         native: int, status: wp.array(dtype=wp.int32)):
     """One thread: :func:`sort_by_gaussian_cpp` (``native`` 1), its result in ``status[0]`` (0: the caller sorts)."""
     done = int(0)
     if native != 0:
-        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges)
+        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges, with_keys)
     status[0] = done
 
 
-def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets, tiles_touched, ranges) -> int:
+def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets, tiles_touched, ranges, *,
+                          keys_sorted: bool = True) -> int:
     """Sort the rasteriser's pairs by (tile, depth) in place (stable) and fill ``ranges`` (tiles, 2) with each
     tile's [start, end) ([0, 0) for a tile without pairs), for pairs laid out as :func:`emit_pairs` writes them
     (Gaussian g's at the slots ``[pair_offsets[g], pair_offsets[g] + tiles_touched[g])``, each with g's depth bits).
     On the CPU by :data:`_SORT_BY_GAUSSIAN_CPP` (one move of the pairs; returns 2), else, or where that declines,
     :func:`sort_pairs` and :func:`launch_tile_ranges` (returns what :func:`sort_pairs` returns): the same keys,
-    slots and ranges bit for bit."""
+    slots and ranges bit for bit. ``keys_sorted=False``: the keys may be left as they were (the CPU's path then
+    moves only the slots: the rasteriser reads no key after the sort)."""
     if ranges.dtype is not wp.int32 or ranges.ndim != 2 or ranges.shape[1] != 2 or ranges.shape[0] < n_tiles:
         raise TypeError(f"sort_pairs_and_ranges: ranges must be an int32 array of shape ({n_tiles}, 2)")
     device = keys.device
@@ -662,7 +672,8 @@ def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets,
         n = tiles_touched.shape[0]
         status = wp.zeros(1, dtype=wp.int32, device=device)   # a call's own (renders may sort on two threads)
         wp.launch(sort_by_gaussian_cpu, dim=1, inputs=[n, n_pairs, n_tiles, pair_offsets, tiles_touched, keys, slots,
-                                                        ranges, native_flag(), status], device=device)
+                                                        ranges, int(bool(keys_sorted)), native_flag(), status],
+                  device=device)
         if int(status.numpy()[0]) == 1:
             return 2
     ran = sort_pairs(keys, slots, n_pairs, n_tiles)

@@ -381,12 +381,12 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
                 wp.array(np.concatenate([slots, slots]), dtype=wp.int32, device="cpu"),
                 wp.array(np.full((n_tiles, 2), -7, np.int32), device="cpu"))
 
-    def run(native):
+    def run(native, keys_sorted=True):
         k, v, r = arrays(keys)
         before = raster_tile.use_native(native)
         try:
             ran = binning.sort_pairs_and_ranges(k, v, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                wp.array(touched, device="cpu"), r)
+                                                wp.array(touched, device="cpu"), r, keys_sorted=keys_sorted)
         finally:
             raster_tile.use_native(before)
         return k.numpy()[:m], v.numpy()[:m], r.numpy(), ran
@@ -404,6 +404,10 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     np.testing.assert_array_equal(got_k, want_k)
     np.testing.assert_array_equal(got_v, want_v)
     np.testing.assert_array_equal(got_r, want_r)
+    same_k, only_v, only_r, only_ran = run(True, keys_sorted=False)   # the slots and ranges alone
+    assert only_ran == 2 and np.array_equal(same_k, keys)
+    np.testing.assert_array_equal(only_v, want_v)
+    np.testing.assert_array_equal(only_r, want_r)
     off_k, off_v, off_r, off_ran = run(False)
     assert off_ran in (0, 1)
     np.testing.assert_array_equal(off_k, want_k)
@@ -414,7 +418,7 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     k, v, r = arrays(bad)
     status = wp.zeros(1, dtype=wp.int32, device="cpu")
     wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, status],
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, 1, status],
               device="cpu")
     assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], bad) and np.all(r.numpy() == -7)
 
