@@ -194,7 +194,7 @@ class Rasterizer:
         self.tiles_touched_ = _Buffer(wp.int32)
         self.pair_offsets_ = _Buffer(wp.int32)
         # per (tile, Gaussian) pair (capacity M; keys and slots 2M for the radix sort)
-        self.keys_ = _Buffer(wp.int64)
+        self.keys_ = _Buffer(wp.int64)    # after binning: sorted on CUDA; on the CPU as emitted (only slots_ sorted)
         self.slots_ = _Buffer(wp.int32)
         self.pair_gauss_ = _Buffer(wp.int32)
         self.splats_ = _Buffer(_common.vec8)
