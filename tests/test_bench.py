@@ -249,6 +249,22 @@ def test_a_good_spec_passes_the_check(bench_dir):
     assert len({t.key for t in s.tasks}) == 8
 
 
+def test_a_spec_may_give_the_intrinsics_as_numbers(bench_dir, tmp_path):
+    """``calib: "fx fy cx cy"`` in a sequence entry is the intrinsics themselves (as ``mgso run --calib``): the task's
+    command carries them; three numbers are refused at the check, naming the entry."""
+    spec = tmp_path / "num.yaml"
+    spec.write_text(f"data_root: {bench_dir / 'data'}\nsequences:\n  - {{path: a, calib: '70 70 47.5 35.5'}}\n"
+                    "variants: {odo: {}}\n")
+    s = load_spec(spec)
+    assert s.sequences[0].calib == "70 70 47.5 35.5"
+    args = s.tasks[0].run_args("out")
+    assert args[args.index("--calib") + 1] == "70 70 47.5 35.5"
+    assert "--calib '70 70 47.5 35.5'" in s.tasks[0].command("out")
+    spec.write_text(f"data_root: {bench_dir / 'data'}\nsequences:\n  - {{path: a, calib: '70 70 47.5'}}\n")
+    with pytest.raises(SpecError, match=r"sequences\[0\].*expected 4 \(fx fy cx cy\)"):
+        load_spec(spec)
+
+
 def test_compare_says_what_moved_beyond_the_spread(first_bench, tmp_path, capsys):
     def rows(values: dict) -> list[dict]:
         return [{"sequence": "s", "variant": v, "seed": str(i), "status": "ok", "ate_m": str(x)}

@@ -189,6 +189,7 @@ def _data_root(spec_path: Path, raw: Any) -> Path:
 
 def _sequences(spec_path: Path, raw: Any, root: Path) -> list[SequenceEntry]:
     from mgso.io import DatasetError, open_sequence
+    from mgso.io.calibration import inline_intrinsics
 
     where = f"{spec_path}: sequences"
     if not isinstance(raw, list) or not raw:
@@ -222,6 +223,9 @@ def _sequences(spec_path: Path, raw: Any, root: Path) -> list[SequenceEntry]:
         extra = {}
         for k in ("calib", "groundtruth"):
             if item.get(k) is not None:
+                if k == "calib" and inline_intrinsics(str(item[k])) and not rel(item[k]).is_file():
+                    extra[k] = str(item[k])     # the intrinsics themselves, 'fx fy cx cy [k1 k2 p1 p2 [k3]]'
+                    continue
                 f = rel(item[k])
                 if not f.is_file():
                     raise SpecError(f"{w}.{k}: {item[k]!r}: no such file ({f})")
