@@ -374,3 +374,21 @@ def test_a_run_given_the_intrinsics_as_numbers_exports_with_them(run, tmp_path):
     m = read_colmap_text(tmp_path / "col" / "sparse" / "0")
     assert np.allclose(m["K"], (70.0, 70.0, 48.0, 36.0), atol=1e-9)
     assert not np.allclose(json.loads((out / "sequence.json").read_text())["intrinsics"]["fx"], 70.0)
+
+
+def test_a_calibration_file_kept_beside_the_input_under_another_name_is_used_again(run, tmp_path):
+    """``--calib`` names a file inside the input folder that its reader does not look for (``cam2.txt`` beside the
+    room's own camera.txt, fx 70 against 68.55): the export opens the input with it again, as the run did; the
+    room's own camera.txt, found by the reader, is left to the reader (the run without --calib exports too)."""
+    room, out = run
+    src = tmp_path / "room"
+    shutil.copytree(room, src)
+    (src / "cam2.txt").write_text(f"Pinhole 70 70 47.5 35.5 0\n{W} {H}\nnone\n{W} {H}\n")
+    for name, extra in (("with", ["--calib", str(src / "cam2.txt")]), ("own", [])):
+        o = tmp_path / name
+        assert main(["run", str(src), "--out", str(o), "--stage", "check", "-q", *extra]) == 0
+        for f in ("keyframes.txt", "trajectory.txt", "points.ply"):
+            shutil.copy(out / f, o / f)
+        assert main(["export", str(o), "--format", "colmap", "--out", str(tmp_path / f"col_{name}"), "-q"]) == 0
+        k = read_colmap_text(tmp_path / f"col_{name}" / "sparse" / "0")["K"]
+        assert np.allclose(k[0], 70.0 if name == "with" else 68.551104, atol=1e-6), (name, k)

@@ -102,9 +102,25 @@ def _read_run(run_dir: Path):
     return info, cfg
 
 
-def _calibration_arg(info: dict, old_input: Path, calib: str | None) -> str | None:
-    """The run's ``--calib`` file, when it had one: a calibration source outside the input folder that names a file
-    (one inside the folder is found again by the dataset's reader, and a built-in default is a description), or
+def _reader_finds(path: Path, calib_file: Path, input_cfg) -> bool:
+    """Whether the dataset at ``path`` finds ``calib_file`` as its calibration by itself (a ``--calib`` file kept
+    beside a video under another name than camera.txt is not found so)."""
+    from mgso.io import open_sequence
+
+    try:
+        seq = open_sequence(path, config=input_cfg)
+    except Exception:  # noqa: BLE001 - no calibration of its own, or no dataset: not found
+        return False
+    try:
+        src = seq.calibration.source
+        return bool(src) and Path(src).expanduser().resolve() == calib_file.resolve()
+    finally:
+        seq.close()
+
+
+def _calibration_arg(info: dict, old_input: Path, calib: str | None, input_cfg=None) -> str | None:
+    """The run's ``--calib`` file, when it had one: a calibration source that names a file the dataset's reader does
+    not find by itself (one it finds, inside the folder, it finds again; a built-in default is a description), or
     the numbers themselves where the run was given them."""
     if calib is not None:
         return calib
@@ -121,9 +137,11 @@ def _calibration_arg(info: dict, old_input: Path, calib: str | None) -> str | No
     folder = old_input if old_input.suffix == "" else old_input.parent
     try:
         p.relative_to(folder)
-        return None
+        inside = True
     except ValueError:
-        pass
+        inside = False
+    if inside:   # the dataset's own file, found again by its reader; or a --calib file kept beside the input
+        return str(p) if p.is_file() and not _reader_finds(old_input, p, input_cfg) else None
     if p.is_file():
         return str(p)
     if p.suffix.lower() in (".txt", ".yaml", ".yml", ".json"):
@@ -145,7 +163,7 @@ def _open_input(info: dict, cfg, input_path: str | None, calib: str | None):
             raise ExportError(f"the run's input {path} is not found from {Path.cwd()} (a path relative to the folder "
                               "the run was started in; give --input PATH)")
         raise ExportError(f"the run's input {path} is gone or moved (give --input PATH)")
-    seq = open_sequence(path, calib=_calibration_arg(info, old, calib), config=cfg.input)
+    seq = open_sequence(path, calib=_calibration_arg(info, old, calib, cfg.input), config=cfg.input)
     # the input must be the one the run saw: its output camera and frame count
     out = seq.calibration.output
     want = info.get("intrinsics") or {}
