@@ -309,9 +309,9 @@ LARGE_FRAME_PIXELS = 2 * 640 * 480
 
 
 def _hint_large_frames(cam, cfg: Config) -> None:
-    """One warning when frames much larger than 640x480 are mapped (the full stage) on the CPU, where a training step's cost grows with
-    the pixels (a 1920x1080 clip of 20 frames spent 5 minutes in its final refinement on 2 cores): how to train at a
-    smaller size (``--downscale``)."""
+    """One warning when frames much larger than 640x480 are mapped (the full stage) on the CPU, where a training
+    step's cost grows with the pixels (a 1920x1080 clip of 20 frames spent 5 minutes in its final refinement on 2
+    cores): how to train at a smaller size (``--downscale``)."""
     from mgso_kernels.runtime import resolve_device
 
     w, h = int(cam.width), int(cam.height)

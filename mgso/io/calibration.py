@@ -155,7 +155,8 @@ def plain_intrinsics(text: str, source: str, image_size: tuple[int, int] | None)
     themselves: ``mgso run VIDEO --calib "525 525 319.5 239.5"``); errors name ``source``."""
     vals = numbers(text)
     if vals is None:
-        raise CalibrationError(f"{source}: expected numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {text.strip()[:80]!r}")
+        raise CalibrationError(f"{source}: expected numbers 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got "
+                               f"{text.strip()[:80]!r}")
     if len(vals) not in (4, 8, 9):
         raise CalibrationError(f"{source}: expected 4 (fx fy cx cy), 8 (+ k1 k2 p1 p2) or 9 (+ k3) numbers, got "
                                f"{len(vals)}")

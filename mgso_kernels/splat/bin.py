@@ -537,7 +537,8 @@ def radix_sort_pairs_cpu(n: int, end_bit: int, keys: wp.array(dtype=wp.int64), v
 # and the tiles' [start, end) fall out of the counts; but it moves the pairs once, where the radix sort moved them
 # four times (a 640x480 view's 43 key bits): 16.4 ms of sort and ranges for 765k pairs on one Intel thread. The
 # scratch is the arrays' second halves and two buffers of the Gaussians' count. Returns 0 (nothing written) where
-# the layout does not hold (a tile outside [0, n_tiles)) or the arrays are not contiguous, and on CUDA.
+# the layout does not hold (the Gaussians' slots not one after the other, m in all; a tile outside [0, n_tiles)),
+# the arrays are not contiguous or the scratch cannot be had, and on CUDA.
 _SORT_BY_GAUSSIAN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 if (keys.strides[0] != 8 || values.strides[0] != 4 || keys.shape[0] < 2 * m || values.shape[0] < 2 * m
@@ -551,8 +552,18 @@ int* V2 = V + m;
 const int* off = (const int*)offsets.data;
 const int* tt = (const int*)touched.data;
 int* R = (int*)ranges.data;
+// the layout: Gaussian g's pairs at [off[g], off[g] + tt[g]), one after the other, m of them (else nothing written)
+{
+    long at = 0;
+    for (int g = 0; g < n; ++g) {
+        if (tt[g] < 0 || (tt[g] > 0 && off[g] != at)) return 0;
+        at += tt[g];
+    }
+    if (at != m) return 0;
+}
 // the pairs per tile (and that every tile is one of the n_tiles: else nothing is written)
 unsigned* tc = (unsigned*)__builtin_malloc(4L * n_tiles);
+if (tc == nullptr) return 0;
 for (int t = 0; t < n_tiles; ++t) tc[t] = 0;
 for (int j = 0; j < m; ++j) {
     const unsigned long long t = K[j] >> 32;
@@ -564,13 +575,17 @@ int nv = 0;
 for (int g = 0; g < n; ++g) nv += tt[g] > 0;
 unsigned* dk = (unsigned*)__builtin_malloc(4L * (2L * nv + 1));
 int* gi = (int*)__builtin_malloc(4L * (2L * nv + 1));
+unsigned* cnt = (unsigned*)__builtin_malloc(4L * DP * NB);
+if (dk == nullptr || gi == nullptr || cnt == nullptr) {
+    __builtin_free(tc); __builtin_free(dk); __builtin_free(gi); __builtin_free(cnt);
+    return 0;
+}
 {
     int v = 0;
     for (int g = 0; g < n; ++g)
         if (tt[g] > 0) { dk[v] = (unsigned)(K[off[g]] & 0xffffffffULL); gi[v] = g; ++v; }
 }
 {
-    unsigned* cnt = (unsigned*)__builtin_malloc(4L * DP * NB);
     for (int i = 0; i < DP * NB; ++i) cnt[i] = 0;
     for (int v = 0; v < nv; ++v)
         for (int p = 0; p < DP; ++p) cnt[p * NB + ((dk[v] >> (DB * p)) & (NB - 1))]++;
@@ -591,8 +606,8 @@ int* gi = (int*)__builtin_malloc(4L * (2L * nv + 1));
         int* tg = g0; g0 = g1; g1 = tg;
     }
     if (g0 != gi) for (int v = 0; v < nv; ++v) gi[v] = g0[v];   // the sorted order at gi[0 .. nv)
-    __builtin_free(cnt);
 }
+__builtin_free(cnt);
 // each tile's [start, end) ([0, 0) where it has none, as tile_ranges leaves it), the counts becoming the cursors
 {
     unsigned start = 0;

@@ -358,8 +358,9 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     one a tile): on the CPU it sorts the Gaussians by depth and places their pairs tile by tile (returns 2); the keys,
     slots and tile ranges are those of the radix sort of the pairs' keys and tile_ranges bit for bit (ties in depth
     keep the slot order; Gaussians without pairs; tiles without pairs stay [0, 0)). The control with the C++
-    switched off takes that other path and returns 1 or 0; a key whose tile is outside [0, n_tiles) makes the C++
-    decline (the other path then sorts)."""
+    switched off takes that other path and returns 1 or 0; the slots alone (``keys_sorted=False``, the rasteriser's
+    call) leave the keys as they were. A key whose tile is outside [0, n_tiles), or Gaussians whose slots are not one
+    after the other, make the C++ decline with nothing written."""
     from mgso_kernels.splat import bin as binning
 
     rng = np.random.default_rng(n_tiles)
@@ -421,6 +422,14 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
                                                            wp.array(touched, device="cpu"), k, v, r, 1, 1, status],
               device="cpu")
     assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], bad) and np.all(r.numpy() == -7)
+    # and Gaussians whose slots are not one after the other (a count that does not add up to m): declined too
+    k, v, r = arrays(keys)
+    off_bad = offsets.copy()
+    off_bad[np.flatnonzero(touched)[1]] += 1
+    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(off_bad, device="cpu"),
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, 1, status],
+              device="cpu")
+    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], keys) and np.all(r.numpy() == -7)
 
 
 def _random_splats(rng, n, width, height, big=False):
