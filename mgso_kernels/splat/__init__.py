@@ -196,6 +196,7 @@ class Rasterizer:
         # per (tile, Gaussian) pair (capacity M; keys and slots 2M for the radix sort)
         self.keys_ = _Buffer(wp.int64)    # after binning: sorted on CUDA; on the CPU as emitted (only slots_ sorted)
         self.slots_ = _Buffer(wp.int32)
+        self.sort_scratch_ = _Buffer(wp.int32)   # the CPU's sort from the Gaussians' side (bin.sort_pairs_and_ranges)
         self.pair_gauss_ = _Buffer(wp.int32)
         self.splats_ = _Buffer(_common.vec8)
         self.splat_rgbz_ = _Buffer(wp.vec4)
@@ -312,8 +313,9 @@ class Rasterizer:
         self._ensure(self.ranges_, n_tiles)
         if self.device_is_cpu:
             # one move of the pairs, from the Gaussians' side, and the ranges with it (bin.sort_pairs_and_ranges)
+            self._ensure(self.sort_scratch_, _bin.sort_by_gaussian_scratch(n, n_tiles))
             _bin.sort_pairs_and_ranges(keys, slots, n_pairs, n_tiles, offsets[:n], touched[:n],
-                                       self.ranges_.view(n_tiles), keys_sorted=False)
+                                       self.ranges_.view(n_tiles), keys_sorted=False, scratch=self.sort_scratch_.full)
             self._stage("sort", t)
             return n_pairs
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)

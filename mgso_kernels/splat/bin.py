@@ -43,7 +43,7 @@ from .common import LANES16_CPP, vec8
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["count_tiles", "emit_pairs", "tile_ranges", "ellipse_row_span", "sort_pairs", "radix_sort_pairs_cpu",
-           "sort_pairs_and_ranges"]
+           "sort_pairs_and_ranges", "sort_by_gaussian_scratch"]
 
 TS = wp.constant(TILE_SIZE)
 
@@ -536,9 +536,10 @@ def radix_sort_pairs_cpu(n: int, end_bit: int, keys: wp.array(dtype=wp.int64), v
 # a tile by depth, ties by slot, as a Gaussian has one pair a tile and the slots grow with the index), bit for bit,
 # and the tiles' [start, end) fall out of the counts; but it moves the pairs once, where the radix sort moved them
 # four times (a 640x480 view's 43 key bits): 16.4 ms of sort and ranges for 765k pairs on one Intel thread. The
-# scratch is the arrays' second halves and two buffers of the Gaussians' count. Returns 0 (nothing written) where
-# the layout does not hold (the Gaussians' slots not one after the other, m in all; a tile outside [0, n_tiles)),
-# the arrays are not contiguous or the scratch cannot be had, and on CUDA.
+# scratch is the arrays' second halves and ``scratch`` (4 n + 2 + n_tiles ints: no allocation in the snippet, which
+# Warp's CPU JIT may not link). Returns 0 (nothing written) where the layout does not hold (the Gaussians' slots not
+# one after the other, m in all; a tile outside [0, n_tiles)) or the arrays are not contiguous or too short, and on
+# CUDA.
 _SORT_BY_GAUSSIAN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 if (keys.strides[0] != 8 || values.strides[0] != 4 || keys.shape[0] < 2 * m || values.shape[0] < 2 * m
@@ -562,24 +563,21 @@ int* R = (int*)ranges.data;
     if (at != m) return 0;
 }
 // the pairs per tile (and that every tile is one of the n_tiles: else nothing is written)
-unsigned* tc = (unsigned*)__builtin_malloc(4L * n_tiles);
-if (tc == nullptr) return 0;
+// the scratch: the Gaussians' depth bits and indices (twice, for the radix sort's passes), the tiles' counts
+if (scratch.strides[0] != 4 || scratch.shape[0] < 4L * n + 2 + n_tiles) return 0;
+unsigned* dk = (unsigned*)scratch.data;
+int* gi = (int*)scratch.data + (2L * n + 1);
+unsigned* tc = (unsigned*)scratch.data + (4L * n + 2);
 for (int t = 0; t < n_tiles; ++t) tc[t] = 0;
 for (int j = 0; j < m; ++j) {
     const unsigned long long t = K[j] >> 32;
-    if (t >= (unsigned long long)n_tiles) { __builtin_free(tc); return 0; }
+    if (t >= (unsigned long long)n_tiles) return 0;
     tc[t]++;
 }
 // the Gaussians with pairs, by their depth bits (a stable LSD radix sort, the digits' counts in one read)
 int nv = 0;
 for (int g = 0; g < n; ++g) nv += tt[g] > 0;
-unsigned* dk = (unsigned*)__builtin_malloc(4L * (2L * nv + 1));
-int* gi = (int*)__builtin_malloc(4L * (2L * nv + 1));
-unsigned* cnt = (unsigned*)__builtin_malloc(4L * DP * NB);
-if (dk == nullptr || gi == nullptr || cnt == nullptr) {
-    __builtin_free(tc); __builtin_free(dk); __builtin_free(gi); __builtin_free(cnt);
-    return 0;
-}
+unsigned cnt[DP * NB];      // 24 KB of stack at 11-bit digits
 {
     int v = 0;
     for (int g = 0; g < n; ++g)
@@ -607,7 +605,6 @@ if (dk == nullptr || gi == nullptr || cnt == nullptr) {
     }
     if (g0 != gi) for (int v = 0; v < nv; ++v) gi[v] = g0[v];   // the sorted order at gi[0 .. nv)
 }
-__builtin_free(cnt);
 // each tile's [start, end) ([0, 0) where it has none, as tile_ranges leaves it), the counts becoming the cursors
 {
     unsigned start = 0;
@@ -638,9 +635,6 @@ if (with_keys != 0) {
     }
 }
 __builtin_memcpy(V, V2, 4L * m);
-__builtin_free(tc);
-__builtin_free(dk);
-__builtin_free(gi);
 return 1;
 #else
 return 0;
@@ -651,7 +645,8 @@ return 0;
 @wp.func_native(_SORT_BY_GAUSSIAN_CPP)
 def sort_by_gaussian_cpp(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
-                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int) -> int:
+                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int,
+                         scratch: wp.array(dtype=wp.int32)) -> int:
     """The per-Gaussian sort above of the first ``m`` pairs of ``n`` Gaussians, in place (the keys too where
     ``with_keys``), and the tiles' ranges. Returns 1, or 0 (nothing written) where it does not apply."""
     ...
@@ -661,23 +656,29 @@ def sort_by_gaussian_cpp(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=w
 def sort_by_gaussian_cpu(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
                          values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int,
-                         native: int, status: wp.array(dtype=wp.int32)):
+                         scratch: wp.array(dtype=wp.int32), native: int, status: wp.array(dtype=wp.int32)):
     """One thread: :func:`sort_by_gaussian_cpp` (``native`` 1), its result in ``status[0]`` (0: the caller sorts)."""
     done = int(0)
     if native != 0:
-        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges, with_keys)
+        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges, with_keys, scratch)
     status[0] = done
 
 
+def sort_by_gaussian_scratch(n: int, n_tiles: int) -> int:
+    """Ints of scratch :func:`sort_pairs_and_ranges` needs on the CPU for ``n`` Gaussians and ``n_tiles`` tiles."""
+    return 4 * n + 2 + n_tiles
+
+
 def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets, tiles_touched, ranges, *,
-                          keys_sorted: bool = True) -> int:
+                          keys_sorted: bool = True, scratch=None) -> int:
     """Sort the rasteriser's pairs by (tile, depth) in place (stable) and fill ``ranges`` (tiles, 2) with each
     tile's [start, end) ([0, 0) for a tile without pairs), for pairs laid out as :func:`emit_pairs` writes them
     (Gaussian g's at the slots ``[pair_offsets[g], pair_offsets[g] + tiles_touched[g])``, each with g's depth bits).
     On the CPU by :data:`_SORT_BY_GAUSSIAN_CPP` (one move of the pairs; returns 2), else, or where that declines,
     :func:`sort_pairs` and :func:`launch_tile_ranges` (returns what :func:`sort_pairs` returns): the same keys,
     slots and ranges bit for bit. ``keys_sorted=False``: the keys may be left as they were (the CPU's path then
-    moves only the slots: the rasteriser reads no key after the sort)."""
+    moves only the slots: the rasteriser reads no key after the sort). ``scratch``: an int32 array of at least
+    :func:`sort_by_gaussian_scratch` ints on the CPU (made here when None)."""
     if ranges.dtype is not wp.int32 or ranges.ndim != 2 or ranges.shape[1] != 2 or ranges.shape[0] < n_tiles:
         raise TypeError(f"sort_pairs_and_ranges: ranges must be an int32 array of shape ({n_tiles}, 2)")
     device = keys.device
@@ -685,10 +686,12 @@ def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets,
         from .raster_tile import native_flag
 
         n = tiles_touched.shape[0]
+        if scratch is None:
+            scratch = wp.empty(sort_by_gaussian_scratch(n, n_tiles), dtype=wp.int32, device=device)
         status = wp.zeros(1, dtype=wp.int32, device=device)   # a call's own (renders may sort on two threads)
         wp.launch(sort_by_gaussian_cpu, dim=1, inputs=[n, n_pairs, n_tiles, pair_offsets, tiles_touched, keys, slots,
-                                                        ranges, int(bool(keys_sorted)), native_flag(), status],
-                  device=device)
+                                                        ranges, int(bool(keys_sorted)), scratch, native_flag(),
+                                                        status], device=device)
         if int(status.numpy()[0]) == 1:
             return 2
     ran = sort_pairs(keys, slots, n_pairs, n_tiles)

@@ -359,8 +359,8 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     slots and tile ranges are those of the radix sort of the pairs' keys and tile_ranges bit for bit (ties in depth
     keep the slot order; Gaussians without pairs; tiles without pairs stay [0, 0)). The control with the C++
     switched off takes that other path and returns 1 or 0; the slots alone (``keys_sorted=False``, the rasteriser's
-    call) leave the keys as they were. A key whose tile is outside [0, n_tiles), or Gaussians whose slots are not one
-    after the other, make the C++ decline with nothing written."""
+    call) leave the keys as they were. A key whose tile is outside [0, n_tiles), Gaussians whose slots are not one
+    after the other, or a scratch too short make the C++ decline with nothing written."""
     from mgso_kernels.splat import bin as binning
 
     rng = np.random.default_rng(n_tiles)
@@ -414,12 +414,14 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     np.testing.assert_array_equal(off_k, want_k)
     np.testing.assert_array_equal(off_v, want_v)
     np.testing.assert_array_equal(off_r, want_r)
+    scratch = wp.empty(binning.sort_by_gaussian_scratch(n, n_tiles), dtype=wp.int32, device="cpu")
     bad = keys.copy()
     bad[m // 2] = (np.int64(n_tiles) << 32) | (bad[m // 2] & 0xFFFFFFFF)
     k, v, r = arrays(bad)
     status = wp.zeros(1, dtype=wp.int32, device="cpu")
     wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, 1, status],
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch, 1,
+                                                           status],
               device="cpu")
     assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], bad) and np.all(r.numpy() == -7)
     # and Gaussians whose slots are not one after the other (a count that does not add up to m): declined too
@@ -427,8 +429,14 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
     off_bad = offsets.copy()
     off_bad[np.flatnonzero(touched)[1]] += 1
     wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(off_bad, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, 1, status],
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch, 1,
+                                                           status],
               device="cpu")
+    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], keys) and np.all(r.numpy() == -7)
+    # and a scratch one int short
+    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
+                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch[:-1],
+                                                           1, status], device="cpu")
     assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], keys) and np.all(r.numpy() == -7)
 
 
