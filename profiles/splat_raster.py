@@ -20,11 +20,11 @@ at half that size (the real-time mapper's coarse steps).
 
 Per size and count: medians over ``--repeats`` (after one warm-up) of each stage in milliseconds: forward
 ``project``, ``bin_count`` (tile counting + prefix scan + reading the pair count), ``bin_keys`` (key emission),
-``sort``, ``ranges``, ``sh``, ``pack``, ``blend``, ``forward_total``; backward ``backward_blend``,
-``backward_gather``, ``backward_project`` (projection + SH backward + pose reduction), ``backward_total``;
-``alpha_only`` (the cheap coverage render); plus ``pairs`` and ``visible``; ``forward_cpu_ms`` /
-``backward_cpu_ms``: median process CPU time of the forward / backward summed over threads (the compute cost, which
-moves much less than wall time when other jobs share the cores).
+``sort``, ``ranges`` (on the CPU part of ``sort``: its sort from the Gaussians' side makes them), ``sh``, ``pack``,
+``blend``, ``forward_total``; backward ``backward_blend``, ``backward_gather``, ``backward_project`` (projection +
+SH backward + pose reduction), ``backward_total``; ``alpha_only`` (the cheap coverage render); plus ``pairs`` and
+``visible``; ``forward_cpu_ms`` / ``backward_cpu_ms``: median process CPU time of the forward / backward summed over
+threads (the compute cost, which moves much less than wall time when other jobs share the cores).
 """
 
 from __future__ import annotations
