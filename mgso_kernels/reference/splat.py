@@ -33,7 +33,7 @@ import numpy as np
 
 __all__ = [
     "SH_C0", "SH_C1", "SH_C2", "SH_C3", "RefCamera", "tangent_limits", "quat_to_rotmat", "quat_to_rotmat_vjp",
-    "sh_basis", "sh_basis_grad", "sh_to_rgb", "sh_to_rgb_vjp", "project", "project_vjp", "tile_pairs",
+    "sh_basis", "sh_basis_grad", "sh_to_rgb", "sh_to_rgb_vjp", "project", "project_vjp", "tile_pairs", "sorted_pairs",
     "render", "render_vjp", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "num_sh_bases", "random_scene",
 ]
 
@@ -344,6 +344,19 @@ def tile_pairs(proj: dict, cam, tile_size: int = 16, scale_r2: float = 1.0) -> s
 
 
 # --------------------------------------------------------------------------------------------------- rendering
+def sorted_pairs(keys: np.ndarray, n_tiles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs' order by (tile, depth) and each tile's [start, end) in it ([0, 0) without pairs): ``keys`` (M,)
+    int64, tile in the high 32 bits, the depth's float32 bits in the low 32 (``bin.emit_pairs``). Returns ``order``
+    (M,), the pairs' positions before sorting (the slots), ties kept in slot order, and ``ranges`` (n_tiles, 2)."""
+    order = np.argsort(np.asarray(keys, np.int64), kind="stable")
+    tiles = np.asarray(keys, np.int64)[order] >> 32
+    ranges = np.zeros((n_tiles, 2), np.int32)
+    for t in np.unique(tiles):
+        idx = np.flatnonzero(tiles == t)
+        ranges[t] = (idx[0], idx[-1] + 1)
+    return order.astype(np.int32), ranges
+
+
 def _blend(proj, colors, cam, background, cutoffs, t_stop: float = 0.0):
     """Vectorised over pixels, sequential over depth-sorted Gaussians. Returns per-pixel outputs and the
     (P, N) per-Gaussian alpha / transmittance matrices (in sorted order) the backward pass reuses."""

@@ -175,7 +175,7 @@ class Rasterizer:
         self.threads = threads
         self._split = {"threads": threads, "min_chunk": int(min_chunk)}
         if pixels_per_thread is None:
-            pixels_per_thread = TILE_SIZE * TILE_SIZE if wp.get_device(self.device).is_cpu else 1
+            pixels_per_thread = TILE_SIZE * TILE_SIZE if self.device_is_cpu else 1
         if pixels_per_thread not in _raster.SEGMENT_WIDTHS:
             raise ValueError(f"pixels_per_thread must be one of {_raster.SEGMENT_WIDTHS}, got {pixels_per_thread}")
         self.pixels_per_thread = int(pixels_per_thread)
@@ -315,7 +315,7 @@ class Rasterizer:
             # one move of the pairs, from the Gaussians' side, and the ranges with it (bin.sort_pairs_and_ranges)
             self._ensure(self.sort_scratch_, _bin.sort_by_gaussian_scratch(n, n_tiles))
             _bin.sort_pairs_and_ranges(keys, slots, n_pairs, n_tiles, offsets[:n], touched[:n],
-                                       self.ranges_.view(n_tiles), keys_sorted=False, scratch=self.sort_scratch_.full)
+                                       self.ranges_.view(n_tiles), scratch=self.sort_scratch_.full)
             self._stage("sort", t)
             return n_pairs
         _bin.sort_pairs(keys, slots, n_pairs, n_tiles)

@@ -534,21 +534,20 @@ def radix_sort_pairs_cpu(n: int, end_bit: int, keys: wp.array(dtype=wp.int64), v
 # depth bits (stable, so ties keep index order), the pairs counted per tile, and each Gaussian's pairs then placed, in
 # that depth order, at their tiles' next places. That is the order of the stable radix sort of the pairs' keys (within
 # a tile by depth, ties by slot, as a Gaussian has one pair a tile and the slots grow with the index), bit for bit,
-# and the tiles' [start, end) fall out of the counts; but it moves the pairs once, where the radix sort moved them
-# four times (a 640x480 view's 43 key bits): 16.4 ms of sort and ranges for 765k pairs on one Intel thread. The
-# scratch is the arrays' second halves and ``scratch`` (4 n + 2 + n_tiles ints: no allocation in the snippet, which
+# and the tiles' [start, end) fall out of the counts; but it moves the slots once and no key, where the radix sort
+# moved keys and slots four times (a 640x480 view's 43 key bits): 6.8 against 18 ms of sort and ranges for 765k pairs
+# on one Intel thread. The scratch is the slots' second half and ``scratch`` (4 n + 2 + n_tiles ints: no allocation in the snippet, which
 # Warp's CPU JIT may not link). Returns 0 (nothing written) where the layout does not hold (the Gaussians' slots not
 # one after the other, m in all; a tile outside [0, n_tiles)) or the arrays are not contiguous or too short, and on
 # CUDA.
 _SORT_BY_GAUSSIAN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
-if (keys.strides[0] != 8 || values.strides[0] != 4 || keys.shape[0] < 2 * m || values.shape[0] < 2 * m
+if (keys.strides[0] != 8 || values.strides[0] != 4 || keys.shape[0] < m || values.shape[0] < 2 * m
     || offsets.strides[0] != 4 || touched.strides[0] != 4 || offsets.shape[0] < n || touched.shape[0] < n
     || ranges.strides[0] != 8 || ranges.strides[1] != 4 || ranges.shape[0] < n_tiles || n_tiles < 1) return 0;
 enum { DB = @DIGIT_BITS@, NB = 1 << DB, DP = (32 + DB - 1) / DB };
 unsigned long long* K = (unsigned long long*)keys.data;
 int* V = (int*)values.data;
-unsigned long long* K2 = K + m;
 int* V2 = V + m;
 const int* off = (const int*)offsets.data;
 const int* tt = (const int*)touched.data;
@@ -562,12 +561,12 @@ int* R = (int*)ranges.data;
     }
     if (at != m) return 0;
 }
-// the pairs per tile (and that every tile is one of the n_tiles: else nothing is written)
 // the scratch: the Gaussians' depth bits and indices (twice, for the radix sort's passes), the tiles' counts
 if (scratch.strides[0] != 4 || scratch.shape[0] < 4L * n + 2 + n_tiles) return 0;
 unsigned* dk = (unsigned*)scratch.data;
 int* gi = (int*)scratch.data + (2L * n + 1);
 unsigned* tc = (unsigned*)scratch.data + (4L * n + 2);
+// the pairs per tile (and that every tile is one of the n_tiles: else nothing is written)
 for (int t = 0; t < n_tiles; ++t) tc[t] = 0;
 for (int j = 0; j < m; ++j) {
     const unsigned long long t = K[j] >> 32;
@@ -576,14 +575,10 @@ for (int j = 0; j < m; ++j) {
 }
 // the Gaussians with pairs, by their depth bits (a stable LSD radix sort, the digits' counts in one read)
 int nv = 0;
-for (int g = 0; g < n; ++g) nv += tt[g] > 0;
-unsigned cnt[DP * NB];      // 24 KB of stack at 11-bit digits
+for (int g = 0; g < n; ++g)
+    if (tt[g] > 0) { dk[nv] = (unsigned)(K[off[g]] & 0xffffffffULL); gi[nv] = g; ++nv; }
 {
-    int v = 0;
-    for (int g = 0; g < n; ++g)
-        if (tt[g] > 0) { dk[v] = (unsigned)(K[off[g]] & 0xffffffffULL); gi[v] = g; ++v; }
-}
-{
+    unsigned cnt[DP * NB];      // 24 KB of stack at 11-bit digits
     for (int i = 0; i < DP * NB; ++i) cnt[i] = 0;
     for (int v = 0; v < nv; ++v)
         for (int p = 0; p < DP; ++p) cnt[p * NB + ((dk[v] >> (DB * p)) & (NB - 1))]++;
@@ -616,23 +611,11 @@ unsigned cnt[DP * NB];      // 24 KB of stack at 11-bit digits
         start += c;
     }
 }
-if (with_keys != 0) {
-    for (int v = 0; v < nv; ++v) {
-        const int g = gi[v];
-        const int j1 = off[g] + tt[g];
-        for (int j = off[g]; j < j1; ++j) {
-            const unsigned o = tc[K[j] >> 32]++;
-            K2[o] = K[j];
-            V2[o] = V[j];
-        }
-    }
-    __builtin_memcpy(K, K2, 8L * m);
-} else {            // the values only (the keys stay as they were: the rasteriser reads none after the sort)
-    for (int v = 0; v < nv; ++v) {
-        const int g = gi[v];
-        const int j1 = off[g] + tt[g];
-        for (int j = off[g]; j < j1; ++j) V2[tc[K[j] >> 32]++] = V[j];
-    }
+// the values moved, the keys left as they were (the rasteriser reads no key after the sort)
+for (int v = 0; v < nv; ++v) {
+    const int g = gi[v];
+    const int j1 = off[g] + tt[g];
+    for (int j = off[g]; j < j1; ++j) V2[tc[K[j] >> 32]++] = V[j];
 }
 __builtin_memcpy(V, V2, 4L * m);
 return 1;
@@ -645,22 +628,22 @@ return 0;
 @wp.func_native(_SORT_BY_GAUSSIAN_CPP)
 def sort_by_gaussian_cpp(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
-                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int,
+                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32),
                          scratch: wp.array(dtype=wp.int32)) -> int:
-    """The per-Gaussian sort above of the first ``m`` pairs of ``n`` Gaussians, in place (the keys too where
-    ``with_keys``), and the tiles' ranges. Returns 1, or 0 (nothing written) where it does not apply."""
+    """The per-Gaussian sort above of the first ``m`` pairs' values of ``n`` Gaussians, in place, and the tiles'
+    ranges. Returns 1, or 0 (nothing written) where it does not apply."""
     ...
 
 
 @wp.kernel
 def sort_by_gaussian_cpu(n: int, m: int, n_tiles: int, offsets: wp.array(dtype=wp.int32),
                          touched: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64),
-                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), with_keys: int,
+                         values: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32),
                          scratch: wp.array(dtype=wp.int32), native: int, status: wp.array(dtype=wp.int32)):
     """One thread: :func:`sort_by_gaussian_cpp` (``native`` 1), its result in ``status[0]`` (0: the caller sorts)."""
     done = int(0)
     if native != 0:
-        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges, with_keys, scratch)
+        done = sort_by_gaussian_cpp(n, m, n_tiles, offsets, touched, keys, values, ranges, scratch)
     status[0] = done
 
 
@@ -670,14 +653,14 @@ def sort_by_gaussian_scratch(n: int, n_tiles: int) -> int:
 
 
 def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets, tiles_touched, ranges, *,
-                          keys_sorted: bool = True, scratch=None) -> int:
-    """Sort the rasteriser's pairs by (tile, depth) in place (stable) and fill ``ranges`` (tiles, 2) with each
+                          scratch=None) -> int:
+    """Sort the rasteriser's pair slots by (tile, depth) in place (stable) and fill ``ranges`` (tiles, 2) with each
     tile's [start, end) ([0, 0) for a tile without pairs), for pairs laid out as :func:`emit_pairs` writes them
     (Gaussian g's at the slots ``[pair_offsets[g], pair_offsets[g] + tiles_touched[g])``, each with g's depth bits).
-    On the CPU by :data:`_SORT_BY_GAUSSIAN_CPP` (one move of the pairs; returns 2), else, or where that declines,
-    :func:`sort_pairs` and :func:`launch_tile_ranges` (returns what :func:`sort_pairs` returns): the same keys,
-    slots and ranges bit for bit. ``keys_sorted=False``: the keys may be left as they were (the CPU's path then
-    moves only the slots: the rasteriser reads no key after the sort). ``scratch``: an int32 array of at least
+    On the CPU by :data:`_SORT_BY_GAUSSIAN_CPP` (the slots moved once, the keys left as they were; returns 2), else,
+    or where that declines, :func:`sort_pairs` and :func:`launch_tile_ranges` (the keys sorted too; returns what
+    :func:`sort_pairs` returns): the same slots and ranges bit for bit (the twin:
+    :func:`mgso_kernels.reference.splat.sorted_pairs`). ``scratch``: an int32 array of at least
     :func:`sort_by_gaussian_scratch` ints on the CPU (made here when None)."""
     if ranges.dtype is not wp.int32 or ranges.ndim != 2 or ranges.shape[1] != 2 or ranges.shape[0] < n_tiles:
         raise TypeError(f"sort_pairs_and_ranges: ranges must be an int32 array of shape ({n_tiles}, 2)")
@@ -690,8 +673,7 @@ def sort_pairs_and_ranges(keys, slots, n_pairs: int, n_tiles: int, pair_offsets,
             scratch = wp.empty(sort_by_gaussian_scratch(n, n_tiles), dtype=wp.int32, device=device)
         status = wp.zeros(1, dtype=wp.int32, device=device)   # a call's own (renders may sort on two threads)
         wp.launch(sort_by_gaussian_cpu, dim=1, inputs=[n, n_pairs, n_tiles, pair_offsets, tiles_touched, keys, slots,
-                                                        ranges, int(bool(keys_sorted)), scratch, native_flag(),
-                                                        status], device=device)
+                                                        ranges, scratch, native_flag(), status], device=device)
         if int(status.numpy()[0]) == 1:
             return 2
     ran = sort_pairs(keys, slots, n_pairs, n_tiles)

@@ -355,12 +355,12 @@ def test_the_cpus_radix_sort_gives_warps_order(wp_device, n_tiles):
 @pytest.mark.parametrize("n_tiles", [3, 1200, 70000])
 def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges(n_tiles):
     """bin.sort_pairs_and_ranges on the rasteriser's layout (Gaussian g's pairs at its slots, all with g's depth bits,
-    one a tile): on the CPU it sorts the Gaussians by depth and places their pairs tile by tile (returns 2); the keys,
-    slots and tile ranges are those of the radix sort of the pairs' keys and tile_ranges bit for bit (ties in depth
-    keep the slot order; Gaussians without pairs; tiles without pairs stay [0, 0)). The control with the C++
-    switched off takes that other path and returns 1 or 0; the slots alone (``keys_sorted=False``, the rasteriser's
-    call) leave the keys as they were. A key whose tile is outside [0, n_tiles), Gaussians whose slots are not one
-    after the other, or a scratch too short make the C++ decline with nothing written."""
+    one a tile): on the CPU it sorts the Gaussians by depth and places their slots tile by tile, the keys left as
+    they were (returns 2); the slots and tile ranges are the twin's (reference.splat.sorted_pairs: NumPy's stable
+    sort of the keys) bit for bit (ties in depth keep the slot order; Gaussians without pairs; tiles without pairs
+    stay [0, 0)). The control with the C++ switched off takes the radix sort and tile_ranges (returns 1 or 0): the
+    same slots and ranges, and the keys sorted. A key whose tile is outside [0, n_tiles), Gaussians whose slots are
+    not one after the other, or a scratch too short make the C++ decline with nothing written."""
     from mgso_kernels.splat import bin as binning
 
     rng = np.random.default_rng(n_tiles)
@@ -376,68 +376,46 @@ def test_the_cpus_sort_from_the_gaussians_gives_the_radix_sorts_order_and_ranges
                            | depth_bits[g] for g in range(n)])
     assert len(keys) == m
     slots = np.arange(m, dtype=np.int32)
+    want_v, want_r = ref.sorted_pairs(keys, n_tiles)
 
     def arrays(k0):
         return (wp.array(np.concatenate([k0, k0]), dtype=wp.int64, device="cpu"),
                 wp.array(np.concatenate([slots, slots]), dtype=wp.int32, device="cpu"),
                 wp.array(np.full((n_tiles, 2), -7, np.int32), device="cpu"))
 
-    def run(native, keys_sorted=True):
+    def run(native):
         k, v, r = arrays(keys)
         before = raster_tile.use_native(native)
         try:
             ran = binning.sort_pairs_and_ranges(k, v, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                wp.array(touched, device="cpu"), r, keys_sorted=keys_sorted)
+                                                wp.array(touched, device="cpu"), r)
         finally:
             raster_tile.use_native(before)
         return k.numpy()[:m], v.numpy()[:m], r.numpy(), ran
 
-    # the reference: the pairs' keys sorted stably (numpy's stable argsort), the ranges from them
-    order = np.argsort(keys, kind="stable")
-    want_k, want_v = keys[order], slots[order]
-    want_r = np.zeros((n_tiles, 2), np.int32)
-    t_of = (want_k >> 32).astype(np.int64)
-    for t in np.unique(t_of):
-        idx = np.flatnonzero(t_of == t)
-        want_r[t] = (idx[0], idx[-1] + 1)
     got_k, got_v, got_r, ran = run(True)
-    assert ran == 2
-    np.testing.assert_array_equal(got_k, want_k)
+    assert ran == 2 and np.array_equal(got_k, keys)
     np.testing.assert_array_equal(got_v, want_v)
     np.testing.assert_array_equal(got_r, want_r)
-    same_k, only_v, only_r, only_ran = run(True, keys_sorted=False)   # the slots and ranges alone
-    assert only_ran == 2 and np.array_equal(same_k, keys)
-    np.testing.assert_array_equal(only_v, want_v)
-    np.testing.assert_array_equal(only_r, want_r)
     off_k, off_v, off_r, off_ran = run(False)
     assert off_ran in (0, 1)
-    np.testing.assert_array_equal(off_k, want_k)
+    np.testing.assert_array_equal(off_k, keys[want_v])
     np.testing.assert_array_equal(off_v, want_v)
     np.testing.assert_array_equal(off_r, want_r)
     scratch = wp.empty(binning.sort_by_gaussian_scratch(n, n_tiles), dtype=wp.int32, device="cpu")
+    status = wp.zeros(1, dtype=wp.int32, device="cpu")
     bad = keys.copy()
     bad[m // 2] = (np.int64(n_tiles) << 32) | (bad[m // 2] & 0xFFFFFFFF)
-    k, v, r = arrays(bad)
-    status = wp.zeros(1, dtype=wp.int32, device="cpu")
-    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch, 1,
-                                                           status],
-              device="cpu")
-    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], bad) and np.all(r.numpy() == -7)
-    # and Gaussians whose slots are not one after the other (a count that does not add up to m): declined too
-    k, v, r = arrays(keys)
     off_bad = offsets.copy()
     off_bad[np.flatnonzero(touched)[1]] += 1
-    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(off_bad, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch, 1,
-                                                           status],
-              device="cpu")
-    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], keys) and np.all(r.numpy() == -7)
-    # and a scratch one int short
-    wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(offsets, device="cpu"),
-                                                           wp.array(touched, device="cpu"), k, v, r, 1, scratch[:-1],
-                                                           1, status], device="cpu")
-    assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], keys) and np.all(r.numpy() == -7)
+    # a tile outside the view; slots not one after the other; a scratch one int short
+    for k0, off, scr in ((bad, offsets, scratch), (keys, off_bad, scratch), (keys, offsets, scratch[:-1])):
+        k, v, r = arrays(k0)
+        wp.launch(binning.sort_by_gaussian_cpu, dim=1, inputs=[n, m, n_tiles, wp.array(off, device="cpu"),
+                                                               wp.array(touched, device="cpu"), k, v, r, scr, 1,
+                                                               status], device="cpu")
+        assert status.numpy()[0] == 0 and np.array_equal(k.numpy()[:m], k0)
+        assert np.array_equal(v.numpy()[:m], slots) and np.all(r.numpy() == -7)
 
 
 def _random_splats(rng, n, width, height, big=False):
