@@ -20,12 +20,14 @@ Nothing here runs at import time: importing ``mgso_kernels`` neither initialises
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import logging
 import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any, Sequence
@@ -33,6 +35,8 @@ from typing import Any, Sequence
 import warp as wp
 
 __all__ = [
+    "DeviceCalls",
+    "count_device_calls",
     "launch_blocks",
     "use_native",
     "native_flag",
@@ -509,3 +513,66 @@ def _run(cmds: list) -> int:
         if error is not None:
             raise error
     return len(cmds)
+
+
+# ------------------------------------------------------------------------------------------- counting device calls
+@dataclass
+class DeviceCalls:
+    """What :func:`count_device_calls` counted: ``launches``, kernel launches as the device runs them (a split CPU
+    launch counts one a chunk, so two on two cores; the same code on CUDA makes one); ``memsets``, arrays zeroed or
+    filled (``zero_``, ``fill_``: a memset launch on CUDA); ``scans`` (``wp.utils.array_scan``); ``host_reads``,
+    ``array.numpy()`` calls (on CUDA each copies to the host and waits for the device, on the CPU a view); ``syncs``,
+    explicit ``wp.synchronize`` / ``wp.synchronize_device`` calls."""
+
+    launches: int = 0
+    memsets: int = 0
+    scans: int = 0
+    host_reads: int = 0
+    syncs: int = 0
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@contextlib.contextmanager
+def count_device_calls():
+    """Count the Warp calls that reach the device while the block runs (:class:`DeviceCalls`, yielded and filled in
+    as they happen), from every thread: a profiling aid (issue 42 asks for the launches and host synchronisations of a
+    training step), which wraps Warp's entry points in this process for the block's duration, so run nothing else
+    meanwhile. Launches recorded for later (``record_cmd=True``) count when they run."""
+    import warp._src.context as ctx
+    import warp._src.types as wtypes
+
+    calls = DeviceCalls()
+    lock = threading.Lock()
+    inside = threading.local()      # a counted call made inside another (a strided zero_ fills) counts once
+
+    def counted(field, fn, skip=None):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            if getattr(inside, "depth", 0) == 0 and (skip is None or not skip(args, kwargs)):
+                with lock:
+                    setattr(calls, field, getattr(calls, field) + 1)
+            inside.depth = getattr(inside, "depth", 0) + 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                inside.depth -= 1
+        return wrapper
+
+    patches = [(wp, "launch", counted("launches", wp.launch, lambda a, k: bool(k.get("record_cmd")))),
+               (ctx.Launch, "launch", counted("launches", ctx.Launch.launch)),
+               (wtypes.array, "zero_", counted("memsets", wtypes.array.zero_)),
+               (wtypes.array, "fill_", counted("memsets", wtypes.array.fill_)),
+               (wp.utils, "array_scan", counted("scans", wp.utils.array_scan)),
+               (wtypes.array, "numpy", counted("host_reads", wtypes.array.numpy)),
+               (wp, "synchronize", counted("syncs", wp.synchronize)),
+               (wp, "synchronize_device", counted("syncs", wp.synchronize_device))]
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
+    try:
+        for obj, name, fn in patches:
+            setattr(obj, name, fn)
+        yield calls
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)

@@ -247,3 +247,31 @@ def test_the_modules_that_measured_a_gain_carry_their_compiler_options():
     track_flags = opts(track)["cpu_compiler_flags"]  # None: Warp's global flags, which cap the SLP depth
     assert track_flags is None or "slp-recursion-max-depth" in track_flags
     assert opts(track)["optimization_level"] in (None, 2)
+
+
+def test_count_device_calls_counts_what_reaches_the_device(wp_device):
+    """runtime.count_device_calls (issue 42: a training step's launches and host synchronisations): a plain launch
+    is one, a recorded one counts when it runs (not when recorded), a split CPU launch one a chunk; zero_ and fill_
+    are memsets (a strided zero_, which fills, once); scans, numpy() reads and explicit synchronisations each count;
+    nothing is counted outside the block, and Warp's functions are themselves again after it."""
+    src = wp.array(np.arange(8192, dtype=np.float32), device=wp_device)
+    out = wp.zeros(8192, dtype=wp.float32, device=wp_device)
+    launch, numpy_read = wp.launch, wp.array.numpy
+    with runtime.count_device_calls() as calls:
+        wp.launch(scale_add, dim=8192, inputs=[0, 2.0, src, out], device=wp_device)
+        cmd = wp.launch(scale_add, dim=8192, inputs=[0, 2.0, src, out], device=wp_device, record_cmd=True)
+        assert calls.launches == 1
+        cmd.launch()
+        chunks = runtime.launch_split(scale_add, 8192, [2.0, src, out], wp_device, min_chunk=1024, threads=2)
+        out.zero_()
+        wp.zeros((4, 4), dtype=wp.float32, device=wp_device)[:, :2].zero_()   # strided: zero_ fills
+        out.fill_(1.0)
+        wp.utils.array_scan(wp.zeros(4, dtype=wp.int32, device=wp_device),
+                            wp.zeros(4, dtype=wp.int32, device=wp_device))
+        out.numpy()
+        wp.synchronize_device(wp_device)
+    # three memsets of ours and the three of wp.zeros (an allocation is zeroed by a memset on the device too)
+    assert calls.as_dict() == {"launches": 2 + chunks, "memsets": 6, "scans": 1, "host_reads": 1, "syncs": 1}
+    assert chunks == (2 if wp.get_device(wp_device).is_cpu else 1)
+    out.numpy()
+    assert calls.host_reads == 1 and wp.launch is launch and wp.array.numpy is numpy_read
