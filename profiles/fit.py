@@ -18,7 +18,9 @@ operations) at this N, which 3DGS runs every 100 steps; ``visible``: median Gaus
 process CPU time of a step summed over threads (the compute cost, steadier than wall time on a shared machine);
 ``pairs``: median (tile, Gaussian) pairs a render blends, and ``pairs_per_px`` the same a pixel (pairs x 256 / pixels:
 the list entries a pixel could visit), what bounds the rasteriser's cost (docs/rasteriser.md, "The arithmetic
-against the time").
+against the time"); ``launches_per_step``, ``memsets_per_step``, ``scans_per_step``, ``host_reads_per_step`` and
+``syncs_per_step``: what one more step, untimed, sent to the device (:func:`mgso_kernels.runtime.count_device_calls`:
+a split CPU launch counts once a chunk; on CUDA every host read waits for the device).
 """
 
 from __future__ import annotations
@@ -106,6 +108,11 @@ def main() -> None:
                 totals.append(sum(r.times.values()) * 1e3)
                 visible.append(r.num_visible)
                 pairs.append(r.num_pairs)
+            # one more step, counted: what reaches the device in a step as the mapper takes it (no stage timing,
+            # which synchronises a GPU after each stage)
+            tr.train_step._sync = False
+            with runtime.count_device_calls() as calls:
+                tr.step(ids[args.steps % len(ids)])
             strategy = DefaultStrategy(load_config(None, ["mapping.densify.refine_start_step=0",
                                                           "mapping.densify.refine_every=1"]).mapping.densify)
             t0 = time.perf_counter()
@@ -117,7 +124,8 @@ def main() -> None:
                        cpu_ms=round(statistics.median(cpu), 1), visible=int(statistics.median(visible)),
                        refine_ms=round(refine_ms, 1), refine_grew=refine.cloned + refine.split,
                        pairs=int(statistics.median(pairs)),
-                       pairs_per_px=round(statistics.median(pairs) * 256 / (w * h), 1))
+                       pairs_per_px=round(statistics.median(pairs) * 256 / (w * h), 1),
+                       **{f"{k}_per_step": v for k, v in calls.as_dict().items()})
             out["results"][f"{w}x{h}/{n}"] = res
     print(json.dumps(out))
 
