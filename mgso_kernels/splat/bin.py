@@ -536,10 +536,10 @@ def radix_sort_pairs_cpu(n: int, end_bit: int, keys: wp.array(dtype=wp.int64), v
 # a tile by depth, ties by slot, as a Gaussian has one pair a tile and the slots grow with the index), bit for bit,
 # and the tiles' [start, end) fall out of the counts; but it moves the slots once and no key, where the radix sort
 # moved keys and slots four times (a 640x480 view's 43 key bits): 6.8 against 18 ms of sort and ranges for 765k pairs
-# on one Intel thread. The scratch is the slots' second half and ``scratch`` (4 n + 2 + n_tiles ints: no allocation in the snippet, which
-# Warp's CPU JIT may not link). Returns 0 (nothing written) where the layout does not hold (the Gaussians' slots not
-# one after the other, m in all; a tile outside [0, n_tiles)) or the arrays are not contiguous or too short, and on
-# CUDA.
+# on one Intel thread. The scratch is the slots' second half and ``scratch`` (4 n + 2 + n_tiles ints: no allocation
+# in the snippet, which Warp's CPU JIT may not link). Returns 0 (nothing written) where the layout does not hold (the
+# Gaussians' slots not one after the other, m in all; a tile outside [0, n_tiles)) or the arrays are not contiguous or
+# too short, and on CUDA.
 _SORT_BY_GAUSSIAN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 if (keys.strides[0] != 8 || values.strides[0] != 4 || keys.shape[0] < m || values.shape[0] < 2 * m
