@@ -91,6 +91,7 @@ class DensifyStats:
     vis_count: wp.array(dtype=wp.int32)     # [N] views in which the Gaussian was visible (radius > 0)
     max_radius_px: wp.array(dtype=float)    # [N] largest screen radius seen, pixels
     views_seen: wp.array(dtype=wp.int32)    # [N] training views in which it was visible since creation (never reset)
+    weight_max: wp.array(dtype=float)       # [N] largest over views of its blending weight summed over the pixels
 
 
 # -------------------------------------------------------------------------------------------------- funcs
@@ -364,10 +365,15 @@ wp.overload(gather_rows_2d, {"src": wp.array2d(dtype=wp.vec3), "index": wp.array
 del _t
 
 
+_WEIGHT_UNKNOWN = wp.constant(3.4028234663852886e38)   # the largest float32: no prune_weight_px can fall below it
+
+
 @wp.kernel
 def accumulate_densify_stats(offset: int, v_means2d: wp.array(dtype=wp.vec2), v_means2d_abs: wp.array(dtype=wp.vec2),
-                             use_abs: int, radii: wp.array(dtype=Any), ndc_scale: wp.vec2, stats: DensifyStats):
-    """Add one view: for every visible Gaussian (radius > 0) the NDC gradient norm, count and max radius."""
+                             use_abs: int, radii: wp.array(dtype=Any), ndc_scale: wp.vec2,
+                             weights: wp.array(dtype=float), weight_scale: float, stats: DensifyStats):
+    """Add one view: for every visible Gaussian (radius > 0) the NDC gradient norm, count and max radius, and
+    (``weight_scale`` > 0) the largest blending weight summed over a view's pixels, times ``weight_scale``."""
     i = offset + wp.tid()
     r = float(radii[i])
     if r <= 0.0:
@@ -380,12 +386,18 @@ def accumulate_densify_stats(offset: int, v_means2d: wp.array(dtype=wp.vec2), v_
     stats.vis_count[i] = stats.vis_count[i] + 1
     stats.views_seen[i] = stats.views_seen[i] + 1
     stats.max_radius_px[i] = wp.max(stats.max_radius_px[i], r)
+    if weight_scale > 0.0:
+        stats.weight_max[i] = wp.max(stats.weight_max[i], weights[i] * weight_scale)
+    else:
+        stats.weight_max[i] = _WEIGHT_UNKNOWN   # a view without weights: nothing known, so nothing pruned for it
 
 
 for _t in (wp.float32, wp.int32):
     wp.overload(accumulate_densify_stats, {"offset": int, "v_means2d": wp.array(dtype=wp.vec2),
                                            "v_means2d_abs": wp.array(dtype=wp.vec2), "use_abs": int,
-                                           "radii": wp.array(dtype=_t), "ndc_scale": wp.vec2, "stats": DensifyStats})
+                                           "radii": wp.array(dtype=_t), "ndc_scale": wp.vec2,
+                                           "weights": wp.array(dtype=float), "weight_scale": float,
+                                           "stats": DensifyStats})
 del _t
 
 
@@ -526,12 +538,21 @@ def gather(src: wp.array, index: wp.array, dst: wp.array, device: str | None = N
         raise ValueError(f"gather: 1-D or 2-D arrays expected, got {src.ndim}-D")
 
 
+_NO_WEIGHTS: dict[str, wp.array] = {}   # an empty array a device, for a launch without blending weights
+
+
 def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, width: int, height: int,
-                     v_means2d_abs: wp.array | None = None, device: str | None = None) -> None:
+                     v_means2d_abs: wp.array | None = None, device: str | None = None,
+                     weights: wp.array | None = None, weight_scale: float = 1.0) -> None:
     """Add one training view's screen-space statistics to ``stats`` (all arrays over the same N Gaussians).
 
     ``v_means2d``: [N] vec2, dL/d(projected mean) in **pixels** (what the rasteriser's backward produces);
     ``v_means2d_abs``: [N] vec2, AbsGS's sum over pixels of |per-pixel gradient|, pixels (optional);
+    ``weights``: [N] float, each Gaussian's blending weight summed over the view's pixels (``Gradients.weights``,
+    optional): ``weight_max`` keeps the largest over the views, times ``weight_scale`` (the pixels of the full
+    resolution one of this view's pixels covers, 4^level, so that views at every pyramid level count alike). It is
+    zero for a Gaussian hidden behind opaque ones in every pixel, or fainter than 1/255 in all. A view added without
+    ``weights`` sets ``weight_max`` of its visible Gaussians to the largest float32 (unknown: nothing pruned for it);
     ``radii``: [N] float32 or int32 screen radius in pixels, 0 for Gaussians not drawn in this view;
     ``width``, ``height``: the image size, pixels (for the pixel -> NDC conversion, x W/2 and x H/2).
     """
@@ -546,10 +567,21 @@ def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, 
     use_abs = v_means2d_abs is not None
     if use_abs and (v_means2d_abs.dtype != wp.vec2 or v_means2d_abs.shape[0] != n):
         raise ValueError(f"accumulate_stats: v_means2d_abs must be {n} vec2")
+    use_weights = weights is not None
+    if use_weights and (weights.dtype != wp.float32 or weights.shape[0] != n):
+        raise ValueError(f"accumulate_stats: weights must be {n} float32")
+    if use_weights and not weight_scale > 0:
+        raise ValueError(f"accumulate_stats: weight_scale must be > 0, got {weight_scale}")
     if width < 1 or height < 1:
         raise ValueError(f"accumulate_stats: bad image size {width}x{height}")
     if n == 0:
         return
+    if not use_weights:
+        key = str(device)
+        if key not in _NO_WEIGHTS:
+            _NO_WEIGHTS[key] = wp.empty(0, dtype=wp.float32, device=device)
+        weights = _NO_WEIGHTS[key]
     runtime.launch_split(accumulate_densify_stats, n,
                          [v_means2d, v_means2d_abs if use_abs else v_means2d, int(use_abs), radii,
-                          wp.vec2(0.5 * width, 0.5 * height), stats], device)
+                          wp.vec2(0.5 * width, 0.5 * height), weights,
+                          float(weight_scale) if use_weights else 0.0, stats], device)

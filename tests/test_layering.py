@@ -276,7 +276,7 @@ PROBES = [
     ("kernels-not-twins", "mgso_kernels/track.py", "from .reference import track",
      "mgso_kernels.track -> mgso_kernels.reference.track"),
     # the circle of splat's raster modules, as it was
-    ("splat-layers", "mgso_kernels/splat/raster_tile.py", "from .raster_bwd import vec12",
+    ("splat-layers", "mgso_kernels/splat/raster_tile.py", "from .raster_bwd import rasterize_backward",
      "mgso_kernels.splat.raster_tile -> mgso_kernels.splat.raster_bwd"),
     # import-linter names the import(s) whose removal breaks the cycle: either side of it
     ("acyclic-siblings", "mgso/eval/ate.py", "from mgso.mapping import gaussian_map",

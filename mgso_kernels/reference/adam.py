@@ -64,8 +64,10 @@ def gather_rows(src: np.ndarray, index: np.ndarray) -> np.ndarray:
     return np.asarray(src)[np.asarray(index)]
 
 
-def accumulate_densify_stats(stats: dict, v_means2d, radii, width, height, v_means2d_abs=None) -> dict:
-    """Return an updated copy of ``stats`` (keys grad2d_sum, absgrad2d_sum, vis_count, max_radius_px, views_seen)."""
+def accumulate_densify_stats(stats: dict, v_means2d, radii, width, height, v_means2d_abs=None, weights=None,
+                             weight_scale=1.0) -> dict:
+    """Return an updated copy of ``stats`` (keys grad2d_sum, absgrad2d_sum, vis_count, max_radius_px, views_seen and,
+    weight_max: the largest of weights x weight_scale, or the largest float32 for a view without weights)."""
     out = {k: np.array(v, copy=True) for k, v in stats.items()}
     for i in range(len(radii)):
         if radii[i] <= 0:
@@ -78,4 +80,8 @@ def accumulate_densify_stats(stats: dict, v_means2d, radii, width, height, v_mea
         out["vis_count"][i] += 1
         out["views_seen"][i] += 1
         out["max_radius_px"][i] = max(out["max_radius_px"][i], radii[i])
+        if weights is not None:
+            out["weight_max"][i] = max(out["weight_max"][i], weights[i] * weight_scale)
+        elif "weight_max" in out:
+            out["weight_max"][i] = np.finfo(np.float32).max   # unknown
     return out

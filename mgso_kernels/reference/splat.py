@@ -430,7 +430,8 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
 
     Returns v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_pose (6,), and the per-Gaussian screen-space
     quantities v_means2d (N, 2), absgrad (N, 2) (sum over pixels of |per-pixel v_means2d|, AbsGS), v_conics,
-    v_opacities, v_colors, v_depths.
+    v_opacities, v_colors, v_depths, and weights (N,): not a gradient, the sum over pixels of each Gaussian's blending
+    weight alpha T where it is used.
     """
     sh = np.asarray(sh, np.float64)
     if sh_degree is None:
@@ -463,6 +464,8 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
     out_v_z = np.zeros(N)
     out_v_col[order] = w.T @ G
     out_v_z[order] = w.T @ vD
+    weights = np.zeros(N)
+    weights[order] = np.where(used, w, 0.0).sum(axis=0)
     v_conics = np.zeros((N, 3))
     v_means2d = np.zeros((N, 2))
     absgrad = np.zeros((N, 2))
@@ -488,7 +491,7 @@ def render_vjp(means, log_scales, quats, opacity_logits, sh, cam, background, v_
     v_pose = v_pose + np.concatenate([-cam.R @ v_centre, np.zeros(3)])
     return dict(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                 v_sh=v_sh, v_pose=v_pose, v_means2d=v_means2d, absgrad=absgrad, v_conics=v_conics,
-                v_opacities=v_opac, v_colors=out_v_col, v_depths=out_v_z, forward=fw)
+                v_opacities=v_opac, v_colors=out_v_col, v_depths=out_v_z, weights=weights, forward=fw)
 
 
 # ------------------------------------------------------------------------------------------------ test scenes

@@ -115,7 +115,9 @@ class Gradients:
     (zero above the SH degree used), ``v_pose`` (6,) for ``world_to_cam <- exp(delta) @ world_to_cam``,
     delta = (v, w). Screen space, for densification: ``v_means2d`` (N, 2) d loss / d mean2d in pixels,
     ``absgrad`` (N, 2) sum over pixels of |per-pixel d loss / d mean2d| (AbsGS), ``radii`` (N,) int32 (0 = not
-    visible in this view).
+    visible in this view). ``weights`` (N,): not a gradient but the sum over the view's pixels of the Gaussian's
+    blending weight ``w = alpha T`` (how many pixels' worth of the render it makes; zero for one hidden behind opaque
+    Gaussians in every pixel, or fainter than 1/255 in all; ``mgso_kernels.adam.accumulate_stats`` keeps its largest).
     """
 
     v_means: wp.array
@@ -127,6 +129,7 @@ class Gradients:
     v_means2d: wp.array
     absgrad: wp.array
     radii: wp.array
+    weights: wp.array | None = None
 
 
 class _Buffer:
@@ -200,7 +203,7 @@ class Rasterizer:
         self.pair_gauss_ = _Buffer(wp.int32)
         self.splats_ = _Buffer(_common.vec8)
         self.splat_rgbz_ = _Buffer(wp.vec4)
-        self.pair_grads_ = _Buffer(_common.vec12)
+        self.pair_grads_ = _Buffer(_common.vec16)
         # per tile
         self.ranges_ = _Buffer(wp.int32, (2,))
         # per pixel (exact size; reallocated only when the resolution changes)
@@ -213,6 +216,7 @@ class Rasterizer:
         self.v_colors_ = _Buffer(wp.vec3)
         self.v_depths_ = _Buffer(wp.float32)
         self.absgrad_ = _Buffer(wp.vec2)
+        self.weights_ = _Buffer(wp.float32)
         self.v_means_ = _Buffer(wp.float32, (3,))
         self.v_log_scales_ = _Buffer(wp.float32, (3,))
         self.v_quats_ = _Buffer(wp.float32, (4,))
@@ -445,7 +449,7 @@ class Rasterizer:
         t = time.perf_counter()
         self._ensure(self.pair_grads_, max(m, 1))
         for buf in (self.v_means2d_, self.v_conics_, self.v_opacities_, self.v_colors_, self.v_depths_,
-                    self.absgrad_, self.v_means_, self.v_log_scales_, self.v_quats_, self.v_opacity_logits_,
+                    self.absgrad_, self.weights_, self.v_means_, self.v_log_scales_, self.v_quats_, self.v_opacity_logits_,
                     self.v_pose_partial_):
             self._ensure(buf, n)
         self._ensure(self.pose_blocks_, max(1, -(-n // _project.POSE_BLOCK)))
@@ -461,9 +465,10 @@ class Rasterizer:
         v_means2d, v_conics = self.v_means2d_.view(n), self.v_conics_.view(n)
         v_opac, v_colors, v_depths = self.v_opacities_.view(n), self.v_colors_.view(n), self.v_depths_.view(n)
         want_absgrad, absgrad = absgrad, self.absgrad_.view(n)
+        weights = self.weights_.view(n)
         _raster_bwd.launch_gather_gaussian_grads(self.pair_offsets_.view(n), self.tiles_touched_.view(n),
                                                  self.pair_grads_.full, v_means2d, v_conics, v_opac, v_colors,
-                                                 v_depths, absgrad, dev, **sp)
+                                                 v_depths, absgrad, weights, dev, **sp)
         if not want_absgrad and self.pixels_per_thread != TILE_SIZE * TILE_SIZE:
             absgrad.zero_()  # the row kernels sum it anyway: same contract on every path
         t = self._stage("backward_gather", t)
@@ -482,4 +487,4 @@ class Rasterizer:
         self._stage("backward_project", t)
         return Gradients(v_means=v_means, v_log_scales=v_log_scales, v_quats=v_quats, v_opacity_logits=v_logits,
                          v_sh=v_sh, v_pose=self.v_pose, v_means2d=v_means2d.view(wp.float32),
-                         absgrad=absgrad.view(wp.float32), radii=radii)
+                         absgrad=absgrad.view(wp.float32), radii=radii, weights=weights)

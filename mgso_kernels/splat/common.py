@@ -10,8 +10,8 @@ blending): ``(mean_x, mean_y, a, b, c, opacity, exp(-a), r2)`` with the conic ``
 
 The blend kernels' lane vectors live here too, so that the row kernels (``raster``), their backward (``raster_bwd``)
 and the tile-per-thread kernels (``raster_tile``) share them without importing each other: ``vec16`` / ``vec16i``
-hold one value per pixel of a tile row (``TILE_SIZE`` lanes), ``vec12`` one (tile, Gaussian) pair's gradient
-accumulators (see ``raster_bwd.gather_gaussian_grads``).
+hold one value per pixel of a tile row (``TILE_SIZE`` lanes), and ``vec16`` also one (tile, Gaussian) pair's gradient
+accumulators and blending weight (see ``raster_bwd.gather_gaussian_grads``).
 """
 
 from __future__ import annotations
@@ -22,12 +22,11 @@ from .camera import TILE_SIZE
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["vec6", "vec8", "vec12", "vec16", "vec16i", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN",
+__all__ = ["vec6", "vec8", "vec16", "vec16i", "ALPHA_MIN", "ALPHA_MAX", "T_MIN", "R2_REL_MARGIN",
            "R2_ABS_MARGIN", "cutoff_r2", "LANES16_CPP"]
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
-vec12 = wp.types.vector(length=12, dtype=wp.float32)
 vec16 = wp.types.vector(length=TILE_SIZE, dtype=wp.float32)
 vec16i = wp.types.vector(length=TILE_SIZE, dtype=wp.int32)
 

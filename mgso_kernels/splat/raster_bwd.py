@@ -14,13 +14,15 @@ then through ``alpha = min(0.99, opacity exp(power))`` (zero where the clamp is 
 and the 2D mean. Threads are tile rows as in :mod:`mgso_kernels.splat.raster`, with the same row spans and the same
 ``exp`` recurrence, so the skip decisions are the forward's bit for bit.
 
-**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 12-vector
-``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|)`` of each Gaussian and adds it once
+**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 16-vector
+``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|, w, 0, 0, 0)`` of each Gaussian and adds it once
 into that pair's *slot* (one per (tile, Gaussian) pair, see :mod:`mgso_kernels.splat.bin`). All rows of a tile run
 on one CPU thread (chunks are whole tiles), so the adds are never concurrent on the CPU; on CUDA
 ``wp.atomic_add`` is atomic. Then :func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU
-result is bitwise identical however the launch is split. The last two components are the AbsGS statistic: the sum
-over pixels of the absolute per-pixel 2D-mean gradient.
+result is bitwise identical however the launch is split. Components 10-11 are the AbsGS statistic (the sum over
+pixels of the absolute per-pixel 2D-mean gradient), 12 the sum of the Gaussian's blending weights ``w = alpha T``
+over the pixels that took it (not a gradient: how much of the view the Gaussian makes, zero for one hidden behind
+opaque Gaussians in every pixel; the densification's ``prune_weight_px``); 13-15 are padding (a row of 64 bytes).
 
 Twin: :func:`mgso_kernels.reference.splat.render_vjp`.
 """
@@ -30,12 +32,12 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
-from .common import ALPHA_MAX, ALPHA_MIN, vec8, vec12, vec16, vec16i
+from .common import ALPHA_MAX, ALPHA_MIN, vec8, vec16, vec16i
 from .raster import row_span, segment_threads, span_exp_start, tile_row
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["rasterize_backward", "gather_gaussian_grads", "vec12"]
+__all__ = ["rasterize_backward", "gather_gaussian_grads"]
 
 
 @wp.kernel
@@ -55,7 +57,7 @@ def rasterize_backward(
     v_alpha: wp.array2d(dtype=float),  # [H, W] upstream
     use_depth: int,  # 0: v_depth ignored (may be a dummy)
     use_alpha: int,  # 0: v_alpha ignored
-    pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
+    pair_grads: wp.array(dtype=vec16),  # [M] in/out (zeroed by the caller), indexed by slot
 ):
     tr = tile_row(offset + wp.tid(), cam, seg)
     tile = tr[0]
@@ -133,6 +135,7 @@ def rasterize_backward(
         v_z = float(0.0)
         abs_x = float(0.0)
         abs_y = float(0.0)
+        v_w = float(0.0)  # sum of the blending weights w
         hit = int(0)
         dx = float(x0 + span[0]) - s[0]
         for k in range(span[0], span[1] + 1):
@@ -163,11 +166,12 @@ def rasterize_backward(
                     v_cg += w * Gg[k]
                     v_cb += w * Gb[k]
                     v_z += w * VD[k]
+                    v_w += w
             E = E * F
             F = F * s[6]
             dx = dx + 1.0
-        acc = vec12(s[2] * P1 + s[3] * dy * P0, s[3] * P1 + s[4] * dy * P0, -0.5 * P2, -dy * P1, -0.5 * dy * dy * P0,
-                    v_op, v_cr, v_cg, v_cb, v_z, abs_x, abs_y)
+        acc = vec16(s[2] * P1 + s[3] * dy * P0, s[3] * P1 + s[4] * dy * P0, -0.5 * P2, -dy * P1, -0.5 * dy * dy * P0,
+                    v_op, v_cr, v_cg, v_cb, v_z, abs_x, abs_y, v_w, 0.0, 0.0, 0.0)
         if hit != 0:
             wp.atomic_add(pair_grads, slots[j], acc)
 
@@ -177,16 +181,17 @@ def gather_gaussian_grads(
     offset: int,
     pair_offsets: wp.array(dtype=wp.int32),  # [N] first slot of each Gaussian
     tiles_touched: wp.array(dtype=wp.int32),  # [N] number of slots
-    pair_grads: wp.array(dtype=vec12),  # [M] by slot
+    pair_grads: wp.array(dtype=vec16),  # [M] by slot
     v_means2d: wp.array(dtype=wp.vec2),  # [N] out, d/d mean2d (pixels)
     v_conics: wp.array(dtype=wp.vec3),  # [N] out
     v_opacities: wp.array(dtype=float),  # [N] out, d/d opacity (after the sigmoid)
     v_colors: wp.array(dtype=wp.vec3),  # [N] out
     v_depths: wp.array(dtype=float),  # [N] out, through the depth output only
     absgrad: wp.array(dtype=wp.vec2),  # [N] out, sum over pixels of |per-pixel v_mean2d|
+    weights: wp.array(dtype=float),  # [N] out, sum over pixels of the blending weight w = alpha T
 ):
     g = offset + wp.tid()
-    acc = vec12(0.0)
+    acc = vec16(0.0)
     p0 = pair_offsets[g]
     for p in range(p0, p0 + tiles_touched[g]):
         acc += pair_grads[p]
@@ -196,6 +201,7 @@ def gather_gaussian_grads(
     v_colors[g] = wp.vec3(acc[6], acc[7], acc[8])
     v_depths[g] = acc[9]
     absgrad[g] = wp.vec2(acc[10], acc[11])
+    weights[g] = acc[12]
 
 
 # ------------------------------------------------------------------------------------------------- launchers
@@ -244,12 +250,14 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
 
 
 def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics, v_opacities, v_colors,
-                                 v_depths, absgrad, device: str, threads: int | None = None,
+                                 v_depths, absgrad, weights, device: str, threads: int | None = None,
                                  min_chunk: int = 4096) -> None:
-    """Sum each Gaussian's slot range into per-Gaussian screen-space gradients (all outputs overwritten)."""
+    """Sum each Gaussian's slot range into per-Gaussian screen-space gradients and blending weights (all outputs
+    overwritten)."""
     from ..runtime import launch_split
 
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
-                                            v_opacities, v_colors, v_depths, absgrad], device, threads=threads,
+                                            v_opacities, v_colors, v_depths, absgrad, weights], device,
+                                            threads=threads,
                  min_chunk=min_chunk)

@@ -49,7 +49,7 @@ import warp as wp
 from ..runtime import native_flag, use_native  # the one switch of the CPU's C++ snippets (re-exported here)
 from . import raster_tile_cpp
 from .camera import TILE_SIZE, Camera
-from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec12, vec16, vec16i
+from .common import ALPHA_MAX, ALPHA_MIN, T_MIN, vec8, vec16, vec16i
 
 wp.set_module_options({
     "enable_backward": False,
@@ -69,7 +69,7 @@ LANES = wp.constant(TILE_SIZE)
 LOG2E = wp.constant(1.4426950408889634)
 LN2_HI = wp.constant(0.693359375)  # ln 2 split in two (Cody-Waite): n * LN2_HI is exact for |n| < 2^9
 LN2_LO = wp.constant(-2.12194440e-4)
-BWD_ACC_ROWS = 10  # running-sum rows of the backward (see rasterize_backward_tile)
+BWD_ACC_ROWS = 11  # running-sum rows of the backward (see rasterize_backward_tile)
 
 _status: dict = {}
 
@@ -448,7 +448,7 @@ def _backward_tile_cpp(with_absgrad: bool):
                           slots: wp.array(dtype=wp.int32), background: wp.vec3, T_final: wp.array2d(dtype=float),
                           n_contrib: wp.array2d(dtype=wp.int32), v_rgb: wp.array3d(dtype=float),
                           v_depth: wp.array2d(dtype=float), v_alpha: wp.array2d(dtype=float), use_depth: int,
-                          use_alpha: int, pair_grads: wp.array(dtype=vec12)) -> int:
+                          use_alpha: int, pair_grads: wp.array(dtype=vec16)) -> int:
         """:func:`rasterize_backward_tile`'s work for one tile in C++: the same sums to float rounding. Returns 1,
         or 0 (nothing written) where it does not apply."""
         ...
@@ -481,7 +481,7 @@ def _backward_tile_kernel(with_absgrad: bool):
         use_depth: int,  # 0: v_depth ignored (may be a dummy)
         use_alpha: int,  # 0: v_alpha ignored
         acc_rows: int,  # BWD_ACC_ROWS, passed at run time so that the running sums stay in (L1) memory
-        pair_grads: wp.array(dtype=vec12),  # [M] in/out (zeroed by the caller), indexed by slot
+        pair_grads: wp.array(dtype=vec16),  # [M] in/out (zeroed by the caller), indexed by slot
         native: int,  # 1: the C++ snippet where it applies (the CPU); 0: this kernel's own code
         status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the snippet did the tile
     ):
@@ -535,7 +535,8 @@ def _backward_tile_kernel(with_absgrad: bool):
             row_max[r] = rm
             n_max = wp.max(n_max, rm)
         # running sums of one Gaussian over the tile, per lane: 0 v_pow, 1 dy v_pow, 2 dy^2 v_pow, 3 v_alpha_raw E
-        # (opacity), 4-6 w G (colour), 7 w v_depth, 8-9 |per-pixel d/d mean2d| (AbsGS); rows acc_rows.. unused
+        # (opacity), 4-6 w G (colour), 7 w v_depth, 8-9 |per-pixel d/d mean2d| (AbsGS), 10 w (the blending weight);
+        # rows acc_rows.. unused
         ACC = mat16(0.0)
         fy0 = float(y0)
         fx0 = float(x0)
@@ -604,6 +605,7 @@ def _backward_tile_kernel(with_absgrad: bool):
                     ACC[5, k] = ACC[5, k] + wk * GGr[k]
                     ACC[6, k] = ACC[6, k] + wk * GBr[k]
                     ACC[7, k] = ACC[7, k] + wk * VDr[k]
+                    ACC[10, k] = ACC[10, k] + wk
                     if wp.static(with_absgrad):
                         mp = wp.abs(v_pow)
                         ACC[8, k] = ACC[8, k] + wp.abs(a * dx + bdy) * mp
@@ -621,9 +623,10 @@ def _backward_tile_kernel(with_absgrad: bool):
                 Q1 = lane_sum(ACC[1])
                 Q2 = lane_sum(wp.cw_mul(dxv, ACC[1]))
                 Q3 = lane_sum(ACC[2])
-                g = vec12(
+                g = vec16(
                     a * P1 + b * Q1, b * P1 + c * Q1, -0.5 * P2, -Q2, -0.5 * Q3, lane_sum(ACC[3]), lane_sum(ACC[4]),
-                    lane_sum(ACC[5]), lane_sum(ACC[6]), lane_sum(ACC[7]), lane_sum(ACC[8]), lane_sum(ACC[9]))
+                    lane_sum(ACC[5]), lane_sum(ACC[6]), lane_sum(ACC[7]), lane_sum(ACC[8]), lane_sum(ACC[9]),
+                    lane_sum(ACC[10]), 0.0, 0.0, 0.0)
                 wp.atomic_add(pair_grads, slots[j], g)
 
     return rasterize_backward_tile

@@ -380,12 +380,12 @@ for (int r = 0; r < ny; ++r) {
     row_max[r] = rm;
     n_max = n_max > rm ? n_max : rm;
 }
-if (slots.strides[0] != 4 || pair_grads.strides[0] != 48) return 0;
+if (slots.strides[0] != 4 || pair_grads.strides[0] != 64) return 0;
 const int* slot_p = (const int*)slots.data;
 float* grads = (float*)pair_grads.data;
 // one Gaussian's running sums over the tile, per column (0-15): 0 v_pow, 1 dy v_pow, 2 dy^2 v_pow, 3 v_alpha_raw E,
-// 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums
-alignas(64) float ACC[10][16];
+// 4-6 w G, 7 w v_depth, 8-9 the AbsGS sums, 10 w (the blending weight)
+alignas(64) float ACC[11][16];
 typedef float v16f __attribute__((ext_vector_type(16)));
 typedef float v4f __attribute__((ext_vector_type(4)));
 typedef float v2f __attribute__((ext_vector_type(2)));
@@ -416,7 +416,7 @@ for (int jj = 0; jj < n_max; ++jj) {
     auto blend_block = [&](const int off, const int e0, const int e1) __attribute__((always_inline)) {
         const vf dx = *(const vf*)(dxl + off);
         vf s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f, s4 = 0.0f, s5 = 0.0f, s6 = 0.0f, s7 = 0.0f, s8 = 0.0f,
-            s9 = 0.0f;
+            s9 = 0.0f, s10 = 0.0f;
         for (int e = e0; e < e1; ++e) {
             const int q = hq[e];
             const vf ev = vexp(entry_power(e));
@@ -454,6 +454,7 @@ for (int jj = 0; jj < n_max; ++jj) {
             s5 = fmav(wk, *(const vf*)GG[q], s5);
             s6 = fmav(wk, *(const vf*)GB[q], s6);
             s7 = fmav(wk, *(const vf*)VD[q], s7);
+            s10 = s10 + wk;
             if (@ABSGRAD@) {
                 const vf mp = __builtin_elementwise_abs(v_pow);
                 s8 = fmav(__builtin_elementwise_abs(fmav((vf)a, dx, (vf)bdy)), mp, s8);
@@ -463,7 +464,7 @@ for (int jj = 0; jj < n_max; ++jj) {
         *(vf*)(ACC[0] + off) = s0; *(vf*)(ACC[1] + off) = s1; *(vf*)(ACC[2] + off) = s2;
         *(vf*)(ACC[3] + off) = s3; *(vf*)(ACC[4] + off) = s4; *(vf*)(ACC[5] + off) = s5;
         *(vf*)(ACC[6] + off) = s6; *(vf*)(ACC[7] + off) = s7; *(vf*)(ACC[8] + off) = s8;
-        *(vf*)(ACC[9] + off) = s9;
+        *(vf*)(ACC[9] + off) = s9; *(vf*)(ACC[10] + off) = s10;
     };
 #if @W@ == 8
     blend_block(0, 0, nl);
@@ -475,9 +476,9 @@ for (int jj = 0; jj < n_max; ++jj) {
     // 16 columns, each by raster_tile's tree (v[k] + v[k + 8], then + 4, then (0 + 2) + (1 + 3)) as vector halves
     // added, where 13 scalar trees of 15 additions each took a sixth of the backward blend
     const v16f dx16 = *(const v16f*)dxl, a0 = *(const v16f*)ACC[0], a1 = *(const v16f*)ACC[1];
-    float* pg = grads + 12L * slot_p[j];
+    float* pg = grads + 16L * slot_p[j];
 #if @W@ == 16
-    // the twelve trees at once, transposed: each level adds the same lane pairs as tree16 for up to 16 vectors
+    // the thirteen trees at once, transposed: each level adds the same lane pairs as tree16 for up to 16 vectors
     // together, two vectors' halves side by side in one register (two permutes and an add a level and pair), so every
     // sum is tree16's bit for bit in a third of the instructions; lane k of the result is the sum of input k
     const v16f z16 = 0.0f;
@@ -485,6 +486,7 @@ for (int jj = 0; jj < n_max; ++jj) {
     const v16f in5 = *(const v16f*)ACC[3], in6 = *(const v16f*)ACC[4], in7 = *(const v16f*)ACC[5];
     const v16f in8 = *(const v16f*)ACC[6], in9 = *(const v16f*)ACC[7];
     const v16f in10 = @ABSGRAD@ ? *(const v16f*)ACC[8] : z16, in11 = @ABSGRAD@ ? *(const v16f*)ACC[9] : z16;
+    const v16f in12 = *(const v16f*)ACC[10];
     // level 1: [v0..7 + v8..15 of A | the same of B]
     auto l1 = [](v16f A, v16f B) -> v16f {
         return __builtin_shufflevector(A, B, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23)
@@ -506,15 +508,15 @@ for (int jj = 0; jj < n_max; ++jj) {
                + __builtin_shufflevector(X, Y, 1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
     };
     const v16f F = l4(l3(l2(l1(in0, in1), l1(in2, in3)), l2(l1(in4, in5), l1(in6, in7))),
-                      l3(l2(l1(in8, in9), l1(in10, in11)), z16));
+                      l3(l2(l1(in8, in9), l1(in10, in11)), l2(l1(in12, z16), z16)));
     const float P1 = F[0], P2 = F[1], Q1 = F[2], Q2 = F[3], Q3 = F[4];
-    float R[7];                 // the sums of ACC[3..9]
-    for (int t = 0; t < 7; ++t) R[t] = F[t + 5];
+    float R[8];                 // the sums of ACC[3..10]
+    for (int t = 0; t < 8; ++t) R[t] = F[t + 5];
 #else
     const float P1 = tree16(dx16 * a0), P2 = tree16(dx16 * dx16 * a0), Q1 = tree16(a1), Q2 = tree16(dx16 * a1);
     const float Q3 = tree16(*(const v16f*)ACC[2]);
-    float R[7];
-    for (int t = 0; t < 7; ++t) R[t] = tree16(*(const v16f*)ACC[t + 3]);
+    float R[8];
+    for (int t = 0; t < 8; ++t) R[t] = tree16(*(const v16f*)ACC[t + 3]);
 #endif
     // stores, not adds: a pair is one tile's and visited once, into the zeroed pairs (a zero plus x is x, and a -0
     // stored where the add made +0 sums alike in the gather, whose sum starts at +0), and a store reads nothing: the
@@ -524,7 +526,7 @@ for (int jj = 0; jj < n_max; ++jj) {
     pg[2] = -0.5f * P2;
     pg[3] = -Q2;
     pg[4] = -0.5f * Q3;
-    for (int t = 0; t < 7; ++t) pg[t + 5] = R[t];
+    for (int t = 0; t < 8; ++t) pg[t + 5] = R[t];
 }
 return 1;
 """

@@ -127,18 +127,23 @@ def test_densify_stats_match_twin(wp_device, rng):
     n, W, H = 40, 64, 48
     stats_np = {"grad2d_sum": rng.random(n).astype(np.float32), "absgrad2d_sum": rng.random(n).astype(np.float32),
                 "vis_count": rng.integers(0, 3, n).astype(np.int32), "max_radius_px": rng.random(n).astype(np.float32),
-                "views_seen": rng.integers(0, 9, n).astype(np.int32)}
+                "views_seen": rng.integers(0, 9, n).astype(np.int32),
+                "weight_max": rng.random(n).astype(np.float32)}
     s = wa.DensifyStats()
     for kk, vv in stats_np.items():
         setattr(s, kk, wp.array(vv, device=wp_device))
     ref = stats_np
-    for _ in range(3):
+    for it in range(4):
         g = (1e-4 * rng.standard_normal((n, 2))).astype(np.float32)
         ga = np.abs(g) * 2
         radii = np.where(rng.random(n) > 0.3, rng.uniform(0.5, 30, n), 0.0).astype(np.float32)
+        # blending weights summed over a view (zero for some rows: hidden), in pixels of a level-1 view
+        # (the last view without: its visible rows' weight unknown, the largest float32)
+        wsum = (rng.random(n) * 3 * (rng.random(n) > 0.3)).astype(np.float32) if it < 3 else None
         wa.accumulate_stats(s, wp.array(g, dtype=wp.vec2, device=wp_device), wp.array(radii, device=wp_device), W, H,
-                            v_means2d_abs=wp.array(ga, dtype=wp.vec2, device=wp_device), device=wp_device)
-        ref = ra.accumulate_densify_stats(ref, g, radii, W, H, ga)
+                            v_means2d_abs=wp.array(ga, dtype=wp.vec2, device=wp_device), device=wp_device,
+                            weights=None if wsum is None else wp.array(wsum, device=wp_device), weight_scale=4.0)
+        ref = ra.accumulate_densify_stats(ref, g, radii, W, H, ga, wsum, 4.0)
     for kk in ref:
         np.testing.assert_allclose(getattr(s, kk).numpy(), ref[kk], rtol=1e-6, err_msg=kk)
 

@@ -141,7 +141,8 @@ def test_warp_backward_matches_twin(wp_device, which, degree, seed):
                           None if v_depth is None else v_depth.astype(np.float32),
                           None if v_alpha is None else v_alpha.astype(np.float32))
     r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, bg, v_rgb, v_depth, v_alpha, sh_degree=degree)
-    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad",
+                 "weights"):
         a = getattr(grads, name).numpy()
         assert a.shape == r[name].shape, name
         assert np.abs(r[name]).max() > 0 or name == "v_sh" and "rgb" not in which, name
@@ -184,9 +185,10 @@ def test_pixels_per_thread_variants_match_twin(wp_device, seg):
     out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)  # render_alpha invalidated the first one
     assert np.array_equal(alpha_only, out.alpha.numpy())
     grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32))
-    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad"):
+    for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d", "absgrad",
+                 "weights"):
         _close(getattr(grads, name).numpy(), r[name], name)
-    assert np.abs(r["absgrad"]).max() > 0
+    assert np.abs(r["absgrad"]).max() > 0 and r["weights"].max() > 0
     out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam), bg)
     grads = rast.backward(out, v_rgb.astype(np.float32), v_depth.astype(np.float32), v_alpha.astype(np.float32),
                           absgrad=False)
@@ -214,6 +216,49 @@ def test_split_backward_is_bitwise_identical(wp_device):
         assert np.array_equal(a, res[1][name]), name
 
 
+def _layered_scene(front_layers: int):
+    """A small Gaussian behind ``front_layers`` large opaque ones (each covering the 32x32 view), and a small one
+    in front of them, all centred on the view's axis (world = camera frame). Rows: the hidden one, the front one,
+    then the layers."""
+    z = [3.0, 0.5] + [1.0 + 0.1 * k for k in range(front_layers)]
+    scale = [0.01, 0.005] + [5.0] * front_layers
+    logit = [2.0, 2.0] + [np.log(19.0)] * front_layers      # opacity 0.95
+    n = len(z)
+    return {"means": np.array([[0.0, 0.0, zz] for zz in z]), "log_scales": np.log(np.repeat(np.array(scale)[:, None],
+                                                                                             3, 1)),
+            "quats": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), "opacity_logits": np.array(logit),
+            "sh": np.full((n, 1, 3), 0.4)}
+
+
+@pytest.mark.parametrize("layers", [4, 0])
+def test_a_gaussian_hidden_in_every_pixel_has_no_blending_weight(wp_device, layers):
+    # behind four layers of opacity 0.95 (the transmittance 0.05^3 after three, the fourth's 6e-6 below 1e-4, where a
+    # pixel's blend stops) the small
+    # Gaussian is in view (its radius > 0) but takes part in no pixel: its blending weight is exactly zero, and the
+    # stats keep a zero weight for it (the control without the layers blends it: the twin's weight)
+    cam = ref.RefCamera(fx=30.0, fy=30.0, cx=16.0, cy=16.0, width=32, height=32, world_to_cam=np.eye(4))
+    scene = _layered_scene(layers)
+    n = len(scene["means"])
+    rast = Rasterizer(wp_device)
+    out = rast.forward(*(np.asarray(scene[k], np.float32) for k in PARAMS), _wcam(cam))
+    v_rgb = np.random.default_rng(3).normal(size=(32, 32, 3)).astype(np.float32)
+    g = rast.backward(out, v_rgb)
+    w = g.weights.numpy()
+    r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, (0, 0, 0), v_rgb)
+    _close(w, r["weights"], "weights")
+    assert np.all(out.radii.numpy() > 0)
+    assert w[1] > 0.5                               # the one in front: about its area in pixels x its opacity
+    assert (w[0] == 0.0) == (layers > 0)
+    stats = kadam.DensifyStats()
+    for name, dt in (("grad2d_sum", wp.float32), ("absgrad2d_sum", wp.float32), ("vis_count", wp.int32),
+                     ("max_radius_px", wp.float32), ("views_seen", wp.int32), ("weight_max", wp.float32)):
+        setattr(stats, name, wp.zeros(n, dtype=dt, device=wp_device))
+    kadam.accumulate_stats(stats, g.v_means2d.view(wp.vec2), g.radii, 32, 32, device=wp_device, weights=g.weights,
+                           weight_scale=4.0)
+    assert list(stats.vis_count.numpy()[:2]) == [1, 1]
+    np.testing.assert_array_equal(stats.weight_max.numpy(), 4.0 * w)
+
+
 def test_densify_stats_accumulate_over_views(wp_device):
     # the one statistics mechanism: the backward's v_means2d / absgrad / radii into the map's DensifyStats
     # (mgso_kernels.adam.accumulate_stats, what GaussianMap.accumulate_stats runs), in 3DGS's NDC units
@@ -224,16 +269,16 @@ def test_densify_stats_accumulate_over_views(wp_device):
     rast = Rasterizer(wp_device)
     stats = kadam.DensifyStats()
     for name, dt in (("grad2d_sum", wp.float32), ("absgrad2d_sum", wp.float32), ("vis_count", wp.int32),
-                     ("max_radius_px", wp.float32), ("views_seen", wp.int32)):
+                     ("max_radius_px", wp.float32), ("views_seen", wp.int32), ("weight_max", wp.float32)):
         setattr(stats, name, wp.zeros(n, dtype=dt, device=wp_device))
     want_grad, want_abs, want_count = np.zeros(n), np.zeros(n), np.zeros(n, int)
-    want_rad = np.zeros(n)
+    want_rad, want_weight = np.zeros(n), np.zeros(n)
     for cam in cams:
         v_rgb = rng.normal(size=(cam.height, cam.width, 3))
         out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
         g = rast.backward(out, v_rgb.astype(np.float32))
         kadam.accumulate_stats(stats, g.v_means2d.view(wp.vec2), g.radii, cam.width, cam.height,
-                               g.absgrad.view(wp.vec2), device=wp_device)
+                               g.absgrad.view(wp.vec2), device=wp_device, weights=g.weights, weight_scale=4.0)
         r = ref.render_vjp(*(scene[k] for k in PARAMS), cam, (0, 0, 0), v_rgb)
         radii = out.radii.numpy()
         vis = radii > 0
@@ -242,12 +287,14 @@ def test_densify_stats_accumulate_over_views(wp_device):
         want_abs += np.where(vis, np.linalg.norm(r["absgrad"] * s, axis=1), 0)
         want_count += vis
         want_rad = np.maximum(want_rad, radii)
+        want_weight = np.maximum(want_weight, np.where(vis, 4.0 * r["weights"], 0))
     assert want_count.max() == 2 and want_count.min() == 0
     np.testing.assert_array_equal(stats.vis_count.numpy(), want_count)
     np.testing.assert_array_equal(stats.views_seen.numpy(), want_count)
     np.testing.assert_array_equal(stats.max_radius_px.numpy(), want_rad)
     _close(stats.grad2d_sum.numpy(), want_grad, "grad2d")
     _close(stats.absgrad2d_sum.numpy(), want_abs, "absgrad2d")
+    _close(stats.weight_max.numpy(), want_weight, "weight_max")
     assert np.all(stats.absgrad2d_sum.numpy() >= stats.grad2d_sum.numpy() - 1e-4)
 
 

@@ -67,7 +67,7 @@ def test_tile_kernels_agree_with_row_kernels(wp_device, size):
         out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
         g = rast.backward(out, v_rgb, v_depth, v_alpha)
         for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
-                     "absgrad"):
+                     "absgrad", "weights"):
             r[name] = getattr(g, name).numpy().copy()
         res[seg] = r
     a, b = res[16], res[raster_tile.TILE_PIXELS]
@@ -85,7 +85,7 @@ def test_tile_kernels_agree_with_row_kernels(wp_device, size):
     np.testing.assert_allclose(b["depth"], a["depth"], atol=dtol * np.abs(a["depth"]).max(), rtol=0)
     assert (b["n_contrib"] != a["n_contrib"]).mean() < 1e-3  # measured: none differ
     for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
-                 "absgrad"):
+                 "absgrad", "weights"):
         scale = np.abs(a[name]).max()
         assert scale > 0, name
         np.testing.assert_allclose(b[name], a[name], atol=2e-5 * scale, rtol=0, err_msg=name)  # measured <= 4e-6
@@ -101,7 +101,7 @@ def test_backward_without_absgrad_changes_nothing_else(wp_device):
         g = rast.backward(out, v_rgb, absgrad=absgrad)
         res.append({f: getattr(g, f).numpy().copy() for f in ("v_means", "v_log_scales", "v_quats",
                                                               "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
-                                                              "absgrad")})
+                                                              "absgrad", "weights")})
     assert res[0]["absgrad"].max() > 0 and not res[1]["absgrad"].any()
     for name in res[0]:
         if name != "absgrad":
@@ -180,11 +180,11 @@ def _render(device, scene, cam, ups, absgrad, native: bool) -> dict:
         rast.backward(out, *ups, absgrad=absgrad)
         # the tile snippet stores into the pairs (no add): NaN left in the pairs' buffer by anything before must not
         # reach the gradients
-        rast.pair_grads_.full.fill_(wp.types.vector(12, wp.float32)(*([float("nan")] * 12)))
+        rast.pair_grads_.full.fill_(wp.types.vector(16, wp.float32)(*([float("nan")] * 16)))
         g = rast.backward(out, *ups, absgrad=absgrad)
         r["status_backward"] = raster_tile.status_buffer(dim, device).numpy().copy()
         for name in ("v_means", "v_log_scales", "v_quats", "v_opacity_logits", "v_sh", "v_pose", "v_means2d",
-                     "absgrad"):
+                     "absgrad", "weights"):
             r[name] = getattr(g, name).numpy().copy()
     finally:
         raster_tile.use_native(before)
@@ -253,6 +253,7 @@ def test_the_tile_backward_stores_each_pair_whatever_its_buffer_held(wp_device):
         assert np.isfinite(value).all(), key
         np.testing.assert_allclose(value, warp_code[key], rtol=0, atol=5e-6 * np.abs(value).max(), err_msg=key)
     assert cpp["v_opacity_logits"][hidden] == 0 and np.abs(cpp["v_opacity_logits"][hidden + 1:]).max() > 0
+    assert cpp["weights"][hidden] == 0 and cpp["weights"][hidden + 1:].max() > 0   # its blending weight too
 
 
 @pytest.mark.parametrize("with_color", [0, 1, 2])
