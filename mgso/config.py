@@ -597,6 +597,14 @@ class DensifyConfig:
     max_aspect: float = opt(0.0, "at each refine, shorten axes longer than this x the Gaussian's shortest axis "
                                  "(needles that disagreeing views stretch become discs); 0 = off (3DGS)")
     prune_min_age: int = opt(0, "steps a new Gaussian is safe from pruning (0 = 3DGS); raise for SLAM seeding")
+    prune_weight_px: float = opt(0.0, "at each refine, prune Gaussians in view in at least prune_weight_views "
+                                      "training views since the last refine whose blending weight (alpha T) summed "
+                                      "over each view's pixels stayed below this many full-resolution pixels in all "
+                                      "of them: hidden behind opaque Gaussians or too faint to show, each still costs "
+                                      "every step its projection, tiles and sort (the blending-weight importance of "
+                                      "3DGS pruning work, taken per view); 0 = off (3DGS)")
+    prune_weight_views: int = opt(3, "views a Gaussian must have been in since the last refine before "
+                                     "prune_weight_px judges it")
     sort_spatially: bool = opt(True, "after each refine, put the map's rows in the Z-order of their means, so that a "
                                      "view culls whole runs of rows (the CPU's per-Gaussian kernels pass over them; "
                                      "docs/mapping.md); false = rows stay in the order they were made")
@@ -604,7 +612,8 @@ class DensifyConfig:
     def __post_init__(self):
         c = _Checks("mapping.densify", self)
         c.ge(0, "refine_start_step", "refine_stop_step", "reset_every", "pause_refine_after_reset", "grow_min_views",
-             "prune_min_age", "percent_dense", "prune_screen_px")
+             "prune_min_age", "percent_dense", "prune_screen_px", "prune_weight_px")
+        c.ge(1, "prune_weight_views")
         c.ge(1, "refine_every")  # step % refine_every
         c.within(0, 1, "reset_opacity_value", open_lo=True, open_hi=True)  # an opacity (its logit is stored)
         c.within(0, 1, "prune_opacity", open_hi=True)
@@ -903,6 +912,15 @@ class MapperConfig:
                                      "leave many faint Gaussians in a SLAM map; 0.05 halves the 7-Scenes map (6.14 -> "
                                      "3.08 MB) for 0.22 dB and cuts KITTI's by a third at equal PSNR "
                                      "(docs/mapping.md); 0 = mapping.densify's")
+    prune_weight_px: float | None = opt(None, "the mapper's weight prune at each refinement, in place of "
+                                              "mapping.densify.prune_weight_px (off in 3DGS and `mgso fit`): "
+                                              "Gaussians whose blending weight summed over a view stayed below this "
+                                              "many full-resolution pixels in every view since the last refinement "
+                                              "(hidden behind the surface others make, or too faint to show; a "
+                                              "handheld camera's seedings leave many); null = 0.1 in real time, 0 "
+                                              "in the deterministic mode, where its replays lost 0.10-0.15 dB "
+                                              "(docs/mapping.md, \"Pruning what no view shows\"); 0 = "
+                                              "mapping.densify's")
     final_refine_after: int = opt(200, "where the stream left the map unrefined (real time on a small CPU: a few "
                                        "steps while the camera ran, every seed untrained; 7-Scenes' 118k Gaussians "
                                        "then cost 275-331 ms a step until the schedule's first refinement at step "
@@ -919,6 +937,13 @@ class MapperConfig:
         if self.final_iterations is not None:
             return int(self.final_iterations)
         return 1600 if realtime else 2000
+
+    def weight_prune_px(self, realtime: bool) -> float:
+        """``prune_weight_px`` with its null resolved for the mode: 0.1 in real time, 0 (mapping.densify's)
+        deterministic."""
+        if self.prune_weight_px is not None:
+            return float(self.prune_weight_px)
+        return 0.1 if realtime else 0.0
 
     def draw_loss_share(self, realtime: bool) -> float:
         """``loss_share`` with its null resolved for the mode: 0.5 deterministic, 0 in real time."""
@@ -962,6 +987,8 @@ class MapperConfig:
             c.within(0, 1, "final_coarser_share")
         c.within(0, 1, "prune_opacity", open_hi=True)
         c.ge(0, "grow_grad2d")
+        if self.prune_weight_px is not None:
+            c.ge(0, "prune_weight_px")
         c.ge(1, "queue_size", "min_train_views")
         c.within(0, 1, "newest_probability")
         if self.loss_share is not None:

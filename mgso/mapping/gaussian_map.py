@@ -260,11 +260,12 @@ def _alloc_stats(capacity: int, device: str) -> kadam.DensifyStats:
     s.vis_count = wp.zeros(capacity, dtype=wp.int32, device=device)
     s.max_radius_px = wp.zeros(capacity, dtype=wp.float32, device=device)
     s.views_seen = wp.zeros(capacity, dtype=wp.int32, device=device)
+    s.weight_max = wp.zeros(capacity, dtype=wp.float32, device=device)
     return s
 
 
 _PARAM_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
-_STAT_FIELDS = ("grad2d_sum", "absgrad2d_sum", "vis_count", "max_radius_px", "views_seen")
+_STAT_FIELDS = ("grad2d_sum", "absgrad2d_sum", "vis_count", "max_radius_px", "views_seen", "weight_max")
 
 
 def _slice_struct(full, fields: Sequence[str], n: int, cls):
@@ -654,15 +655,19 @@ class GaussianMap:
 
     def reset_stats(self) -> None:
         """Zero the densification statistics (not ``views_seen``, which is an age)."""
-        for f in ("grad2d_sum", "absgrad2d_sum", "vis_count", "max_radius_px"):
+        for f in ("grad2d_sum", "absgrad2d_sum", "vis_count", "max_radius_px", "weight_max"):
             self._zero_rows(getattr(self.stats_, f), 0, self._n)
 
     def accumulate_stats(self, v_means2d: wp.array, radii: wp.array, width: int, height: int,
-                         v_means2d_abs: wp.array | None = None) -> None:
+                         v_means2d_abs: wp.array | None = None, weights: wp.array | None = None,
+                         weight_scale: float = 1.0) -> None:
         """Add one training view's statistics: ``v_means2d`` [n] vec2 dL/d(projected mean) in pixels, ``radii``
         [n] float32 or int32 screen radius in pixels (0 = not drawn), optional AbsGS ``v_means2d_abs`` [n] vec2
-        pixels. Converts to NDC units (x W/2, H/2) as 3DGS measures its threshold."""
-        kadam.accumulate_stats(self.stats, v_means2d, radii, width, height, v_means2d_abs, device=self.device)
+        pixels, optional ``weights`` [n] float32 blending weights summed over the view's pixels (``stats.weight_max``
+        keeps the largest, times ``weight_scale``). Converts to NDC units (x W/2, H/2) as 3DGS measures its
+        threshold."""
+        kadam.accumulate_stats(self.stats, v_means2d, radii, width, height, v_means2d_abs, device=self.device,
+                               weights=weights, weight_scale=weight_scale)
 
     def learning_rates(self, step: int) -> kadam.AdamRates:
         """Per-group learning rates at ``step`` (0-based) from :attr:`optim` and :attr:`scene_extent`."""

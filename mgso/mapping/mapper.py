@@ -153,7 +153,7 @@ class MapperStats:
     loop_poses_refined: int = 0
     densify: dict = field(default_factory=lambda: {"refines": 0, "cloned": 0, "split": 0, "pruned": 0,
                                                    "pruned_opacity": 0, "pruned_world": 0, "pruned_screen": 0,
-                                                   "skipped_capacity": 0, "opacity_resets": 0,
+                                                   "pruned_weight": 0, "skipped_capacity": 0, "opacity_resets": 0,
                                                    "clamped_aspect": 0})
     seed_results: list = field(default_factory=list)   # SeedResult per seeding, in order
     # (frame index, timestamp, training steps so far, Gaussians) after each keyframe is applied, and once after the
@@ -263,6 +263,7 @@ class Mapper:
         densify = mc.densify if self.cfg.opacity_reset else dataclasses.replace(mc.densify, reset_every=0)
         # the mapper's own densification settings, where set (0: mapping.densify's, what `mgso fit` uses)
         own = {k: getattr(self.cfg, k) for k in ("refine_every", "prune_opacity", "grow_grad2d")}
+        own["prune_weight_px"] = self.cfg.weight_prune_px(realtime=False)   # real time: _real_time_settings
         densify = dataclasses.replace(densify, **{k: v for k, v in own.items() if v > 0})
         step = TrainStep(mc, self.device, strategy=DefaultStrategy(densify), seed=seed)
         self.trainer = Trainer(self.gmap, self.views, mc, device=self.device, sampler=self.sampler,
@@ -402,7 +403,7 @@ class Mapper:
         if self._thread is not None:
             raise RuntimeError("Mapper.start: already started")
         self._thread = threading.Thread(target=self._run, name="mgso-mapper", daemon=True)
-        self._real_time_sampler()
+        self._real_time_settings()
         self._thread.start()
 
     def run_here(self) -> BaseException | None:
@@ -412,15 +413,21 @@ class Mapper:
         if self._thread is not None:
             raise RuntimeError("Mapper.run_here: already started")
         self._thread = threading.current_thread()
-        self._real_time_sampler()
+        self._real_time_settings()
         self._run()
         err, self._error = self._error, None
         return err
 
-    def _real_time_sampler(self) -> None:
-        """The keyframe draw's ``mapping.mapper.loss_share`` for real time (its null: uniform)."""
+    def _real_time_settings(self) -> None:
+        """The keyframe draw's ``mapping.mapper.loss_share`` for real time (its null: uniform) and the weight prune's
+        ``mapping.mapper.prune_weight_px`` (its null: 0.1)."""
         if isinstance(self.sampler, NewestOrRandomSampler):
             self.sampler.loss_share = self.cfg.draw_loss_share(realtime=True)
+        px = self.cfg.weight_prune_px(realtime=True)
+        ts = self.trainer.train_step
+        if px > 0 and ts.strategy.cfg.prune_weight_px != px:
+            ts.strategy = dataclasses.replace(ts.strategy, cfg=dataclasses.replace(ts.strategy.cfg,
+                                                                                    prune_weight_px=px))
 
     def interrupt(self) -> None:
         """Stop as soon as the queued messages are applied (views, poses, seeds), without training on; in real
@@ -938,6 +945,7 @@ class Mapper:
             d["pruned_opacity"] += f.pruned_opacity
             d["pruned_world"] += f.pruned_world
             d["pruned_screen"] += f.pruned_screen
+            d["pruned_weight"] += f.pruned_weight
             d["skipped_capacity"] += f.skipped_capacity
             d["clamped_aspect"] += f.clamped_aspect
             d["opacity_resets"] += int(f.opacity_reset)

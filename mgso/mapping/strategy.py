@@ -39,7 +39,11 @@ Rules (graphdeco 3DGS ``densify_and_prune`` / gsplat ``DefaultStrategy``; units 
   opacity resets (``reset_every = 0``: MGSO's mapper) there is no first reset, so no size prune: 3DGS prunes big
   Gaussians once a reset has made them earn their opacity back, and the mapper's scene extent, taken from camera
   centres that hardly move in a handheld recording, is no measure of the scene's size (docs/mapping.md, "The
-  size prune needs a reset"). Gaussians younger than ``prune_min_age`` steps are kept.
+  size prune needs a reset"). With ``prune_weight_px > 0`` also a Gaussian in view in at least
+  ``prune_weight_views`` views since the last refine whose blending weight summed over each view's pixels
+  (``stats.weight_max``, full-resolution pixels) stayed below it: hidden behind opaque Gaussians in every view, or
+  too faint to show (not in 3DGS; later 3DGS pruning work scores Gaussians by their blending weights over all views
+  at once). Gaussians younger than ``prune_min_age`` steps are kept.
 - After a refine the rows are put in the Z-order of their means (``sort_spatially``; not in 3DGS): a view then
   culls whole runs of rows, which the CPU's per-Gaussian kernels pass over.
 - Statistics are reset after every refine. Every ``reset_every`` steps (while refining is on) opacities are clamped
@@ -74,6 +78,7 @@ class RefineResult:
     pruned_opacity: int = 0             # ... for opacity < prune_opacity
     pruned_world: int = 0               # ... for max scale > prune_scale3d x extent (and not the above)
     pruned_screen: int = 0              # ... for screen radius > prune_screen_px (and none of the above)
+    pruned_weight: int = 0              # ... for a blending weight below prune_weight_px in every view (and none above)
     skipped_capacity: int = 0           # grow candidates left out because the map was full
     clamped_aspect: int = 0             # Gaussians whose longest axes were shortened to max_aspect x the shortest
     n_before: int = 0
@@ -153,15 +158,16 @@ class DefaultStrategy:
             return res
         if self.is_refine_step(step):
             cloned, split, skipped = self._grow(gmap, state, step, extent)
-            p_opa, p_world, p_screen = self._prune(gmap, step, extent)
+            p_opa, p_world, p_screen, p_weight = self._prune(gmap, step, extent)
             clamped = self.clamp_aspect(gmap)
             if c.sort_spatially:
                 gmap.sort_spatially()
             gmap.reset_stats()
             state.refines += 1
             res = dataclasses.replace(res, refined=True, cloned=cloned, split=split, skipped_capacity=skipped,
-                                      pruned=p_opa + p_world + p_screen, pruned_opacity=p_opa, pruned_world=p_world,
-                                      pruned_screen=p_screen, clamped_aspect=clamped)
+                                      pruned=p_opa + p_world + p_screen + p_weight, pruned_opacity=p_opa,
+                                      pruned_world=p_world, pruned_screen=p_screen, pruned_weight=p_weight,
+                                      clamped_aspect=clamped)
         if c.reset_every > 0 and step > 0 and step % c.reset_every == 0:
             gmap.reset_opacity(c.reset_opacity_value)
             state.last_reset_step = step
@@ -214,8 +220,9 @@ class DefaultStrategy:
                              scale_factor=c.split_scale_factor)
         return n_clone, n_split, skipped
 
-    def prune_masks(self, gmap: GaussianMap, step: int, extent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Exclusive masks (low opacity, too big in the world, too big on screen) over the live rows; no change."""
+    def prune_masks(self, gmap: GaussianMap, step: int, extent: float) -> tuple[np.ndarray, ...]:
+        """Exclusive masks (low opacity, too big in the world, too big on screen, hidden or too faint to show) over the
+        live rows; no change."""
         c = self.cfg
         logits = gmap.opacity_logits.numpy().astype(np.float64)
         low = 1.0 / (1.0 + np.exp(-logits)) < c.prune_opacity
@@ -225,14 +232,20 @@ class DefaultStrategy:
             world = np.exp(gmap.log_scales.numpy().astype(np.float64)).max(axis=1) > c.prune_scale3d * extent
             if c.prune_screen_px > 0:
                 screen = gmap.stats.max_radius_px.numpy() > c.prune_screen_px
+        faint = np.zeros_like(low)
+        if c.prune_weight_px > 0:
+            st = gmap.stats
+            faint = (st.vis_count.numpy() >= c.prune_weight_views) & (st.weight_max.numpy() < c.prune_weight_px)
         if c.prune_min_age > 0:
             young = (step - gmap.created_step.numpy().astype(np.int64)) < c.prune_min_age
             low &= ~young
             world &= ~young
             screen &= ~young
+            faint &= ~young
         world &= ~low
         screen &= ~(low | world)
-        return low, world, screen
+        faint &= ~(low | world | screen)
+        return low, world, screen, faint
 
     def clamp_aspect(self, gmap: GaussianMap) -> int:
         """Shorten every axis longer than ``max_aspect`` x the Gaussian's shortest one to that length (0 = off):
@@ -248,7 +261,7 @@ class DefaultStrategy:
             gmap.log_scales.assign(np.minimum(ls, cap).astype(np.float32))
         return int(over.sum())
 
-    def _prune(self, gmap: GaussianMap, step: int, extent: float) -> tuple[int, int, int]:
-        low, world, screen = self.prune_masks(gmap, step, extent)
-        gmap.remove(low | world | screen)
-        return int(low.sum()), int(world.sum()), int(screen.sum())
+    def _prune(self, gmap: GaussianMap, step: int, extent: float) -> tuple[int, int, int, int]:
+        low, world, screen, faint = self.prune_masks(gmap, step, extent)
+        gmap.remove(low | world | screen | faint)
+        return int(low.sum()), int(world.sum()), int(screen.sum()), int(faint.sum())

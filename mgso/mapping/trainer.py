@@ -195,7 +195,8 @@ class TrainStep:
                                      absgrad=want_stats and self._wants_absgrad)
         if want_stats:
             gmap.accumulate_stats(g.v_means2d.view(wp.vec2), g.radii, W, H,
-                                  g.absgrad.view(wp.vec2) if self._wants_absgrad else None)
+                                  g.absgrad.view(wp.vec2) if self._wants_absgrad else None,
+                                  weights=g.weights, weight_scale=4.0 ** level)   # full-resolution pixels
         radii = g.radii.numpy()
         num_visible = int(np.count_nonzero(radii))
         v_pose = g.v_pose.numpy().astype(np.float64) if tc.refine_poses and not view.fixed_pose else None

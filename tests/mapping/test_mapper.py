@@ -283,8 +283,10 @@ def test_stop_without_refinement_applies_pending_messages_only(wp_device, seq, c
 def test_real_time_thread_applies_every_message_and_counts_backpressure(wp_device, seq, cam):
     mp = Mapper(_cfg("mapping.mapper.queue_size=1", "mapping.mapper.final_iterations=2"), device=wp_device)
     assert mp.sampler.loss_share == 0.5
+    assert mp.trainer.train_step.strategy.cfg.prune_weight_px == 0.0
     mp.start()
     assert mp.running and mp.sampler.loss_share == 0.0      # real time draws the keyframes uniformly
+    assert mp.trainer.train_step.strategy.cfg.prune_weight_px == 0.1   # and prunes what no view shows
     truth = {}
     for i in range(0, 9, 2):
         mp.submit(_kf(seq, cam, i, pose=seq.cam_to_world[i] @ se3_exp([0.03, 0, 0, 0, 0, 0])))
@@ -686,6 +688,30 @@ def test_the_mappers_prune_threshold_replaces_densifys(wp_device, seq, cam):
         counts[prune] = (mp.gmap.n, mp.stats.densify["pruned"])
     # measured: 639 pruned, none left, against 595 pruned and 44 left
     assert counts[0.05][1] > counts[0.0][1] and counts[0.05][0] < counts[0.0][0], counts
+
+
+def test_the_mappers_weight_prune_replaces_densifys(wp_device, seq, cam):
+    """mapping.mapper.prune_weight_px replaces mapping.densify's (off, 3DGS): at each refinement the mapper prunes the
+    Gaussians whose blending weight, measured by its training steps, stayed below it in every view since the last
+    one. Its null is 0.1 in real time (the real-time test above) and off in the deterministic mode. The synthetic
+    room hides no seed, so a threshold of 5 pixels shows the wiring; the negative controls (0, null) prune none for
+    weight and keep more of the same map (measured: 26 of 487 pruned at 5 pixels)."""
+    from mgso.config import Config
+
+    mc = Config().mapping.mapper
+    assert mc.prune_weight_px is None
+    assert (mc.weight_prune_px(realtime=False), mc.weight_prune_px(realtime=True)) == (0.0, 0.1)
+    res = {}
+    for px in (None, 5.0, 0.0):
+        over = [] if px is None else [f"mapping.mapper.prune_weight_px={px}"]
+        mp = Mapper(_cfg("mapping.mapper.refine_every=10", "mapping.densify.refine_start_step=0",
+                         "mapping.mapper.iterations_per_keyframe=12", *over), device=wp_device)
+        assert mp.trainer.train_step.strategy.cfg.prune_weight_px == (px or 0.0)
+        mp.submit(_kf(seq, cam, 0))
+        mp.submit(_kf(seq, cam, 8))
+        mp.process_pending()
+        res[px] = (mp.gmap.n, mp.stats.densify["pruned_weight"])
+    assert res[5.0][1] > 0 and res[0.0][1] == res[None][1] == 0 and res[5.0][0] < res[0.0][0] == res[None][0], res
 
 
 def test_the_mapper_prunes_no_gaussian_for_its_size_without_opacity_resets(wp_device, seq, cam):

@@ -172,6 +172,25 @@ def test_screen_size_pruning(wp_device):
     assert res.pruned_screen == 2 and _ids(gm) == [2, 3, 0, 1, 1]
 
 
+def test_weight_pruning_removes_what_no_view_shows(wp_device):
+    """``prune_weight_px``: a Gaussian in view in at least ``prune_weight_views`` views since the last refine whose
+    largest blending weight over them is below the threshold is pruned (0: hidden in all); one above it, one in view
+    too few times, or a young one is kept. Off (0, 3DGS) nothing is pruned for it."""
+    rows = [(SMALL, 0.5, 1e-4, 0.0, v) for v in (5, 5, 2, 0, 5, 5)]
+    weight = np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.05], np.float32)
+    created = np.array([0, 0, 0, 0, 2900, 0], np.int32)
+    for px, views, min_age, want in ((0.1, 3, 500, [1, 2, 3, 4]), (0.0, 3, 0, [0, 1, 2, 3, 4, 5]),
+                                     (0.1, 3, 0, [1, 2, 3]), (0.1, 6, 0, [0, 1, 2, 3, 4, 5]),
+                                     (0.01, 3, 0, [1, 2, 3, 5])):
+        gm = _map(wp_device, rows)
+        gm.stats.weight_max.assign(weight)
+        gm.created_step.assign(created)
+        strat = DefaultStrategy(_cfg(prune_weight_px=px, prune_weight_views=views, prune_min_age=min_age))
+        res = strat.step_post_backward(gm, strat.initialize_state(), 3000)
+        assert res.refined and _ids(gm) == want, (px, views, min_age)
+        assert res.pruned_weight == 6 - len(want) == res.pruned, (px, views, min_age)
+
+
 def test_pixel_gradients_are_converted_to_ndc(wp_device):
     """The 0.0002 threshold is in NDC units: a pixel gradient g counts as |(gx W/2, gy H/2)|."""
     W, H = 640, 480
