@@ -62,7 +62,8 @@ def main(argv=None) -> int:
     for share in (float(s) for s in args.shares.split(",")):
         k = int(np.searchsorted(cum, share, side="right"))
         drop = order[:k]
-        row = {"gaussians": k, "gaussian_share": round(k / n, 4), "pair_share": round(pairs[drop].sum() / pairs.sum(), 4),
+        row = {"gaussians": k, "gaussian_share": round(k / n, 4),
+               "pair_share": round(pairs[drop].sum() / pairs.sum(), 4),
                "median_opacity": round(float(np.median(opacity[drop])), 4) if k else None,
                "largest_weight_max_px": round(float(weight_max[drop].max()), 4) if k else None}
         keep = np.ones(n, bool)

@@ -449,8 +449,8 @@ class Rasterizer:
         t = time.perf_counter()
         self._ensure(self.pair_grads_, max(m, 1))
         for buf in (self.v_means2d_, self.v_conics_, self.v_opacities_, self.v_colors_, self.v_depths_,
-                    self.absgrad_, self.weights_, self.v_means_, self.v_log_scales_, self.v_quats_, self.v_opacity_logits_,
-                    self.v_pose_partial_):
+                    self.absgrad_, self.weights_, self.v_means_, self.v_log_scales_, self.v_quats_,
+                    self.v_opacity_logits_, self.v_pose_partial_):
             self._ensure(buf, n)
         self._ensure(self.pose_blocks_, max(1, -(-n // _project.POSE_BLOCK)))
         K = sh.shape[1]

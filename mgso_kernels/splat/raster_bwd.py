@@ -14,15 +14,15 @@ then through ``alpha = min(0.99, opacity exp(power))`` (zero where the clamp is 
 and the 2D mean. Threads are tile rows as in :mod:`mgso_kernels.splat.raster`, with the same row spans and the same
 ``exp`` recurrence, so the skip decisions are the forward's bit for bit.
 
-**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 16-vector
-``(v_mx, v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|, w, 0, 0, 0)`` of each Gaussian and adds it once
+**Accumulation without cross-thread atomics on the CPU.** A row thread sums, over its pixels, the 16-vector ``(v_mx,
+v_my, v_a, v_b, v_c, v_opacity, v_r, v_g, v_b, v_z, |v_mx|, |v_my|, w, 0, 0, 0)`` of each Gaussian and adds it once
 into that pair's *slot* (one per (tile, Gaussian) pair, see :mod:`mgso_kernels.splat.bin`). All rows of a tile run
-on one CPU thread (chunks are whole tiles), so the adds are never concurrent on the CPU; on CUDA
-``wp.atomic_add`` is atomic. Then :func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU
-result is bitwise identical however the launch is split. Components 10-11 are the AbsGS statistic (the sum over
-pixels of the absolute per-pixel 2D-mean gradient), 12 the sum of the Gaussian's blending weights ``w = alpha T``
-over the pixels that took it (not a gradient: how much of the view the Gaussian makes, zero for one hidden behind
-opaque Gaussians in every pixel; the densification's ``prune_weight_px``); 13-15 are padding (a row of 64 bytes).
+on one CPU thread (chunks are whole tiles), so the adds are never concurrent on the CPU; on CUDA ``wp.atomic_add``
+is atomic. Then :func:`gather_gaussian_grads` sums each Gaussian's contiguous slot range. The CPU result is bitwise
+identical however the launch is split. Components 10-11 are the AbsGS statistic (the sum over pixels of the absolute
+per-pixel 2D-mean gradient), 12 the sum of the Gaussian's blending weights ``w = alpha T`` over the pixels that took
+it (not a gradient: how much of the view the Gaussian makes, zero for one hidden behind opaque Gaussians in every
+pixel; the densification's ``prune_weight_px``); 13-15 are padding (a row of 64 bytes).
 
 Twin: :func:`mgso_kernels.reference.splat.render_vjp`.
 """
@@ -259,5 +259,4 @@ def launch_gather_gaussian_grads(pair_offsets, tiles_touched, pair_grads, v_mean
     n = v_means2d.shape[0]
     launch_split(gather_gaussian_grads, n, [pair_offsets, tiles_touched, pair_grads, v_means2d, v_conics,
                                             v_opacities, v_colors, v_depths, absgrad, weights], device,
-                                            threads=threads,
-                 min_chunk=min_chunk)
+                 threads=threads, min_chunk=min_chunk)
