@@ -538,9 +538,6 @@ def gather(src: wp.array, index: wp.array, dst: wp.array, device: str | None = N
         raise ValueError(f"gather: 1-D or 2-D arrays expected, got {src.ndim}-D")
 
 
-_NO_WEIGHTS: dict[str, wp.array] = {}   # an empty array a device, for a launch without blending weights
-
-
 def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, width: int, height: int,
                      v_means2d_abs: wp.array | None = None, device: str | None = None,
                      weights: wp.array | None = None, weight_scale: float = 1.0) -> None:
@@ -577,10 +574,7 @@ def accumulate_stats(stats: DensifyStats, v_means2d: wp.array, radii: wp.array, 
     if n == 0:
         return
     if not use_weights:
-        key = str(device)
-        if key not in _NO_WEIGHTS:
-            _NO_WEIGHTS[key] = wp.empty(0, dtype=wp.float32, device=device)
-        weights = _NO_WEIGHTS[key]
+        weights = runtime.placeholder(wp.float32, 1, device)
     runtime.launch_split(accumulate_densify_stats, n,
                          [v_means2d, v_means2d_abs if use_abs else v_means2d, int(use_abs), radii,
                           wp.vec2(0.5 * width, 0.5 * height), weights,

@@ -35,6 +35,7 @@ from typing import Any, Sequence
 import warp as wp
 
 __all__ = [
+    "placeholder",
     "DeviceCalls",
     "count_device_calls",
     "launch_blocks",
@@ -513,6 +514,18 @@ def _run(cmds: list) -> int:
         if error is not None:
             raise error
     return len(cmds)
+
+
+_placeholders: dict = {}
+
+
+def placeholder(dtype, ndim: int, device) -> wp.array:
+    """A one-element array (kept, one a dtype, rank and device) standing in for an argument a kernel variant or a
+    launch does not read."""
+    key = (dtype, ndim, str(device))
+    if key not in _placeholders:
+        _placeholders[key] = wp.zeros((1,) * ndim, dtype=dtype, device=device)
+    return _placeholders[key]
 
 
 # ------------------------------------------------------------------------------------------- counting device calls

@@ -11,9 +11,9 @@ depend on the upstream gradients). Per view the largest is kept (``weight_max``,
 For each share S of ``--shares``: the Gaussians of least ``weight_max`` whose ``weight`` together is at most S of
 the total: how many (``gaussians``, ``gaussian_share``), the share of the views' (tile, Gaussian) pairs they make
 (``pair_share``), their median opacity and their largest ``weight_max``. Then the renders without them against the
-renders with them, at 4 of the views (``psnr_vs_full_db``, render against render, not against the images) and the
-blends' mean ``n_contrib`` without them over with them (``n_contrib_ratio``). Also the share of Gaussians no view
-blended at all (``never_blended_share``). docs/mapping.md, "Pruning what no view shows", has the figures.
+renders with them, at 4 of the views (``psnr_vs_full_db``, render against render, not against the images; null where
+they are the same) and the blends' mean ``n_contrib`` without them over with them (``n_contrib_ratio``). Also the
+share of Gaussians no view blended at all (``never_blended_share``). docs/mapping.md, "Pruning what no view shows", has the figures.
 """
 
 from __future__ import annotations
@@ -56,6 +56,12 @@ def main(argv=None) -> int:
         weight_max = np.maximum(weight_max, w)
         pairs += rast.tiles_touched_.view(n).numpy()
     opacity = 1.0 / (1.0 + np.exp(-params[3].numpy().astype(np.float64)))
+    compared = cams[:: max(1, len(cams) // 4)][:4]
+    full = []       # the compared views' renders with every Gaussian, once (rgb, mean n_contrib)
+    for cam in compared:
+        out = rast.forward(*params, cam)
+        full.append((out.rgb.numpy().copy(), float(out.n_contrib.numpy().mean())))
+    other = Rasterizer(device)   # the renders without the dropped Gaussians
     order = np.argsort(weight_max, kind="stable")
     cum = np.cumsum(weight[order]) / max(weight.sum(), 1e-30)
     rows = {}
@@ -69,15 +75,12 @@ def main(argv=None) -> int:
         keep = np.ones(n, bool)
         keep[drop] = False
         pruned = [wp.array(p.numpy()[keep], device=device) for p in params]
-        other = Rasterizer(device)
         psnr, ratio = [], []
-        for cam in cams[:: max(1, len(cams) // 4)][:4]:
-            full = rast.forward(*params, cam)
-            a, nc_a = full.rgb.numpy().copy(), full.n_contrib.numpy().mean()
+        for cam, (a, nc_a) in zip(compared, full):
             less = other.forward(*pruned, cam)
             b, nc_b = less.rgb.numpy(), less.n_contrib.numpy().mean()
             mse = float(np.mean((a - b) ** 2))
-            psnr.append(round(10 * np.log10(1.0 / mse), 1) if mse > 0 else float("inf"))
+            psnr.append(round(10 * np.log10(1.0 / mse), 1) if mse > 0 else None)   # None: the same render
             ratio.append(round(float(nc_b / max(nc_a, 1e-9)), 3))
         row["psnr_vs_full_db"], row["n_contrib_ratio"] = psnr, ratio
         rows[str(share)] = row

@@ -447,11 +447,11 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
                    device, threads, min_chunk):
     """The CPU's count (mode 0) or emit (1) in blocks of BIN_BLOCK Gaussians (:func:`bin_blocks`), spread over the
     cores; returns the blocks' status (1 where the C++ block ran)."""
-    from ..runtime import launch_blocks
-    from .raster import _dummy
+    from ..runtime import launch_blocks, placeholder
     from .raster_tile import native_flag
 
-    f32, i32, i64 = _dummy(wp.float32, 1, device), _dummy(wp.int32, 1, device), _dummy(wp.int64, 1, device)
+    f32, i32 = placeholder(wp.float32, 1, device), placeholder(wp.int32, 1, device)
+    i64 = placeholder(wp.int64, 1, device)
     inputs = [mode, splats, f32 if depths is None else depths, radii, i32 if pair_offsets is None else pair_offsets,
               cam, i32 if tiles_touched is None else tiles_touched, i64 if keys is None else keys,
               i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss]

@@ -377,15 +377,15 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
     without it but with ``depths_g`` (N,) their depth only (``splat_rgbz[:, 3]``, for the coverage depth); with
     neither the blending data only (alpha-only). On the CPU returns the call's own per-block status (a Warp int32
     array, 1 where the C++ block did the block's pairs; renders may pack on two threads at once), else None."""
-    from ..runtime import launch_blocks, launch_split
+    from ..runtime import launch_blocks, launch_split, placeholder
 
     if splats.shape[0] < n_pairs or splat_rgbz.shape[0] < n_pairs:
         raise ValueError(f"pack_splats: splat buffers hold {splats.shape[0]}, need {n_pairs}")
     if n_pairs == 0:
         return None
     with_color = 1 if rgbz_g is not None else (2 if depths_g is not None else 0)
-    rgbz_g = rgbz_g if rgbz_g is not None else _dummy(wp.vec4, 1, device)
-    depths_g = depths_g if depths_g is not None else _dummy(wp.float32, 1, device)
+    rgbz_g = rgbz_g if rgbz_g is not None else placeholder(wp.vec4, 1, device)
+    depths_g = depths_g if depths_g is not None else placeholder(wp.float32, 1, device)
     if str(device).startswith("cpu"):
         from .raster_tile import native_flag
 
@@ -400,17 +400,6 @@ def launch_pack_splats(slots, pair_gauss, splat_g, rgbz_g, n_pairs: int, splats,
 
 #: Pairs a thread of the CPU's pack (:func:`pack_splats_blocks`).
 PACK_BLOCK = 1024
-
-
-_dummies: dict = {}
-
-
-def _dummy(dtype, ndim: int, device):
-    """A one-element array standing in for an argument a kernel variant does not read."""
-    key = (dtype, ndim, str(device))
-    if key not in _dummies:
-        _dummies[key] = wp.zeros((1,) * ndim, dtype=dtype, device=device)
-    return _dummies[key]
 
 
 def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
@@ -448,7 +437,7 @@ def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, thre
     """Accumulated alpha (H, W), and with ``depth`` (H, W) the accumulated depth ``sum w z`` (``splat_rgbz``
     packed with the depths): the cheap path for coverage tests. ``t_stop``: a pixel also stops once an accumulated
     Gaussian took its transmittance below this (0: the full render's alpha and depth)."""
-    from ..runtime import launch_split
+    from ..runtime import launch_split, placeholder
     from ._checks import check_array
 
     check_array(alpha, "alpha", wp.float32, (cam.height, cam.width), device)
@@ -458,7 +447,7 @@ def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, thre
         if splat_rgbz is None:
             raise ValueError("rasterize_alpha: the depth needs splat_rgbz packed with the depths")
     else:
-        splat_rgbz, depth = _dummy(wp.vec4, 1, device), _dummy(wp.float32, 2, device)
+        splat_rgbz, depth = placeholder(wp.vec4, 1, device), placeholder(wp.float32, 2, device)
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
         from .raster_tile import native_flag, rasterize_alpha_depth_tile, rasterize_alpha_tile, status_buffer
