@@ -817,17 +817,21 @@ class MapperConfig:
                                                 "the level running_max_pixels gives, the rest at full resolution; "
                                                 "null = 0.95 in real time (7-Scenes on 2 cores: the final 1,300 "
                                                 "steps in 122 s, 129-151 s at 0.8, 235-306 s at 0, the PSNR within "
-                                                "the runs' spread), 0.6 in the deterministic mode with its 2,000 "
-                                                "final steps and its coarse steps after each keyframe (0.8 with "
-                                                "them at full resolution, until 2026-12-06; 0 with 1,300 final steps "
-                                                "before, where KITTI lost 0.24 dB at 0.8; docs/mapping.md)")
+                                                "the runs' spread); in the deterministic mode with its 2,000 final "
+                                                "steps and its coarse steps after each keyframe 0.8 where that level "
+                                                "has at least 50,000 pixels (320x240 of a 640x480 camera), 0.6 "
+                                                "below, where KITTI's 310x94 lost 0.19-0.24 dB at 0.8 (0.6 "
+                                                "everywhere until 2026-12-07: docs/mapping.md, \"The deterministic "
+                                                "final refinement a level coarser\"); 0.8 with the steps after "
+                                                "each keyframe at full resolution")
     final_coarser_share: float | None = opt(None, "the share of the final refinement's steps (its first, within "
                                                  "final_coarse_share) trained one pyramid level coarser still "
                                                  "(160x120 for a 640x480 camera); null = 0.4 in real time (the "
                                                  "replays of its schedule with 1,600 final steps against 1,300: "
                                                  "+0.43, +0.28, +0.28 dB on 7-Scenes, freiburg1_rpy and KITTI in "
-                                                 "-3.5, -7.7 and +6.4 s; docs/mapping.md), 0 in the deterministic "
-                                                 "mode")
+                                                 "-3.5, -7.7 and +6.4 s; docs/mapping.md) and in the deterministic "
+                                                 "mode (0 until 2026-12-07: its replays with 0.4 as fast or faster at "
+                                                 "the same PSNR on 7-Scenes and KITTI)")
     keyframe_steps_coarse: bool = opt(True, "deterministic mode: the steps after each keyframe train at the level "
                                             "running_max_pixels gives, as the real-time mapper's steps while the "
                                             "stream runs (the final refinement: final_coarse_share); with the "
@@ -957,20 +961,28 @@ class MapperConfig:
             return float(self.final_budget_s)
         return 55.0 if realtime and cpu else 0.0
 
-    def final_share_coarse(self, realtime: bool) -> float:
-        """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time, 0.6 deterministic (0.8
-        where the steps after each keyframe train at full resolution, ``keyframe_steps_coarse`` false)."""
+    # the deterministic mode's final refinement keeps 80 % of its steps at the coarse level only where that level has
+    # this many pixels (7-Scenes' and freiburg1_rpy's 320x240); KITTI's 310x94 needs 40 % at full resolution
+    COARSE_DETAIL_PIXELS = 50_000
+
+    def final_share_coarse(self, realtime: bool, coarse_pixels: int | None = None) -> float:
+        """``final_coarse_share`` with its null resolved for the mode: 0.95 in real time; deterministic 0.8 where the
+        coarse level's image (``coarse_pixels``, width x height; None: unknown) has at least
+        ``COARSE_DETAIL_PIXELS``, 0.6 below, and 0.8 where the steps after each keyframe train at full resolution
+        (``keyframe_steps_coarse`` false)."""
         if self.final_coarse_share is not None:
             return float(self.final_coarse_share)
         if realtime:
             return 0.95
-        return 0.6 if self.keyframe_steps_coarse else 0.8
+        if not self.keyframe_steps_coarse:
+            return 0.8
+        return 0.8 if coarse_pixels is not None and coarse_pixels >= self.COARSE_DETAIL_PIXELS else 0.6
 
     def final_share_coarser(self, realtime: bool) -> float:
-        """``final_coarser_share`` with its null resolved for the mode: 0.4 in real time, 0 deterministic."""
+        """``final_coarser_share`` with its null resolved: 0.4 in both modes."""
         if self.final_coarser_share is not None:
             return float(self.final_coarser_share)
-        return 0.4 if realtime else 0.0
+        return 0.4
 
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)

@@ -107,7 +107,9 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     keyframe sampling, 20 steps a keyframe, 1,300 final steps: 22.26 dB, against 18.25 dB with least_used and
     21.51 dB with a fifth of the steps on the newest keyframe; since 2026-12-06 2,000 final steps, the first 80 %
     coarse, in the deterministic mode: 23.11 dB; since the fifth session that day the steps after each keyframe
-    coarse and the final's first 60 %: 23.10 dB in 27 % less mapping time), was pinned by no test. Run as the mapper
+    coarse and the final's first 60 %: 23.10 dB in 27 % less mapping time; since 2026-12-07 the final's first 80 %
+    where the coarse level keeps detail, the first 40 % a level coarser still: 24.59 -> 24.64 dB in 16 % less), was
+    pinned by no test. Run as the mapper
     runs it: each keyframe trains 20 steps, the final refinement asks for 2,000 (1,600 in real time), and the views
     are drawn half uniformly, half by their latest losses (since 2026-12-07; uniformly in real time and with
     loss_share 0)."""
@@ -121,8 +123,13 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     assert mc.loss_share is None
     assert (mc.draw_loss_share(realtime=False), mc.draw_loss_share(realtime=True)) == (0.5, 0.0)
     assert (mc.final_steps(realtime=False), mc.final_steps(realtime=True)) == (2000, 1600)
-    assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.0, 0.4)
-    assert (mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True)) == (0.6, 0.95)
+    assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.4, 0.4)
+    # the deterministic final refinement's coarse share: 0.8 where the coarse level keeps detail (7-Scenes' 320x240),
+    # 0.6 below (KITTI's 310x94) or where the level is not known; 0.95 in real time whatever the level
+    assert (mc.final_share_coarse(realtime=False, coarse_pixels=320 * 240),
+            mc.final_share_coarse(realtime=False, coarse_pixels=310 * 94),
+            mc.final_share_coarse(realtime=False), mc.final_share_coarse(realtime=True),
+            mc.final_share_coarse(realtime=True, coarse_pixels=320 * 240)) == (0.8, 0.6, 0.6, 0.95, 0.95)
     assert mc.keyframe_steps_coarse is True
     # real time on the CPU: the final refinement's coarse steps may fill 55 s (the map within issue 42's 60 s)
     assert (mc.final_budget(realtime=True, cpu=True), mc.final_budget(realtime=True, cpu=False),
@@ -783,12 +790,15 @@ def _final_levels(device, seq, cam, *over, realtime=False):
     return seen, st
 
 
-def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
+def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam, monkeypatch):
     """mapping.mapper.final_coarse_share: the first share of the final refinement's steps train at the level
     running_max_pixels gives (the real-time mapper's level while the stream runs), the rest at full resolution;
-    the control (0) trains every final step at full resolution. Its default (null) is 0.95 in real time and 0.6 in
-    the deterministic mode, whose steps after each keyframe train coarse too (keyframe_steps_coarse; 0.8 with those
-    at full resolution, 0 until 2026-12-06)."""
+    the control (0) trains every final step at full resolution. Its default (null) is 0.95 in real time and in
+    the deterministic mode, whose steps after each keyframe train coarse too (keyframe_steps_coarse), 0.8 where the
+    coarse level's image has at least MapperConfig.COARSE_DETAIL_PIXELS and 0.6 below (0.6 everywhere until
+    2026-12-07; 0.8 with the keyframes' steps at full resolution, 0 until 2026-12-06)."""
+    from mgso.config import MapperConfig
+
     full, half = (0, 80, 60), (1, 40, 30)     # 80x60 views: level 1 is the finest with at most 1,500 pixels
 
     def levels(*over, realtime=False):
@@ -800,7 +810,12 @@ def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam):
     assert levels("mapping.mapper.final_coarse_share=0.7", kf_full) == ([full] * 2 + [half] * 14 + [full] * 6, 14)
     assert levels("mapping.mapper.final_coarse_share=0", kf_full) == ([full] * 22, 0)     # the control
     assert levels(kf_full) == ([full] * 2 + [half] * 16 + [full] * 4, 16)       # 0.8 with full keyframe steps
-    assert levels() == ([half] * 2 + [half] * 12 + [full] * 8, 12)              # the default, deterministic
+    assert levels() == ([half] * 2 + [half] * 12 + [full] * 8, 12)              # the default, deterministic: 0.6
+    # 0.8 where the coarse level's image has at least COARSE_DETAIL_PIXELS (here 40 x 30 = 1,200 pixels)
+    monkeypatch.setattr(MapperConfig, "COARSE_DETAIL_PIXELS", 1200)
+    assert levels() == ([half] * 2 + [half] * 16 + [full] * 4, 16)
+    monkeypatch.setattr(MapperConfig, "COARSE_DETAIL_PIXELS", 1201)             # the control: one pixel short
+    assert levels() == ([half] * 2 + [half] * 12 + [full] * 8, 12)
     seen, coarse = levels(realtime=True)                                        # the default in real time
     assert coarse == 19 and seen[-20:] == [half] * 19 + [full], seen    # 40 x 30: no level coarser with 16 px a side
     assert set(seen[:-20]) <= {half}                                            # its steps while streaming
@@ -862,7 +877,7 @@ def test_a_time_budget_fills_the_final_refinement_with_coarse_steps(wp_device, s
 def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
     """mapping.mapper.final_coarser_share: the first share of the final refinement's steps (within
     final_coarse_share) a pyramid level coarser than running_max_pixels gives; its default (null) is 0.4 in real time
-    and 0 in the deterministic mode; the control (0) trains them at the running level."""
+    and in the deterministic mode (0 there until 2026-12-07); the control (0) trains them at the running level."""
     big = synthetic.make_sequence(seed=0, num_frames=1, width=128, height=96)
     k = big.intrinsics
     cam = PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
@@ -877,7 +892,7 @@ def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
     assert levels(share, "mapping.mapper.final_coarser_share=0.3") == (
         [quarter] * 6 + [half] * 12 + [full] * 2, 18, 6)
     assert levels(share, "mapping.mapper.final_coarser_share=0") == ([half] * 18 + [full] * 2, 18, 0)  # the control
-    assert levels(share) == ([half] * 18 + [full] * 2, 18, 0)             # the deterministic default: none
+    assert levels(share) == ([quarter] * 8 + [half] * 10 + [full] * 2, 18, 8)   # the deterministic default: 0.4
     assert levels(realtime=True) == ([quarter] * 8 + [half] * 11 + [full], 19, 8)   # real time: 0.4 of 20
     # within the coarse share: asking for more than it gives the coarse share's steps, all a level coarser
     assert levels(share, "mapping.mapper.final_coarser_share=1") == ([quarter] * 18 + [full] * 2, 18, 18)
