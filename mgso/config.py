@@ -826,12 +826,14 @@ class MapperConfig:
                                                 "each keyframe at full resolution")
     final_coarser_share: float | None = opt(None, "the share of the final refinement's steps (its first, within "
                                                  "final_coarse_share) trained one pyramid level coarser still "
-                                                 "(160x120 for a 640x480 camera); null = 0.4 in real time (the "
-                                                 "replays of its schedule with 1,600 final steps against 1,300: "
-                                                 "+0.43, +0.28, +0.28 dB on 7-Scenes, freiburg1_rpy and KITTI in "
-                                                 "-3.5, -7.7 and +6.4 s; docs/mapping.md) and in the deterministic "
-                                                 "mode (0 until 2026-12-07: its replays with 0.4 as fast or faster at "
-                                                 "the same PSNR on 7-Scenes and KITTI)")
+                                                 "(160x120 for a 640x480 camera); null = 0.6 in real time (0.4 "
+                                                 "until 2026-12-07, when the replays of its schedule gained 0.07-0.17 "
+                                                 "dB with 0.6 and three real-time rounds of 7-Scenes 0.15-1.5 dB in a "
+                                                 "final refinement 6-11 s shorter; 0.4 against 1,300 steps: +0.43, "
+                                                 "+0.28, +0.28 dB on 7-Scenes, freiburg1_rpy and KITTI; "
+                                                 "docs/mapping.md), 0.4 in the deterministic mode (0 until "
+                                                 "2026-12-07: its replays with 0.4 as fast or faster at the same "
+                                                 "PSNR on 7-Scenes and KITTI)")
     keyframe_steps_coarse: bool = opt(True, "deterministic mode: the steps after each keyframe train at the level "
                                             "running_max_pixels gives, as the real-time mapper's steps while the "
                                             "stream runs (the final refinement: final_coarse_share); with the "
@@ -979,10 +981,10 @@ class MapperConfig:
         return 0.8 if coarse_pixels is not None and coarse_pixels >= self.COARSE_DETAIL_PIXELS else 0.6
 
     def final_share_coarser(self, realtime: bool) -> float:
-        """``final_coarser_share`` with its null resolved: 0.4 in both modes."""
+        """``final_coarser_share`` with its null resolved for the mode: 0.6 in real time, 0.4 deterministic."""
         if self.final_coarser_share is not None:
             return float(self.final_coarser_share)
-        return 0.4
+        return 0.6 if realtime else 0.4
 
     def __post_init__(self):
         c = _Checks("mapping.mapper", self)

@@ -38,7 +38,8 @@ Real time (:meth:`start`): a thread drains every pending message, trains one ste
 queue only while it has nothing to train. While messages wait it keeps ``mapping.mapper.running_train_share`` of
 its time for training, and while the stream runs it trains at the pyramid level of ``running_max_pixels``; so do
 the first ``final_coarse_share`` (0.95 in real time) of the final refinement's steps, the first
-``final_coarser_share`` of them (0.4) a level coarser still, the rest at full resolution.
+``final_coarser_share`` of them (0.6 in real time, 0.4 deterministic) a level coarser still, the rest at full
+resolution.
 Far behind (``defer_seeding_above``), a keyframe's seeding waits with its marginalised points until the queue is
 empty. The real-time system runs the same loop in a process of its own
 (:class:`mgso.mapping.process.MapperProcess`). Watchers ask for copies and renders of the map at any time
@@ -448,7 +449,8 @@ class Mapper:
         return self.cfg.final_share_coarse(realtime=self._thread is not None, coarse_pixels=pixels)
 
     def final_coarser_share(self) -> float:
-        """``mapping.mapper.final_coarser_share``, its null resolved: 0.4 in both modes."""
+        """``mapping.mapper.final_coarser_share``, its null resolved: 0.6 in real time, 0.4 in the deterministic
+        mode."""
         return self.cfg.final_share_coarser(realtime=self._thread is not None)
 
     def final_iterations(self) -> int:

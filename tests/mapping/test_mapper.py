@@ -123,7 +123,7 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     assert mc.loss_share is None
     assert (mc.draw_loss_share(realtime=False), mc.draw_loss_share(realtime=True)) == (0.5, 0.0)
     assert (mc.final_steps(realtime=False), mc.final_steps(realtime=True)) == (2000, 1600)
-    assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.4, 0.4)
+    assert (mc.final_share_coarser(realtime=False), mc.final_share_coarser(realtime=True)) == (0.4, 0.6)
     # the deterministic final refinement's coarse share: 0.8 where the coarse level keeps detail (7-Scenes' 320x240),
     # 0.6 below (KITTI's 310x94) or where the level is not known; 0.95 in real time whatever the level
     assert (mc.final_share_coarse(realtime=False, coarse_pixels=320 * 240),
@@ -876,8 +876,9 @@ def test_a_time_budget_fills_the_final_refinement_with_coarse_steps(wp_device, s
 
 def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
     """mapping.mapper.final_coarser_share: the first share of the final refinement's steps (within
-    final_coarse_share) a pyramid level coarser than running_max_pixels gives; its default (null) is 0.4 in real time
-    and in the deterministic mode (0 there until 2026-12-07); the control (0) trains them at the running level."""
+    final_coarse_share) a pyramid level coarser than running_max_pixels gives; its default (null) is 0.6 in real time
+    (0.4 until 2026-12-07) and 0.4 in the deterministic mode (0 there until 2026-12-07); the control (0) trains them
+    at the running level."""
     big = synthetic.make_sequence(seed=0, num_frames=1, width=128, height=96)
     k = big.intrinsics
     cam = PinholeCamera(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
@@ -893,7 +894,7 @@ def test_the_final_refinements_first_steps_go_a_level_coarser_still(wp_device):
         [quarter] * 6 + [half] * 12 + [full] * 2, 18, 6)
     assert levels(share, "mapping.mapper.final_coarser_share=0") == ([half] * 18 + [full] * 2, 18, 0)  # the control
     assert levels(share) == ([quarter] * 8 + [half] * 10 + [full] * 2, 18, 8)   # the deterministic default: 0.4
-    assert levels(realtime=True) == ([quarter] * 8 + [half] * 11 + [full], 19, 8)   # real time: 0.4 of 20
+    assert levels(realtime=True) == ([quarter] * 12 + [half] * 7 + [full], 19, 12)  # real time: 0.6 of 20
     # within the coarse share: asking for more than it gives the coarse share's steps, all a level coarser
     assert levels(share, "mapping.mapper.final_coarser_share=1") == ([quarter] * 18 + [full] * 2, 18, 18)
 
