@@ -109,10 +109,9 @@ def test_the_default_schedule_is_what_the_measurements_chose(wp_device, seq, cam
     coarse, in the deterministic mode: 23.11 dB; since the fifth session that day the steps after each keyframe
     coarse and the final's first 60 %: 23.10 dB in 27 % less mapping time; since 2026-12-07 the final's first 80 %
     where the coarse level keeps detail, the first 40 % a level coarser still: 24.59 -> 24.64 dB in 16 % less), was
-    pinned by no test. Run as the mapper
-    runs it: each keyframe trains 20 steps, the final refinement asks for 2,000 (1,600 in real time), and the views
-    are drawn half uniformly, half by their latest losses (since 2026-12-07; uniformly in real time and with
-    loss_share 0)."""
+    pinned by no test. Run as the mapper runs it: each keyframe trains 20 steps, the final refinement asks for 2,000
+    (1,600 in real time), and the views are drawn half uniformly, half by their latest losses (since 2026-12-07;
+    uniformly in real time and with loss_share 0)."""
     from mgso.config import Config
     from mgso.mapping.views import NewestOrRandomSampler
 
@@ -793,8 +792,8 @@ def _final_levels(device, seq, cam, *over, realtime=False):
 def test_the_final_refinements_first_share_trains_coarse(wp_device, seq, cam, monkeypatch):
     """mapping.mapper.final_coarse_share: the first share of the final refinement's steps train at the level
     running_max_pixels gives (the real-time mapper's level while the stream runs), the rest at full resolution;
-    the control (0) trains every final step at full resolution. Its default (null) is 0.95 in real time and in
-    the deterministic mode, whose steps after each keyframe train coarse too (keyframe_steps_coarse), 0.8 where the
+    the control (0) trains every final step at full resolution. Its default (null) is 0.95 in real time; in the
+    deterministic mode, whose steps after each keyframe train coarse too (keyframe_steps_coarse), 0.8 where the
     coarse level's image has at least MapperConfig.COARSE_DETAIL_PIXELS and 0.6 below (0.6 everywhere until
     2026-12-07; 0.8 with the keyframes' steps at full resolution, 0 until 2026-12-06)."""
     from mgso.config import MapperConfig
