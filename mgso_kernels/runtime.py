@@ -493,14 +493,22 @@ def _run(cmds: list) -> int:
     """Launch recorded chunks: the first on this thread, the others on this thread's workers. Returns how many."""
     ws = _workers(len(cmds) - 1)
     started = []
+    clean = False
     try:
         for w, c in zip(ws, cmds[1:]):
             w.start(c.launch)
             started.append(w)
         cmds[0].launch()
+        clean = True
     finally:
         error = None
         try:
+            if not clean:
+                # an exception here (a signal's, raised where the interpreter checks for one: the call that records
+                # a started worker) may have come between a worker's start and its record: no one would wait for
+                # that worker's chunk, and its "done" would answer the next launch's wait while that launch still
+                # ran (then a double release that ends the worker: the next wait hangs). Not used again.
+                _local.workers = None
             for w in started:
                 try:
                     w.wait()

@@ -1,5 +1,6 @@
 import signal
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -218,6 +219,48 @@ def test_a_split_launch_interrupted_while_waiting_drops_its_workers():
     assert runtime._run(after) == 2 and after[1].thread is not None
     assert runtime._local.workers[0] is not before  # new workers
     gate.set()
+
+
+class _Slow(_Chunk):
+    def launch(self):
+        time.sleep(0.2)
+        super().launch()
+
+
+def test_a_split_launch_interrupted_between_a_workers_start_and_its_record_drops_its_workers(monkeypatch):
+    """A signal's exception right after a worker was handed its chunk, before ``_run`` counted it (the CI failure
+    of 2026-12-07: a SIGTERM'd run that never ended). Nobody waited for that chunk, so its worker's "done" answered
+    the next launch's wait at once while the next chunk still ran. The control: the same launch, uninterrupted,
+    keeps its workers."""
+    def body(out):
+        runtime._run([_Chunk(), _Chunk()])
+        out["before"] = runtime._local.workers[0]
+        real = runtime._Worker.start
+
+        def start_then_signal(self, job):
+            real(self, job)
+            monkeypatch.setattr(runtime._Worker, "start", real)
+            raise KeyboardInterrupt     # where the interpreter ran the signal's handler
+
+        monkeypatch.setattr(runtime._Worker, "start", start_then_signal)
+        try:
+            runtime._run([_Chunk(), _Chunk()])
+        except KeyboardInterrupt:
+            out["interrupted"] = True
+        after = [_Chunk(), _Slow()]
+        runtime._run(after)
+        out["waited"] = after[1].thread is not None      # the launch returned once its chunks had run
+        out["new"] = runtime._local.workers[0] is not out["before"]
+        kept = runtime._local.workers[0]
+        control = [_Chunk(), _Slow()]
+        runtime._run(control)
+        out["control"] = runtime._local.workers[0] is kept and control[1].thread is not None
+
+    out = {}
+    t = threading.Thread(target=body, args=(out,))      # its own workers (thread-local), not the test runner's
+    t.start()
+    t.join(10)
+    assert out.get("interrupted") and out.get("waited") and out.get("new") and out.get("control")
 
 
 def test_full_slp_flags_drop_only_warps_slp_depth_cap(monkeypatch):
