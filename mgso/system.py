@@ -517,18 +517,25 @@ class System:
                 self._dispatch(r.messages)
         except KeyboardInterrupt:
             interrupted = True
-            log.warning("interrupted after %d frames: finishing the odometry and writing what was done", processed)
         except Exception as exc:  # noqa: BLE001 - the work done so far is returned with the error
             error = exc
             log.debug("the run failed after %d frames", processed, exc_info=True)
         finally:
+            loop_s = time.perf_counter() - t_loop
             close = getattr(it, "close", None)
             if close is not None:        # stop the player's / the prefetch's thread now
-                close()
-        loop_s = time.perf_counter() - t_loop
+                try:
+                    close()
+                except KeyboardInterrupt:
+                    # a signal while they stop (a thread's join, tens of ms; a second Ctrl-C): until 2026-12-07 it
+                    # left _run and no output was written
+                    interrupted = True
         t_fin = time.perf_counter()
         final = []
         try:
+            if interrupted:              # here, where a second signal is caught as in the odometry's last step
+                log.warning("interrupted after %d frames: finishing the odometry and writing what was done",
+                            processed)
             final = list(self.odometry.finish())
         except KeyboardInterrupt:        # a second signal during the odometry's last step: keep what it has
             interrupted = True
