@@ -501,7 +501,7 @@ def test_a_second_ctrl_c_while_the_frames_stop_still_writes_the_outputs(room, tm
         return sources[-1]
 
     try:
-        result, metrics, system, *_ = _in_thread(lambda: _run(
+        result, metrics, *_ = _in_thread(lambda: _run(
             room, tmp_path, f"system.mode={mode}", "system.playback_speed=0", frames=frames,
             odometry_wrapper=_CtrlCOn), timeout=120)
     except KeyboardInterrupt:
