@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from child_process import child_env, communicate
 
 from mgso import synthetic
 from mgso.app.cli import main
@@ -165,7 +166,7 @@ def test_a_signal_during_fit_writes_the_map_trained_so_far(scene_dir, tmp_path, 
     cli = "import sys; from mgso.app.cli import main; sys.exit(main(sys.argv[1:]))"
     args = [a if a != str(ITERATIONS) else "100000" for a in FIT_ARGS if a != "-q"]
     p = subprocess.Popen([sys.executable, "-c", cli, "fit", str(scene_dir), "--out", str(out), "-v", *args],
-                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=child_env())
     try:
         t0 = time.monotonic()
         line = ""
@@ -175,7 +176,7 @@ def test_a_signal_during_fit_writes_the_map_trained_so_far(scene_dir, tmp_path, 
             assert time.monotonic() - t0 < 300
         time.sleep(1.0)                                # a few steps
         p.send_signal(getattr(signal, sig))
-        _, err = p.communicate(timeout=120)
+        _, err = communicate(p, 120, "mgso fit")
     finally:
         if p.poll() is None:
             p.kill()

@@ -9,7 +9,6 @@ evaluation that reads frames back) and the limits of ``--max-frames`` / ``--dura
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -22,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from child_process import child_env, communicate
 
 from mgso import synthetic
 from mgso.app.cli import build_parser, main
@@ -97,9 +97,8 @@ class MjpegServer:
 
 
 def _spawn(args):
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-c", CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+                            text=True, env=child_env())
 
 
 def _rows(path: Path) -> int:
@@ -108,7 +107,7 @@ def _rows(path: Path) -> int:
 
 def _finish(proc, timeout: float = 300.0):
     try:
-        return proc.communicate(timeout=timeout)
+        return communicate(proc, timeout)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -189,7 +188,7 @@ def test_ctrl_c_ends_a_live_stream_and_a_second_one_cuts_the_refinement(room, tm
         proc = subprocess.Popen([sys.executable, "-c", CLI, "run", server.url, "--calib", str(calib), "--out",
                                  str(out), *SMALL_MAP, "--set", f"mapping.mapper.final_iterations={final}"],
                                 stdout=subprocess.PIPE, stderr=err_fh, text=True,
-                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                                env=child_env())
         try:
             # 15 frames and the initialiser done: the map has keyframes to refine
             _wait_for(proc, err_path, lambda: _rows(out / "frames.csv") >= 15 and _initialised(out / "frames.csv"),

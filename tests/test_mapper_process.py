@@ -16,18 +16,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from child_process import child_env, communicate
+from odometry_doubles import LoadOrderOdometry, PausedMapperOdometry, SlowOdometry, ThreadsSeenOdometry
 
 from mgso import synthetic
 from mgso.config import load_config
 from mgso.io import open_sequence
 from mgso.mapping.mapper import Mapper, MapperError
-from mgso.messages import KeyframeMessage, PointsMessage, PoseUpdate, Stop
 from mgso.mapping.process import MapperProcess, split_threads
+from mgso.messages import KeyframeMessage, PointsMessage, PoseUpdate, Stop
 from mgso.observers import Observer
 from mgso.oracle import OracleOdometry
 from mgso.system import System, SystemRunError
-
-from odometry_doubles import LoadOrderOdometry, PausedMapperOdometry, SlowOdometry, ThreadsSeenOdometry
 
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=false",
         "system.eval_photo_slam=false"]
@@ -458,7 +458,7 @@ def test_a_signal_stops_both_processes_and_writes_everything(tmp_path, sig, code
     refinement: every output, the exit code of the signal, no traceback, the mapper's process gone."""
     room = synthetic.cached_sequence_folder(num_frames=40, width=128, height=96, seed=0)
     out = tmp_path / "run"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env = child_env()
     # played at a quarter of its rate: 40 frames take 5 s; a refinement too long to finish
     proc = subprocess.Popen([sys.executable, "-c", CLI, "run", str(room), "--out", str(out), "--realtime", "-q",
                              "--set", "system.playback_speed=0.25", "--set", "mapping.mapper.final_iterations=100000",
@@ -474,7 +474,7 @@ def test_a_signal_stops_both_processes_and_writes_everything(tmp_path, sig, code
         if moment == "refinement":
             time.sleep(1.5)
         proc.send_signal(sig)
-        _, err = proc.communicate(timeout=120)
+        _, err = communicate(proc, 120)
     finally:
         if proc.poll() is None:
             proc.kill()

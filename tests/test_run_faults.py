@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from child_process import child_env, communicate
 
 from mgso import synthetic
 from mgso.app.cli import main
@@ -51,25 +52,8 @@ def _check_consistent(out: Path, processed: int) -> None:
 
 
 def _spawn(args, **kw):
-    # PYTHONFAULTHANDLER: a run that does not end is sent SIGABRT (_communicate), which dumps its threads' stacks
-    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1")
     return subprocess.Popen([sys.executable, "-c", CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env, **kw)
-
-
-def _communicate(proc, timeout: float = 120.0) -> tuple[str, str]:
-    """``proc.communicate``; a run still going after ``timeout`` seconds fails the test with where each of its
-    threads was (the faulthandler's dump on SIGABRT), not only with the timeout."""
-    try:
-        return proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGABRT)
-        try:
-            _, err = proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
-        pytest.fail(f"the run had not ended {timeout:.0f} s after the signal; its threads then:\n{err[-8000:]}")
+                            text=True, env=child_env(), **kw)
 
 
 def _wait_rows(proc, path: Path, rows: int, timeout: float = 120.0) -> None:
@@ -96,7 +80,7 @@ def test_a_signal_mid_run_writes_what_was_done(room, tmp_path, stage, sig, code)
     try:
         _wait_rows(proc, out / "frames.csv", 12)
         proc.send_signal(sig)
-        _, err = _communicate(proc)
+        _, err = communicate(proc, 120)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -429,7 +413,7 @@ def test_ctrl_c_during_the_real_time_final_refinement(room, tmp_path):
             assert time.monotonic() - t0 < 300, "no final refinement in 300 s"
         time.sleep(1.0)
         proc.send_signal(signal.SIGINT)
-        _, err = _communicate(proc)
+        _, err = communicate(proc, 120)
     finally:
         if proc.poll() is None:
             proc.kill()

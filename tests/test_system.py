@@ -4,7 +4,6 @@ sequences: deterministic and real-time modes, outputs, rendering quality, seedin
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,19 +13,19 @@ import time
 
 import numpy as np
 import pytest
+from child_process import child_env, communicate
+from odometry_doubles import KeyframeRequestingOdometry, SlowOdometry
 
 from mgso import synthetic
+from mgso.app.outputs import METRICS_KEYS, write_outputs
 from mgso.config import load_config
-from mgso.geometry import se3_inverse
 from mgso.eval import MONOGS, PHOTO_SLAM
+from mgso.geometry import se3_inverse
 from mgso.io import open_sequence
 from mgso.io.ply import read_gaussians_ply, read_point_cloud_ply
 from mgso.io.trajectory import read_tum
 from mgso.oracle import OracleOdometry
-from mgso.app.outputs import METRICS_KEYS, write_outputs
 from mgso.system import System, SystemRunError
-
-from odometry_doubles import KeyframeRequestingOdometry, SlowOdometry
 
 # Small CPU-sized runs: 96x72 images, a keyframe every 4 frames, 15 mapping steps a keyframe, 60 final steps.
 BASE = ["mapping.mapper.iterations_per_keyframe=15", "mapping.mapper.final_iterations=60", "output.plot=true"]
@@ -551,15 +550,14 @@ def test_sigint_in_a_subprocess_writes_outputs(room, tmp_path):
     # SIGINT restored to its default in the child: a suite started in the background by a non-interactive shell
     # (`bash .ci/run &`) inherits SIGINT ignored, Python then installs no KeyboardInterrupt handler, and the run
     # went on into its 100,000 refinement steps (the test timed out twice so)
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-c", SIGINT_SCRIPT, str(room), str(tmp_path)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_default_sigint)
+                            stderr=subprocess.PIPE, text=True, env=child_env(), preexec_fn=_default_sigint)
     try:
         line = proc.stdout.readline()
         assert line.strip() == "running", proc.stderr.read()
         time.sleep(0.5)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        out, err = communicate(proc, 60)
     finally:
         if proc.poll() is None:
             proc.kill()
