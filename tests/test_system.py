@@ -489,7 +489,7 @@ class _CtrlCOn:
 
 @pytest.mark.parametrize("mode", ["deterministic", "realtime"])
 def test_a_second_ctrl_c_while_the_frames_stop_still_writes_the_outputs(room, tmp_path, mode):
-    """Found 2026-12-07 by sending a run two SIGINTs 0-20 ms apart (`--realtime`: 6 runs of 12 wrote no output): the
+    """Found 2026-12-07 by sending a run two SIGINTs 0-20 ms apart (`--realtime`: 7 runs of 24 wrote no output): the
     first stopped the frame loop, the second landed in the frame source's close (its thread's join) and left
     ``System.run`` (on that code this test fails here, not with the KeyboardInterrupt that would end pytest). One
     Ctrl-C alone: the test above."""
