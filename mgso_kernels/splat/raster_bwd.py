@@ -205,6 +205,15 @@ def gather_gaussian_grads(
 
 
 # ------------------------------------------------------------------------------------------------- launchers
+#: On the CPU, images of at most this many pixels take the backward tile snippet at 8 lanes (half a tile row a vector)
+#: where the CPU has 16: the same gradients bit for bit (``tests/kernels/test_splat_tile.py``), and on small images,
+#: where most Gaussians reach a few pixels of a tile row, the 16-lane vector mostly blends empty lanes. Backward
+#: blend on one thread of the 2-core Intel machine (AVX-512), 16 -> 8 lanes, real maps (``profiles/splat_raster.py
+#: --run DIR --downscale N``, 2026-12-07): 7-Scenes 160x120 19.2 -> 15.4 ms, 213x160 24.4 -> 22.6, 320x240 36.5 ->
+#: 40.2 (slower), KITTI 310x94 23.0 -> 17.6, 620x188 42.5 -> 42.8 (docs/rasteriser.md).
+NARROW_BACKWARD_PIXELS = 40_000
+
+
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,
                               v_depth, v_alpha, pair_grads, n_pairs: int, device: str,
                               threads: int | None = None, min_chunk: int = 4096, seg: int = TILE_SIZE,
@@ -234,13 +243,15 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     pair_grads[:n_pairs].zero_()
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import (BWD_ACC_ROWS, native_flag, rasterize_backward_tile, rasterize_backward_tile_noabs,
-                                  status_buffer)
+        from . import raster_tile as rt
 
-        launch_split(rasterize_backward_tile if absgrad else rasterize_backward_tile_noabs, dim,
+        narrow = W * H <= NARROW_BACKWARD_PIXELS and wp.get_device(device).is_cpu
+        kernel = ((rt.rasterize_backward_tile_narrow if narrow else rt.rasterize_backward_tile) if absgrad
+                  else (rt.rasterize_backward_tile_noabs_narrow if narrow else rt.rasterize_backward_tile_noabs))
+        launch_split(kernel, dim,
                      [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
-                      v_depth, v_alpha, use_depth, use_alpha, BWD_ACC_ROWS, pair_grads, native_flag(),
-                      status_buffer(dim, device)], device,
+                      v_depth, v_alpha, use_depth, use_alpha, rt.BWD_ACC_ROWS, pair_grads, rt.native_flag(),
+                      rt.status_buffer(dim, device)], device,
                      threads=threads, min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_backward, dim,

@@ -57,7 +57,8 @@ wp.set_module_options({
 })
 
 __all__ = ["TILE_PIXELS", "use_native", "native_flag", "native_lanes", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
-           "rasterize_backward_tile", "rasterize_backward_tile_noabs", "BWD_ACC_ROWS"]
+           "rasterize_backward_tile", "rasterize_backward_tile_noabs", "rasterize_backward_tile_narrow",
+           "rasterize_backward_tile_noabs_narrow", "BWD_ACC_ROWS"]
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE  # ``pixels_per_thread`` value that selects these kernels
 
@@ -441,8 +442,9 @@ rasterize_alpha_tile = _alpha_tile_kernel(False)
 rasterize_alpha_depth_tile = _alpha_tile_kernel(True)   # the coverage alpha and the accumulated depth
 
 
-def _backward_tile_cpp(with_absgrad: bool):
-    @wp.func_native(raster_tile_cpp.fill(raster_tile_cpp.BACKWARD, dict(_CONSTS, ABSGRAD=int(with_absgrad))))
+def _backward_tile_cpp(with_absgrad: bool, narrow: bool = False):
+    @wp.func_native(raster_tile_cpp.fill(raster_tile_cpp.BACKWARD, dict(_CONSTS, ABSGRAD=int(with_absgrad)),
+                                         lanes=8 if narrow else None))
     def backward_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
                           splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4),
                           slots: wp.array(dtype=wp.int32), background: wp.vec3, T_final: wp.array2d(dtype=float),
@@ -458,11 +460,15 @@ def _backward_tile_cpp(with_absgrad: bool):
 
 _backward_tile_cpp_abs = _backward_tile_cpp(True)
 _backward_tile_cpp_noabs = _backward_tile_cpp(False)
+_backward_tile_cpp_abs_narrow = _backward_tile_cpp(True, narrow=True)
+_backward_tile_cpp_noabs_narrow = _backward_tile_cpp(False, narrow=True)
 
 
-def _backward_tile_kernel(with_absgrad: bool):
-    """The backward tile kernel, with or without the AbsGS sums (``wp.static``: two compiled variants)."""
-    backward_tile_cpp = _backward_tile_cpp_abs if with_absgrad else _backward_tile_cpp_noabs
+def _backward_tile_kernel(with_absgrad: bool, narrow: bool = False):
+    """The backward tile kernel, with or without the AbsGS sums, its snippet at the CPU's lanes or at 8 (``narrow``:
+    the same values bit for bit; faster on small images, ``raster_bwd.NARROW_BACKWARD_PIXELS``): four variants."""
+    backward_tile_cpp = ((_backward_tile_cpp_abs_narrow if narrow else _backward_tile_cpp_abs) if with_absgrad
+                         else (_backward_tile_cpp_noabs_narrow if narrow else _backward_tile_cpp_noabs))
 
     @wp.kernel
     def rasterize_backward_tile(
@@ -634,3 +640,6 @@ def _backward_tile_kernel(with_absgrad: bool):
 
 rasterize_backward_tile = _backward_tile_kernel(True)
 rasterize_backward_tile_noabs = _backward_tile_kernel(False)   # AbsGS sums skipped (absgrad = 0)
+# the same with the snippet at 8 lanes (half a tile row a vector) where the CPU has 16
+rasterize_backward_tile_narrow = _backward_tile_kernel(True, narrow=True)
+rasterize_backward_tile_noabs_narrow = _backward_tile_kernel(False, narrow=True)

@@ -557,13 +557,16 @@ def _with_lanes(text: str, width: int) -> str:
             .replace("@LANES@", ", ".join(str(k) for k in range(width))))
 
 
-def fill(body: str, consts: dict[str, float | int]) -> str:
+def fill(body: str, consts: dict[str, float | int], lanes: int | None = None) -> str:
     """The snippet: CPU only (clang), no contraction into FMAs but the snippet's own ``fmav`` (so the forward and
     the backward compute each alpha the same way), the prelude and ``body`` with the constants filled in (a float as
     a float32 literal, an int as itself), at 16 lanes where the compiler targets AVX-512 (and :func:`lanes` is 16),
-    at 8 otherwise."""
+    at 8 otherwise; ``lanes=8``: at 8 everywhere (the backward on small images, where most Gaussians reach a few
+    pixels of a tile row: ``mgso_kernels.splat.raster_bwd.NARROW_BACKWARD_PIXELS``)."""
+    if lanes not in (None, 8):
+        raise ValueError(f"raster_tile_cpp.fill: lanes must be None or 8, got {lanes!r}")
     code = _PRELUDE + body
-    wide = _with_lanes(code, 16) if _LANES == 16 else None
+    wide = _with_lanes(code, 16) if _LANES == 16 and lanes is None else None
     text = "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
     if wide is not None:
         text += "#if defined(__AVX512F__)\n" + wide + "\n#else\n" + _with_lanes(code, 8) + "\n#endif\n"

@@ -584,16 +584,25 @@ def test_the_cpus_projection_blocks_compute_the_kernels_values(wp_device, n, ant
 _LANE_CASES = [((53, 35), 400, True), ((96, 80), 900, False), ((16, 16), 60, True), ((70, 41), 1500, False)]
 
 
-def _snippet_outputs(device) -> dict:
-    """Everything the C++ snippets compute on the lane cases' scenes (images, coverage, gradients), by name."""
-    out = {}
-    for c, (size, n, absgrad) in enumerate(_LANE_CASES):
-        rng, scene, cam = _scene(20 + c, n, *size)
-        w, h = size
-        ups = [rng.normal(size=s).astype(np.float32) for s in ((h, w, 3), (h, w), (h, w))]
-        cpp = _render(device, scene, cam, ups, absgrad, True)
-        out.update({f"{c}_{k}": v for k, v in cpp.items()})
-    return out
+def _snippet_outputs(device, narrow_pixels: int = 0) -> dict:
+    """Everything the C++ snippets compute on the lane cases' scenes (images, coverage, gradients), by name; the
+    backward at the CPU's lanes whatever the image's size (``raster_bwd.NARROW_BACKWARD_PIXELS`` 0), or with
+    ``narrow_pixels`` as that rule (above every case's size: the 8-lane backward)."""
+    from mgso_kernels.splat import raster_bwd
+
+    before = raster_bwd.NARROW_BACKWARD_PIXELS
+    raster_bwd.NARROW_BACKWARD_PIXELS = narrow_pixels
+    try:
+        out = {}
+        for c, (size, n, absgrad) in enumerate(_LANE_CASES):
+            rng, scene, cam = _scene(20 + c, n, *size)
+            w, h = size
+            ups = [rng.normal(size=s).astype(np.float32) for s in ((h, w, 3), (h, w), (h, w))]
+            cpp = _render(device, scene, cam, ups, absgrad, True)
+            out.update({f"{c}_{k}": v for k, v in cpp.items()})
+        return out
+    finally:
+        raster_bwd.NARROW_BACKWARD_PIXELS = before
 
 
 def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_path):
@@ -624,6 +633,44 @@ def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_pa
             assert (value == 1).all() and (narrow[key] == 1).all(), key
         else:
             assert np.array_equal(value, narrow[key]), key
+
+
+def test_small_images_take_the_8_lane_backward_with_the_same_gradients(wp_device, monkeypatch):
+    """On the CPU an image of at most ``NARROW_BACKWARD_PIXELS`` takes the backward tile snippet at 8 lanes (faster
+    there: docs/rasteriser.md), compiled beside the 16-lane one in this process: the same gradients bit for bit on
+    the lane cases, every tile done by the snippet; the rule picks the narrow kernel at the threshold and the wide
+    one a pixel above it (the control)."""
+    from mgso_kernels.splat import raster_bwd
+
+    if not wp.get_device(wp_device).is_cpu:
+        pytest.skip("the C++ snippets run on the CPU only")
+    wide = _snippet_outputs(wp_device, narrow_pixels=0)
+    narrow = _snippet_outputs(wp_device, narrow_pixels=10**9)
+    for key, value in wide.items():
+        if key.split("_", 1)[1].startswith("status"):
+            assert (value == 1).all() and (narrow[key] == 1).all(), key
+        else:
+            assert np.array_equal(value, narrow[key]), key
+    # the rule: which kernel launch_rasterize_backward hands to launch_split
+    from mgso_kernels import runtime
+
+    taken = []
+    real = runtime.launch_split
+    monkeypatch.setattr(runtime, "launch_split", lambda kernel, *a, **k: taken.append(kernel) or real(kernel, *a, **k))
+    rng, scene, cam = _scene(30, 200, 53, 35)
+    ups = [rng.normal(size=s).astype(np.float32) for s in ((35, 53, 3), (35, 53), (35, 53))]
+    rast = Rasterizer(wp_device)
+    for limit in (53 * 35, 53 * 35 - 1):
+        monkeypatch.setattr(raster_bwd, "NARROW_BACKWARD_PIXELS", limit)
+        for absgrad in (True, False):
+            taken.clear()
+            rast.backward(rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3)), *ups, absgrad=absgrad)
+            tiles = [k for k in taken if k.key.endswith("rasterize_backward_tile")]
+            small = limit == 53 * 35
+            want = ((raster_tile.rasterize_backward_tile_narrow if small else raster_tile.rasterize_backward_tile)
+                    if absgrad else (raster_tile.rasterize_backward_tile_noabs_narrow if small
+                                     else raster_tile.rasterize_backward_tile_noabs))
+            assert tiles == [want], (limit, absgrad, [k.key for k in tiles])
 
 
 if __name__ == "__main__":   # the 8-lane half of the test above, in its own process
