@@ -228,8 +228,8 @@ class _Slow(_Chunk):
 
 
 def test_a_split_launch_interrupted_between_a_workers_start_and_its_record_drops_its_workers(monkeypatch):
-    """A signal's exception right after a worker was handed its chunk, before ``_run`` counted it (the CI failure
-    of 2026-12-07: a SIGTERM'd run that never ended). Nobody waited for that chunk, so its worker's "done" answered
+    """A signal's exception right after a worker was handed its chunk, before ``_run`` counted it (found looking
+    for the cause of the CI failure of 2026-12-07, a SIGTERM'd run that never ended). Nobody waited for that chunk, so its worker's "done" answered
     the next launch's wait at once while the next chunk still ran. The control: the same launch, uninterrupted,
     keeps its workers."""
     def body(out):
