@@ -224,7 +224,7 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     kernel (``seg`` 256) skip the AbsGS sums (components 10, 11 stay 0); the row kernels compute them anyway
     (``Rasterizer.backward`` zeroes them after the gather, so that the result is the same on every path).
     """
-    from ..runtime import launch_split
+    from ..runtime import _is_cpu, launch_split
     from ._checks import check_array
     H, W = cam.height, cam.width
     check_array(v_rgb, "v_rgb", wp.float32, (H, W, 3), device)
@@ -245,7 +245,7 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
     if seg == TILE_SIZE * TILE_SIZE:
         from . import raster_tile as rt
 
-        narrow = W * H <= NARROW_BACKWARD_PIXELS and wp.get_device(device).is_cpu
+        narrow = W * H <= NARROW_BACKWARD_PIXELS and _is_cpu(device)
         kernel = ((rt.rasterize_backward_tile_narrow if narrow else rt.rasterize_backward_tile) if absgrad
                   else (rt.rasterize_backward_tile_noabs_narrow if narrow else rt.rasterize_backward_tile_noabs))
         launch_split(kernel, dim,
