@@ -1077,6 +1077,11 @@ class SystemConfig:
                                           "as DSO's mapping thread, so that a keyframe does not stall the frames "
                                           "behind it (docs/tracking.md); the deterministic mode runs the halves in "
                                           "order")
+    mapper_lead: int | None = opt(None, "deterministic mode: keyframes the odometry may run ahead of the mapper, "
+                                        "which applies the messages and trains in a thread of its own meanwhile "
+                                        "(the same map bit for bit: it depends only on the messages and their "
+                                        "order); 0 = the mapper in the odometry's thread after each frame; null = 4 "
+                                        "with the map on the CPU, 0 on CUDA (not measured there yet)")
     mapper_process: bool = opt(True, "realtime mode: the mapper runs in a spawned process of its own (its own "
                                      "interpreter lock, Warp context and CUDA stream; keyframe images through shared "
                                      "memory); false: a thread of the odometry's process")
@@ -1110,6 +1115,7 @@ class SystemConfig:
         c.one_of(("deterministic", "realtime"), "mode")
         c.ge(0, "playback_speed", "max_lag_ms")
         c.ge(0, "odometry_threads", "mapper_threads")
+        c.rule(self.mapper_lead is None or self.mapper_lead >= 0, "mapper_lead", ">= 0 or null")
         c.within(0, 19, "mapper_nice")
         c.ge(1, "image_slots")
         c.done()

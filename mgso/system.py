@@ -203,7 +203,8 @@ class SystemResult:
     finish_seconds: float               # odometry.finish + the mapper's last messages and final refinement
     frames_lost: int = 0                # frames processed that have no pose in the final trajectory
     keyframe_frames: list = field(default_factory=list)   # frame index of every keyframe sent to the map
-    mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic), "thread" or "process";
+    mapper_in: str = "caller"           # where the mapper ran: "caller" (deterministic, system.mapper_lead 0), "thread"
+    #                                     (real time, or deterministic on a thread of its own) or "process";
     #                                     "none" without a map
     with_map: bool = True               # False: the odometry alone (the tracking and odometry stages)
     repeated_frames: int = 0            # frames that repeated the one before (the odometry gave them its pose)
@@ -383,6 +384,9 @@ class System:
         self.odometry_threads: int | None = None
         self._share_pending = False      # real time: the odometry on every core until the first keyframe
         self.mapper: Mapper | MapperProcess | None = None
+        # deterministic mode: keyframes the odometry may run ahead of the mapper's own thread (0: the mapper trains in
+        # this thread after each frame; system.mapper_lead)
+        self.mapper_lead = 0
         if not with_map:
             pass
         elif self.realtime and sc.mapper_process:
@@ -392,6 +396,11 @@ class System:
                 idle=sc.mapper_sched_idle, image_slots=sc.image_slots)
         else:
             self.mapper = Mapper(config, device=device, observer=self.observer)
+            if not self.realtime:
+                lead = sc.mapper_lead
+                if lead is None:     # (a GPU's mapper beside the CPU's odometry: not measured yet)
+                    lead = 4 if runtime.device_is_cpu(self.mapper.device) else 0
+                self.mapper_lead = int(lead)
         self.loop: LoopCloser | None = None
         if config.loop.enabled:
             self.loop = LoopCloser(config, device=odometry.device or device, background=self.realtime,
@@ -439,7 +448,7 @@ class System:
             self._send(msg)
         if self.loop is not None:
             self._send_correction(self.loop.poll())
-        if not self.realtime and self.mapper is not None:
+        if not self.realtime and self.mapper is not None and not self.mapper_lead:
             self.mapper.process_pending()
 
     def run(self, frames: Iterable, *, info: Any = None, hold: Callable[[], Any] | None = None,
@@ -470,6 +479,8 @@ class System:
                 self.mapper.start()
         else:
             source = frames
+            if self.mapper is not None and self.mapper_lead:
+                self.mapper.start_in_order(self.mapper_lead)
         try:
             return self._run(source, player, hold or nullcontext, log_frame)
         finally:
@@ -489,7 +500,9 @@ class System:
         t_loop = time.perf_counter()
         it = iter(source)
         try:
-            if self.realtime:            # a compile would drop the first frames: done before the camera plays
+            if self.realtime or self.mapper_lead:
+                # real time: a compile would drop the first frames, done before the camera plays; the deterministic
+                # mode's mapper thread: no two threads compile at once
                 for part in (self.odometry, self.mapper):     # (a mapper's process loads its own before "ready")
                     if part is None:
                         continue
@@ -553,6 +566,12 @@ class System:
             interrupted = True
             if self.mapper is not None:
                 self.mapper.stop(refine=False)
+        except Exception as exc:
+            # the mapper failed at the end (its thread's error handed over at stop, or its final refinement's): the
+            # result of what was done is still returned with it, and written
+            error = exc
+            log.debug("the mapper failed after %d frames", processed, exc_info=True)
+            self._abort()
         finish_s = time.perf_counter() - t_fin
         if player is not None:
             read = player.read
@@ -582,7 +601,8 @@ class System:
             loop_seconds=loop_s,
             finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames),
             mapper_in=("none" if self.mapper is None else ("process" if isinstance(self.mapper, MapperProcess)
-                                                           else "thread") if self.realtime else "caller"),
+                                                           else "thread") if self.realtime
+                                                          else "thread" if self.mapper_lead else "caller"),
             with_map=self.mapper is not None, repeated_frames=int(getattr(self.odometry, "num_duplicates", 0)),
             cpu_seconds=time.process_time() - self._cpu0,
             loop=None if self.loop is None else self.loop.stats, odometry_trajectory=odo_traj,

@@ -45,6 +45,7 @@ __all__ = [
     "init",
     "is_initialised",
     "resolve_device",
+    "device_is_cpu",
     "cuda_device_count",
     "device_or_cpu",
     "device_of",
@@ -294,6 +295,11 @@ def _is_cpu(device: str) -> bool:
     if got is None:
         got = _CPU_DEVICES[device] = bool(wp.get_device(device).is_cpu)
     return got
+
+
+def device_is_cpu(device) -> bool:
+    """Whether ``device`` (a name or a Warp device) is the CPU."""
+    return _is_cpu(device)
 
 
 def split_ranges(dim: int, parts: int, align: int = 1) -> list[tuple[int, int]]:

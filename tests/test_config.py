@@ -216,7 +216,7 @@ BAD = {
     "output.trajectory_format": ["euroc"],
     "system.mode": ["fast"], "system.playback_speed": [-0.1],
     "system.odometry_threads": [-1], "system.mapper_threads": [-1], "system.mapper_nice": [-1, 20],
-    "system.image_slots": [0],
+    "system.image_slots": [0], "system.mapper_lead": [-1],
     "system.max_lag_ms": [-1.0],
     "input.live_timeout_s": [0, 3601], "input.live_max_frames": [-1], "input.live_duration_s": [-0.1],
     "loop.orb_features": [0], "loop.depth_radius_px": [0], "loop.min_keyframe_gap": [-1],

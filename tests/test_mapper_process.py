@@ -241,11 +241,13 @@ def test_the_mapper_process_runs_on_the_cores_the_odometry_leaves(idle, restore)
         assert set(policies) == {os.SCHED_OTHER if final == "nice +3" else os.SCHED_IDLE}
 
 
-@pytest.mark.parametrize("mode", ["realtime", "deterministic"])
-def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkeypatch):
+@pytest.mark.parametrize("mode,lead", [("realtime", None), ("deterministic", None), ("deterministic", 0)])
+def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, lead, monkeypatch):
     """A compile at the first frames would drop them: a real-time run loads the odometry's and the thread mapper's
-    kernel modules before the first frame (the mapper's process loads its own before it says it is ready); the
-    deterministic mode leaves it to the first launch. The two load_kernels leave every module they name loaded."""
+    kernel modules before the first frame (the mapper's process loads its own before it says it is ready); so does
+    the deterministic mode with its mapper on a thread of its own (system.mapper_lead, the CPU's default: no two
+    threads compile at once), and with the mapper in the odometry's thread (lead 0) it leaves it to the first
+    launch. The two load_kernels leave every module they name loaded."""
     import warp as wp
 
     from mgso.odometry import Odometry, geometry_for
@@ -261,12 +263,14 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
         seen.append(LoadOrderOdometry(odo))
         return seen[0]
 
+    extra = [] if lead is None else [f"system.mapper_lead={lead}"]
     system, seq, _ = _system(room, f"system.mode={mode}", "system.playback_speed=0", "system.mapper_process=false",
-                             wrapper=wrap)
+                             *extra, wrapper=wrap)
     system.run(seq.frames())
     ev = seen[0].events
     assert ev.count("frame") == 24
-    if mode == "realtime":
+    ahead = lead is None     # (the CPU's default lead: 4)
+    if ahead:
         assert ev[0] == "load" and ev.count("load") == 1
         assert len(loaded) == 1 and "mgso_kernels.splat.raster_bwd" in loaded[0]   # the thread mapper's
     else:
@@ -276,7 +280,7 @@ def test_real_time_loads_every_kernel_before_the_camera_plays(room, mode, monkey
     cam = seq.calibration.output
     Odometry(geometry_for(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cfg), cfg).load_kernels()
     system.mapper.load_kernels()
-    assert len(loaded) == (3 if mode == "realtime" else 2)
+    assert len(loaded) == (3 if ahead else 2)
     for name in loaded[-2] + loaded[-1]:
         assert wp.get_module(name).execs, name
 

@@ -276,6 +276,74 @@ def test_deterministic_mode_is_bitwise_reproducible(det_run, room, tmp_path):
     assert (tmp_path / "trajectory.txt").read_bytes() == (out / "trajectory.txt").read_bytes()
 
 
+class _Watched:
+    """The odometry, noting before each frame how many keyframes the system has sent that the mapper has not yet
+    applied (``system`` set once the system exists)."""
+
+    def __init__(self, odo):
+        self.odo, self.system, self.ahead = odo, None, []
+
+    def process(self, frame):
+        self.ahead.append(self.system._keyframes - self.system.mapper.stats.keyframes)
+        return self.odo.process(frame)
+
+    def __getattr__(self, name):
+        return getattr(self.odo, name)
+
+
+@pytest.mark.parametrize("lead", [0, 1, 3])
+def test_the_deterministic_mapper_on_its_thread_makes_the_same_map_while_the_odometry_runs_ahead(det_run, room,
+                                                                                                  tmp_path, lead):
+    """system.mapper_lead: the deterministic mode's mapper applies the messages and trains on a thread of its own (4
+    keyframes of lead on the CPU, what det_run used) while the odometry goes on, at most the lead's keyframes ahead;
+    the map and the trajectory are those of the mapper in the odometry's thread (lead 0, the control: never ahead),
+    bit for bit, and the odometry never more than the lead's keyframes ahead."""
+    *_, out = det_run
+    cfg = load_config(None, [*BASE, f"system.mapper_lead={lead}"])
+    seq = open_sequence(str(room), config=cfg.input)
+    odo = _Watched(OracleOdometry.from_sequence(seq, **ORACLE))
+    system = odo.system = System(odo, cfg)
+    result = _in_thread(lambda: system.run(seq.frames()), timeout=120)
+    write_outputs(result, system.mapper, seq, cfg, tmp_path, odometry_name=odo.name)
+    assert result.mapper_in == ("thread" if lead else "caller") and system.mapper.stats.steps > 0
+    assert (tmp_path / "map.ply").read_bytes() == (out / "map.ply").read_bytes()
+    assert (tmp_path / "trajectory.txt").read_bytes() == (out / "trajectory.txt").read_bytes()
+    assert min(odo.ahead) >= 0 and max(odo.ahead) <= lead
+    if lead:   # the oracle takes no time and the mapper 15 steps a keyframe: it ran ahead
+        assert max(odo.ahead) >= 1, odo.ahead
+
+
+@pytest.mark.parametrize("lead", [0, 2])
+@pytest.mark.parametrize("where", ["train", "refine"])
+def test_a_mapper_failure_in_the_deterministic_mode_returns_what_was_done(room, tmp_path, monkeypatch, lead, where):
+    """The mapper fails while training after a keyframe or in its final refinement, on its thread (lead 2) or in the
+    odometry's (lead 0): the run stops with the error and the result of what was done, whose outputs are written
+    (a failure of the final refinement escaped without a result until 2026-12-07)."""
+    from mgso.mapping.mapper import Mapper
+
+    real = getattr(Mapper, where)
+    calls = []
+
+    def failing(self, *a, **k):
+        calls.append(1)
+        if where == "refine" or len(calls) == 3:
+            raise RuntimeError("the mapper broke")
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(Mapper, where, failing)
+    cfg = load_config(None, [*BASE, f"system.mapper_lead={lead}"])
+    seq = open_sequence(str(room), config=cfg.input)
+    system = System(OracleOdometry.from_sequence(seq, **ORACLE), cfg)
+    with pytest.raises(SystemRunError, match="the mapper broke") as info:
+        _in_thread(lambda: system.run(seq.frames()), timeout=120)
+    result = info.value.result
+    assert not system.mapper.running and result.frames_processed >= (24 if where == "refine" else 9)
+    assert len(result.trajectory) == result.frames_processed and system.mapper.gmap.n > 0
+    write_outputs(result, system.mapper, seq, cfg, tmp_path, odometry_name="oracle")
+    assert read_gaussians_ply(tmp_path / "map.ply").n == system.mapper.gmap.n
+    assert len(read_tum(tmp_path / "trajectory.txt")) == result.frames_processed
+
+
 def test_seeding_adds_nothing_where_the_map_already_covers_the_view(tmp_path):
     """A camera that does not move: every keyframe sees what the first one seeded. Through the whole system, later
     keyframes must add no Gaussian (densification off, so the map holds only seeds); a mapper that skipped the

@@ -285,6 +285,11 @@ class Mapper:
         self.reference_exposure_ms: float | None = None   # the first keyframe's exposure time (None: unknown)
         self._last_step: StepResult | None = None
         self._thread: threading.Thread | None = None
+        # the real-time schedule (start() / run_here()); the deterministic mode's own thread (start_in_order) keeps
+        # the deterministic schedule
+        self._realtime = False
+        # start_in_order: keyframes the odometry may run ahead of the mapper's thread (None: no such thread)
+        self._lead: threading.Semaphore | None = None
         self._interrupt = threading.Event()
         self._done = threading.Event()      # set by the mapping thread as it ends (see stop)
         self._error: BaseException | None = None
@@ -352,6 +357,9 @@ class Mapper:
                 self.process_pending()
             self.queue.put_nowait(msg)
             return
+        if self._lead is not None:
+            self._put_in_order(msg)
+            return
         try:
             self.queue.put_nowait(msg)
             return
@@ -369,6 +377,25 @@ class Mapper:
                     self._raise_if_failed()
                     raise MapperError("the mapping thread stopped while the odometry waited for queue room")
         self.stats.queue_wait_seconds += time.perf_counter() - t0
+
+    def _put_in_order(self, msg: MapperMessage) -> None:
+        """The deterministic mode's thread (start_in_order): a keyframe waits until fewer than the lead's keyframes
+        are ahead of it, every message for room in the queue. Waiting is this mode's normal (the mapper is the
+        slower side): not counted."""
+        if isinstance(msg, KeyframeMessage):
+            while not self._lead.acquire(timeout=0.1):
+                self._raise_if_stopped()
+        while True:
+            try:
+                self.queue.put(msg, timeout=0.1)
+                return
+            except queue.Full:
+                self._raise_if_stopped()
+
+    def _raise_if_stopped(self) -> None:
+        if not self.running:
+            self._raise_if_failed()
+            raise MapperError("the mapping thread stopped while the odometry waited for it")
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
@@ -398,6 +425,46 @@ class Mapper:
             if isinstance(msg, KeyframeMessage) and not self._interrupt.is_set():
                 self.train(n_iter, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
 
+    def start_in_order(self, lead: int) -> None:
+        """Deterministic mode on a thread of its own: the messages are applied in order and
+        ``mapping.mapper.iterations_per_keyframe`` steps trained after each keyframe, as :meth:`process_pending`
+        does, while the odometry goes on with the next frames, at most ``lead`` keyframes ahead (``submit`` waits
+        beyond that). The map depends only on the messages and their order, so it is the same, bit for bit, as the
+        mapper's in the caller's thread; the odometry's time and the mapper's overlap (docs/mgso.md, "The
+        deterministic mode on two threads"). :meth:`stop` ends it as it ends the real-time thread."""
+        if self._thread is not None:
+            raise RuntimeError("Mapper.start_in_order: already started")
+        if lead < 1:
+            raise ValueError(f"Mapper.start_in_order: lead must be at least 1 keyframe, got {lead}")
+        self._lead = threading.Semaphore(int(lead))
+        self._thread = threading.Thread(target=self._run_in_order, name="mgso-mapper", daemon=True)
+        self._thread.start()
+
+    def _run_in_order(self) -> None:
+        cpu0 = time.thread_time()
+        n_iter = self.cfg.iterations_per_keyframe
+        try:
+            while True:
+                self.safe_point()
+                try:
+                    msg = self.queue.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                if isinstance(msg, Stop):
+                    self._finish(msg)
+                    return
+                self.handle(msg)
+                if isinstance(msg, KeyframeMessage):
+                    if not self._interrupt.is_set():
+                        self.train(n_iter, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
+                    self._lead.release()
+        except BaseException as exc:  # handed to the odometry side at its next submit / at stop
+            log.exception("the mapping thread failed")
+            self._error = exc
+        finally:
+            self.stats.cpu_seconds = time.thread_time() - cpu0
+            self._done.set()
+
     # ------------------------------------------------------------------------------------------ real time
     def start(self) -> None:
         """Real-time mode: start the mapping thread (drain messages, train, repeat)."""
@@ -422,6 +489,7 @@ class Mapper:
     def _real_time_settings(self) -> None:
         """The keyframe draw's ``mapping.mapper.loss_share`` for real time (its null: uniform) and the weight prune's
         ``mapping.mapper.prune_weight_px`` (its null: 0.1)."""
+        self._realtime = True
         if isinstance(self.sampler, NewestOrRandomSampler):
             self.sampler.loss_share = self.cfg.draw_loss_share(realtime=True)
         px = self.cfg.weight_prune_px(realtime=True)
@@ -446,24 +514,24 @@ class Mapper:
         if level > 0:
             cam = self.views[self._latest_kid].camera
             pixels = (cam.width >> level) * (cam.height >> level)
-        return self.cfg.final_share_coarse(realtime=self._thread is not None, coarse_pixels=pixels)
+        return self.cfg.final_share_coarse(realtime=self._realtime, coarse_pixels=pixels)
 
     def final_coarser_share(self) -> float:
         """``mapping.mapper.final_coarser_share``, its null resolved: 0.6 in real time, 0.4 in the deterministic
         mode."""
-        return self.cfg.final_share_coarser(realtime=self._thread is not None)
+        return self.cfg.final_share_coarser(realtime=self._realtime)
 
     def final_iterations(self) -> int:
         """``mapping.mapper.final_iterations``, its null resolved: 1,600 in real time (a mapping thread or process:
         the map is awaited after the stream), 2,000 in the deterministic mode."""
-        return self.cfg.final_steps(realtime=self._thread is not None)
+        return self.cfg.final_steps(realtime=self._realtime)
 
     def final_budget(self) -> float:
         """``mapping.mapper.final_budget_s``, its null resolved: 55 s in real time (a mapping thread or process) with
         the map on the CPU, 0 (the step count alone) on CUDA and in the deterministic mode."""
         import warp as wp
 
-        return self.cfg.final_budget(realtime=self._thread is not None, cpu=wp.get_device(self.device).is_cpu)
+        return self.cfg.final_budget(realtime=self._realtime, cpu=wp.get_device(self.device).is_cpu)
 
     def running_level(self) -> int:
         """The pyramid level of the real-time steps while the stream runs: the finest whose image has at most
@@ -583,7 +651,7 @@ class Mapper:
         self._take_final_resources()
 
     def _finish(self, msg: Stop) -> None:
-        if self._thread is not None and self.stream_ended.is_set():
+        if self._realtime and self.stream_ended.is_set():
             self._end_of_stream()
         self._flush_waiting()
         if self.stats.stream_ended_at_depth >= 0:
@@ -866,7 +934,7 @@ class Mapper:
         about 40 % more training steps; docs/seeding.md), 2 in the deterministic mode."""
         ds = self.mc.seeding.alpha_downscale
         if ds is None:
-            ds = 4 if self._thread is not None else COVERAGE_DOWNSCALE
+            ds = 4 if self._realtime else COVERAGE_DOWNSCALE
         return int(ds)
 
     def _seed(self, seed_in: KeyframeSeedInput, scfg) -> SeedResult:
@@ -1089,7 +1157,7 @@ class Mapper:
         requests (:mod:`mgso.mapping.snapshot`)."""
         if self.safe_point_hook is not None:
             self.safe_point_hook()
-        if self._thread is not None and self.stream_ended.is_set() and not self._final_resources:
+        if self._realtime and self.stream_ended.is_set() and not self._final_resources:
             self._end_of_stream()
         if not self.board.pending:
             return
