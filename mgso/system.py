@@ -547,6 +547,7 @@ class System:
         final = []
         try:
             if interrupted:              # here, where a second signal is caught as in the odometry's last step
+                self._stop_training()
                 log.warning("interrupted after %d frames: finishing the odometry and writing what was done",
                             processed)
             final = list(self.odometry.finish())
@@ -624,7 +625,15 @@ class System:
         except Exception:  # the original error is the one to raise
             log.exception("stopping the mapper after a failure")
 
+    def _stop_training(self) -> None:
+        """Interrupted: the deterministic mode's mapper thread trains no more from now on (the keyframes still queued
+        are applied without it, as the mapper in the odometry's thread would), so the run stops promptly."""
+        if self.mapper_lead:
+            self.mapper.interrupt()
+
     def _dispatch_final(self, final, interrupted: bool) -> None:
+        if interrupted:
+            self._stop_training()
         for msg in final:                    # observers see the end of the stream too (a viewer's final keyframe
             self._send(msg, final=True)      # poses and the window's last points)
         loop = self.loop
