@@ -422,6 +422,25 @@ def test_callbacks_keep_references_not_copies():
     assert v.losses == 1 and v.frames == 3                    # a loss counted once, not per lost frame
 
 
+def test_a_paused_run_reaches_the_mappers_safe_point_only_when_the_mapper_is_in_its_thread():
+    """While the run is paused the viewer serves its map requests from the run's thread only where the mapper runs in
+    that thread (deterministic, system.mapper_lead 0); a mapper on a thread of its own (the CPU's default since
+    2026-12-07) or in real time serves them itself: from the run's thread they would render on its rasteriser while it
+    trains."""
+    from types import SimpleNamespace
+
+    calls = []
+    mapper = SimpleNamespace(safe_point=lambda: calls.append(1))
+    for realtime, lead, served in ((False, 0, True), (False, 4, False), (True, 0, False)):
+        v = V.LiveViewer(port=0)          # not started: the pause's gate alone
+        v.attach(SimpleNamespace(mapper=mapper, loop=None, realtime=realtime, mapper_lead=lead))
+        v._set_run_paused(True)
+        calls.clear()
+        threading.Timer(0.35, v._set_run_paused, (False,)).start()
+        v._wait_gate()
+        assert bool(calls) == served, (realtime, lead, len(calls))
+
+
 def test_the_watched_frames_of_a_live_source_still_read_as_live_to_the_player():
     """The viewer sees every frame on its way (watch); a live source seen so must still be unpaced and have its
     own drops counted by the real-time player (a plain generator wrapper hid them: the negative control)."""

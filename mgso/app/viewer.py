@@ -464,9 +464,12 @@ class LiveViewer(Observer):
         """The running :class:`~mgso.system.System`: its mapper answers the viewer's snapshot and render requests."""
         self._mapper = getattr(system, "mapper", None)
         self._closer = getattr(system, "loop", None)
-        # deterministic mode: the mapper is this thread's, between frames; while the run is paused its safe point is
-        # reached from here so that the paused view still gets its map copies and renders
-        self._serve_while_paused = (not getattr(system, "realtime", True)) and hasattr(self._mapper, "safe_point")
+        # deterministic mode with the mapper in this thread (system.mapper_lead 0): the mapper runs between frames,
+        # so while the run is paused its safe point is reached from here and the paused view still gets its map
+        # copies and renders; a mapper on a thread of its own (the CPU's default) serves them itself, and only it
+        # may touch the map while it trains
+        self._serve_while_paused = (not getattr(system, "realtime", True) and not getattr(system, "mapper_lead", 0)
+                                    and hasattr(self._mapper, "safe_point"))
 
     def watch(self, frames: Iterable) -> "_Watched":
         """Pass ``frames`` through, keeping a reference to the newest (its image is the panel's current frame). The
