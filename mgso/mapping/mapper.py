@@ -422,8 +422,13 @@ class Mapper:
                 self._finish(msg)
                 return done
             self.handle(msg)
-            if isinstance(msg, KeyframeMessage) and not self._interrupt.is_set():
-                self.train(n_iter, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
+            self._train_after(msg, n_iter)
+
+    def _train_after(self, msg: MapperMessage, iterations: int) -> None:
+        """Deterministic mode: ``iterations`` steps after a keyframe message (none once interrupted), at the level of
+        ``running_max_pixels`` where ``keyframe_steps_coarse``."""
+        if isinstance(msg, KeyframeMessage) and not self._interrupt.is_set():
+            self.train(iterations, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
 
     def start_in_order(self, lead: int) -> None:
         """Deterministic mode on a thread of its own: the messages are applied in order and
@@ -441,24 +446,31 @@ class Mapper:
         self._thread.start()
 
     def _run_in_order(self) -> None:
-        cpu0 = time.thread_time()
+        self._as_thread(self._in_order)
+
+    def _in_order(self) -> None:
         n_iter = self.cfg.iterations_per_keyframe
+        while True:
+            self.safe_point()
+            try:
+                msg = self.queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            if isinstance(msg, Stop):
+                self._finish(msg)
+                return
+            self.handle(msg)
+            self._train_after(msg, n_iter)
+            if isinstance(msg, KeyframeMessage):
+                self._lead.release()
+
+    def _as_thread(self, loop: Callable[[], None]) -> None:
+        """A mapping thread's ``loop``, its error handed to the odometry side (at its next submit, or at stop), its
+        CPU time counted and its end signalled (``_done``)."""
+        cpu0 = time.thread_time()
         try:
-            while True:
-                self.safe_point()
-                try:
-                    msg = self.queue.get(timeout=0.05)
-                except queue.Empty:
-                    continue
-                if isinstance(msg, Stop):
-                    self._finish(msg)
-                    return
-                self.handle(msg)
-                if isinstance(msg, KeyframeMessage):
-                    if not self._interrupt.is_set():
-                        self.train(n_iter, level=self.running_level() if self.cfg.keyframe_steps_coarse else 0)
-                    self._lead.release()
-        except BaseException as exc:  # handed to the odometry side at its next submit / at stop
+            loop()
+        except BaseException as exc:
             log.exception("the mapping thread failed")
             self._error = exc
         finally:
@@ -556,50 +568,45 @@ class Mapper:
                 and self.queue.qsize() < self.cfg.queue_size // 2)
 
     def _run(self) -> None:
-        cpu0 = time.thread_time()
+        self._as_thread(self._real_time)
+
+    def _real_time(self) -> None:
         self._coalesce_points = True
         busy = trained = 0.0        # seconds handling messages, and training while messages waited
-        try:
-            while True:
-                self.safe_point()
-                if self._owes_training(busy, trained):
-                    t0 = time.perf_counter()
+        while True:
+            self.safe_point()
+            if self._owes_training(busy, trained):
+                t0 = time.perf_counter()
+                self._step(self.running_level())
+                trained += time.perf_counter() - t0
+                self.stats.steps_while_behind += 1
+                continue
+            try:
+                msg = self.queue.get_nowait()
+            except queue.Empty:
+                t0 = time.perf_counter()
+                # caught up: the seedings that waited, a host keyframe at a time, for a second at most (a long
+                # flush would let the queue fill meanwhile); all of them once the run is ending
+                ending = self._interrupt.is_set() or self.stream_ended.is_set()
+                self._flush_waiting(None if ending else _FLUSH_BUDGET_S)
+                busy += time.perf_counter() - t0
+                if self._interrupt.is_set() and not self.drain_until_stop:
+                    self.stats.stopped_by = "interrupt"
+                    return
+                if (self.can_train() and not self._interrupt.is_set()
+                        and (self.cfg.running_training or self.stream_ended.is_set())):
                     self._step(self.running_level())
-                    trained += time.perf_counter() - t0
-                    self.stats.steps_while_behind += 1
                     continue
                 try:
-                    msg = self.queue.get_nowait()
+                    msg = self.queue.get(timeout=0.05)
                 except queue.Empty:
-                    t0 = time.perf_counter()
-                    # caught up: the seedings that waited, a host keyframe at a time, for a second at most (a long
-                    # flush would let the queue fill meanwhile); all of them once the run is ending
-                    ending = self._interrupt.is_set() or self.stream_ended.is_set()
-                    self._flush_waiting(None if ending else _FLUSH_BUDGET_S)
-                    busy += time.perf_counter() - t0
-                    if self._interrupt.is_set() and not self.drain_until_stop:
-                        self.stats.stopped_by = "interrupt"
-                        return
-                    if (self.can_train() and not self._interrupt.is_set()
-                            and (self.cfg.running_training or self.stream_ended.is_set())):
-                        self._step(self.running_level())
-                        continue
-                    try:
-                        msg = self.queue.get(timeout=0.05)
-                    except queue.Empty:
-                        continue
-                if isinstance(msg, Stop):
-                    self._finish(msg)
-                    return
-                t0 = time.perf_counter()
-                self.handle(msg)
-                busy += time.perf_counter() - t0
-        except BaseException as exc:  # handed to the odometry side at its next submit / at stop
-            log.exception("the mapping thread failed")
-            self._error = exc
-        finally:
-            self.stats.cpu_seconds = time.thread_time() - cpu0
-            self._done.set()
+                    continue
+            if isinstance(msg, Stop):
+                self._finish(msg)
+                return
+            t0 = time.perf_counter()
+            self.handle(msg)
+            busy += time.perf_counter() - t0
 
     def stop(self, refine: bool = True, timeout: float | None = None) -> MapperStats:
         """End the stream: in real time, send :class:`Stop` (``refine``: run the final refinement) and wait for the
