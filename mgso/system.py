@@ -572,7 +572,10 @@ class System:
             # result of what was done is still returned with it, and written
             error = exc
             log.debug("the mapper failed after %d frames", processed, exc_info=True)
-            self._abort()
+            try:
+                self._abort()
+            except KeyboardInterrupt:  # a signal while its thread stops: the result is still returned
+                interrupted = True
         finish_s = time.perf_counter() - t_fin
         if player is not None:
             read = player.read
