@@ -411,6 +411,17 @@ class System:
         self._keyframe_frames: list[int] = []
         self._pose_updates = 0
 
+    @property
+    def mapper_in(self) -> str:
+        """Where the mapper runs: ``"caller"`` (the deterministic mode with ``system.mapper_lead`` 0: this thread,
+        between frames), ``"thread"`` (real time, or the deterministic mode's own thread), ``"process"``, or
+        ``"none"`` without a map."""
+        if self.mapper is None:
+            return "none"
+        if isinstance(self.mapper, MapperProcess):
+            return "process"
+        return "thread" if self.realtime or self.mapper_lead else "caller"
+
     def _send(self, msg, final: bool = False) -> None:
         """One odometry message to the loop closer, the counters, the observers and the mapper, in that order
         (``final``: one of ``odometry.finish()``'s)."""
@@ -604,9 +615,7 @@ class System:
             mapper=self.mapper.stats if self.mapper is not None else MapperStats(), odometry_seconds=odo_s,
             loop_seconds=loop_s,
             finish_seconds=finish_s, frames_lost=lost, keyframe_frames=list(self._keyframe_frames),
-            mapper_in=("none" if self.mapper is None else ("process" if isinstance(self.mapper, MapperProcess)
-                                                           else "thread") if self.realtime
-                                                          else "thread" if self.mapper_lead else "caller"),
+            mapper_in=self.mapper_in,
             with_map=self.mapper is not None, repeated_frames=int(getattr(self.odometry, "num_duplicates", 0)),
             cpu_seconds=time.process_time() - self._cpu0,
             loop=None if self.loop is None else self.loop.stats, odometry_trajectory=odo_traj,

@@ -431,14 +431,14 @@ def test_a_paused_run_reaches_the_mappers_safe_point_only_when_the_mapper_is_in_
 
     calls = []
     mapper = SimpleNamespace(safe_point=lambda: calls.append(1))
-    for realtime, lead, served in ((False, 0, True), (False, 4, False), (True, 0, False)):
+    for mapper_in, served in (("caller", True), ("thread", False), ("process", False)):
         v = V.LiveViewer(port=0)          # not started: the pause's gate alone
-        v.attach(SimpleNamespace(mapper=mapper, loop=None, realtime=realtime, mapper_lead=lead))
+        v.attach(SimpleNamespace(mapper=mapper, loop=None, mapper_in=mapper_in))
         v._set_run_paused(True)
         calls.clear()
         threading.Timer(0.35, v._set_run_paused, (False,)).start()
         v._wait_gate()
-        assert bool(calls) == served, (realtime, lead, len(calls))
+        assert bool(calls) == served, (mapper_in, len(calls))
 
 
 def test_the_watched_frames_of_a_live_source_still_read_as_live_to_the_player():

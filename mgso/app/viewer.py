@@ -464,11 +464,10 @@ class LiveViewer(Observer):
         """The running :class:`~mgso.system.System`: its mapper answers the viewer's snapshot and render requests."""
         self._mapper = getattr(system, "mapper", None)
         self._closer = getattr(system, "loop", None)
-        # deterministic mode with the mapper in this thread (system.mapper_lead 0): the mapper runs between frames,
-        # so while the run is paused its safe point is reached from here and the paused view still gets its map
-        # copies and renders; a mapper on a thread of its own (the CPU's default) serves them itself, and only it
-        # may touch the map while it trains
-        self._serve_while_paused = (not getattr(system, "realtime", True) and not getattr(system, "mapper_lead", 0)
+        # the mapper in this thread (deterministic, system.mapper_lead 0): it runs between frames, so while the run is
+        # paused its safe point is reached from here and the paused view still gets its map copies and renders; a
+        # mapper on a thread or in a process of its own serves them itself, and only it may touch the map
+        self._serve_while_paused = (getattr(system, "mapper_in", None) == "caller"
                                     and hasattr(self._mapper, "safe_point"))
 
     def watch(self, frames: Iterable) -> "_Watched":

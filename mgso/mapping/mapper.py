@@ -368,14 +368,7 @@ class Mapper:
         self.stats.queue_waits += 1
         t0 = time.perf_counter()
         log.warning("mapper queue full (%d messages): the odometry waits for the map", self.cfg.queue_size)
-        while True:
-            try:
-                self.queue.put(msg, timeout=0.1)
-                break
-            except queue.Full:
-                if not self.running:
-                    self._raise_if_failed()
-                    raise MapperError("the mapping thread stopped while the odometry waited for queue room")
+        self._put_waiting(msg)
         self.stats.queue_wait_seconds += time.perf_counter() - t0
 
     def _put_in_order(self, msg: MapperMessage) -> None:
@@ -384,18 +377,22 @@ class Mapper:
         slower side): not counted."""
         if isinstance(msg, KeyframeMessage):
             while not self._lead.acquire(timeout=0.1):
-                self._raise_if_stopped()
+                self._raise_if_stopped("the lead's keyframes")
+        self._put_waiting(msg)
+
+    def _put_waiting(self, msg: MapperMessage) -> None:
+        """Put ``msg`` once the queue has room, raising :class:`MapperError` if the mapping thread stops meanwhile."""
         while True:
             try:
                 self.queue.put(msg, timeout=0.1)
                 return
             except queue.Full:
-                self._raise_if_stopped()
+                self._raise_if_stopped("queue room")
 
-    def _raise_if_stopped(self) -> None:
+    def _raise_if_stopped(self, what: str) -> None:
         if not self.running:
             self._raise_if_failed()
-            raise MapperError("the mapping thread stopped while the odometry waited for it")
+            raise MapperError(f"the mapping thread stopped while the odometry waited for {what}")
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
@@ -442,11 +439,9 @@ class Mapper:
         if lead < 1:
             raise ValueError(f"Mapper.start_in_order: lead must be at least 1 keyframe, got {lead}")
         self._lead = threading.Semaphore(int(lead))
-        self._thread = threading.Thread(target=self._run_in_order, name="mgso-mapper", daemon=True)
+        self._thread = threading.Thread(target=self._as_thread, args=(self._in_order,), name="mgso-mapper",
+                                        daemon=True)
         self._thread.start()
-
-    def _run_in_order(self) -> None:
-        self._as_thread(self._in_order)
 
     def _in_order(self) -> None:
         n_iter = self.cfg.iterations_per_keyframe
