@@ -84,8 +84,10 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     the map keeps the first keyframes' 223 seeds, median opacity 0.145, which it does not flag.
 
     Measured (MonoGS protocol, with the rates for a short schedule of 2026-12-06; 26.80 and 24.87 dB, 0.074 and
-    0.141 before them): 27.99 dB before, 25.79 dB now. At this test's budget (15 steps a keyframe + 100
-    final) the compact map is 2.2 dB worse on this scene, the cost of growing by densification alone; on TUM
+    0.141 before them): 28.08 dB before, 24.65 dB now, with seeds of at most 8 pixels (since 2026-12-07; 28.11 and
+    25.68 dB with the 20 pixels of before). At this test's budget (15 steps a keyframe + 100 final) the compact map
+    is 3.4 dB worse on this scene, the cost of growing by densification alone from the first keyframes' seeds (the
+    narrower seeds cover less of the view to grow from); on TUM
     freiburg1_rpy (3,660 steps) the change is worth 6 dB (docs/mapping.md, "Handheld camera"). With relative noise
     alone (80 %: medians 0.47-0.56, 9 of 19 keyframes trusted at 0.5, median opacity 0.065; 50 %: 0.34-0.41, every
     keyframe trusted) the map fogs: the threshold separates a handheld camera's depths from a moving camera's
@@ -100,7 +102,7 @@ def test_views_that_disagree_fog_the_map_of_before_and_not_the_defaults(tmp_path
     assert any("mostly transparent" in w for w in map_warnings(hb))
     assert not any("mostly transparent" in w for w in map_warnings(hn))
     assert now["num_gaussians"] < before["num_gaussians"] / 5
-    assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 2.5
+    assert now["psnr_monogs_db"] > before["psnr_monogs_db"] - 4.5
     assert now["ate_refined_all_frames_m"] is not None        # the evaluation's poses: the map's refinement
 
 
@@ -164,9 +166,11 @@ def test_on_tum_freiburg1_rpy_the_depth_rule_stands_down_and_the_map_does_not_gr
     50 final; skips without ../shared/data). DSO's depths of the rotating camera miss the map's, over a seeding's
     covered candidates, by a median of 0.75 (measured), so the seeding's depth rule stands down on 45 of the 55
     seedings after the first keyframe (the threshold 0.5; 52 at 0.4, 53 at 0.25) and the map grows from the first
-    seeds: 3,689 Gaussians (1,831 at 0.4), against 26,608 with the rule always on (the control: the defaults of
-    before issue 41 in this respect), which re-seeds nearly every point of every keyframe. At this small budget the compact map renders a
-    little worse (15.4 against 15.8 dB); over a whole run it pays (at 640x480 the defaults give 20.09 dB; no depth
+    seeds: 8,500 Gaussians, against 26,108 with the rule always on (the control: the defaults of before issue 41 in
+    this respect), which re-seeds nearly every point of every keyframe (with the 20-pixel seeds of before
+    2026-12-07, which cover more of a view before training, 3,792 against 26,598; 1,831 at 0.4). At this small
+    budget the compact map renders a little worse (17.4 against 17.6 dB; 15.7 against 16.1 with the 20-pixel
+    seeds); over a whole run it pays (at 640x480 the defaults give 20.09 dB; no depth
     term and every pose refined with the rule always on, 17.84 dB: docs/mapping.md, "Handheld camera"), so the
     floor here only catches a broken run."""
     folder = data_dir / "rgbd_dataset_freiburg1_rpy_0-359"
@@ -180,5 +184,5 @@ def test_on_tum_freiburg1_rpy_the_depth_rule_stands_down_and_the_map_does_not_gr
     # the control: the rule always on, at its tolerance
     assert all(r.depth_error_median is None for r in c.stats.seed_results)
     assert sum(r.depth_tolerance_used == 0.1 for r in c.stats.seed_results) >= len(later)
-    assert now["num_gaussians"] * 5 < ctl["num_gaussians"]
+    assert now["num_gaussians"] * 2 < ctl["num_gaussians"]
     assert now["psnr_monogs_db"] > 12.0 and now["tracking_losses"] == [] and now["ate_all_frames_m"] < 0.05

@@ -427,7 +427,8 @@ def test_a_batch_smaller_than_the_minimum_is_skipped_without_rendering(seq, cam,
     n0 = gm.n
     uv = _grid_points(cam, step=8)
     right = uv[uv[:, 0] > cam.width // 2 + 8]
-    cfg = SeedingConfig(fill=False, depth_tolerance=0.0, min_new_gaussians=30)
+    # seeds up to 20 px wide: the 30 added below cover some of the 29 offered again (the default's 8 px do not)
+    cfg = SeedingConfig(fill=False, depth_tolerance=0.0, min_new_gaussians=30, scale_max_px=20.0)
     counting = _CountingRasterizer(rast)
     small = _message(seq, cam, right[:29], frame=0)
     r = sd.seed_keyframe(gm, counting, small, cfg, step=1)
