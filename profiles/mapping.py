@@ -287,6 +287,7 @@ def _one(args) -> dict:
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
     from mgso.app.outputs import write_outputs
+    from mgso.app.writer import RunWriter
     from mgso.system import System
     from mgso_kernels import runtime
 
@@ -302,6 +303,9 @@ def _one(args) -> dict:
     out = Path(args.out) / f"{seq.name}-{args.source}-{args.tag}"
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
+    # sequence.json as `mgso run` writes it, so the replay's folder is a run folder to the profiles that read one
+    # (blend_depth.py, splat_raster.py --run, map_weights.py, evaluation.py)
+    RunWriter(out).write_sequence(seq)
     t0 = time.perf_counter()
     if args.source == "oracle":
         try:
