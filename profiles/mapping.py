@@ -283,7 +283,7 @@ def _one(args) -> dict:
 
     if hasattr(wp.config, "log_level"):
         wp.config.log_level = logging.WARNING
-    from mgso.config import load_config, save_config
+    from mgso.config import load_config
     from mgso.io import open_sequence
     from mgso.oracle import OracleOdometry
     from mgso.app.outputs import write_outputs
@@ -301,11 +301,11 @@ def _one(args) -> dict:
     device = runtime.init(args.device, threads=cfg.runtime.threads)
     seq = open_sequence(args.one, config=cfg.input)
     out = Path(args.out) / f"{seq.name}-{args.source}-{args.tag}"
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out / "config.yaml")
-    # sequence.json as `mgso run` writes it, so the replay's folder is a run folder to the profiles that read one
-    # (blend_depth.py, splat_raster.py --run, map_weights.py, evaluation.py)
-    RunWriter(out).write_sequence(seq)
+    # config.yaml and sequence.json as `mgso run` writes them (its writer), so the replay's folder is a run folder
+    # to the profiles that read one (blend_depth.py, splat_raster.py --run, map_weights.py, evaluation.py)
+    writer = RunWriter(out)
+    writer.write_config(cfg)
+    writer.write_sequence(seq)
     t0 = time.perf_counter()
     if args.source == "oracle":
         try:
