@@ -297,11 +297,13 @@ class GaussianMap:
                              f"{self.optim.bias_correction!r}")
         self.scene_extent = float(scene_extent)
         self._n = 0
+        self._live_views: dict[str, tuple] = {}   # ONLY changed by _live
         self._allocate(int(capacity))
 
     # ---------------------------------------------------------------------------------------- storage
     def _allocate(self, capacity: int) -> None:
         d, k = self.device, self.num_sh
+        self._live_views.clear()   # the views of the old buffers would keep them alive
         self._capacity = capacity
         # ONLY changed by add/remove/clone/split/load/clear/reset_opacity/optimizer_step (see module doc).
         self.params_ = _alloc_params(capacity, k, d)
@@ -365,36 +367,57 @@ class GaussianMap:
     def sh(self) -> wp.array:               # [n, K] vec3
         return self.params_.sh[: self._n]
 
+    def _live(self, name: str, full, fields: Sequence[str], build):
+        """``build()``, a view of the live rows of the buffers ``full`` (a struct of capacity-long arrays), made again
+        only when the rows or the buffers changed: a view is a few Warp arrays, and a training step asks for seven
+        (with the rasteriser's buffers' views, a sixth of its Python at 160x120: docs/rasteriser.md, "Python between
+        the kernels"). Keyed by the row count and the buffers' ids; the view keeps its buffers alive (a slice holds its
+        parent), so an id in the key is never that of another buffer. Views are read-only to their users."""
+        key = (self._n, *[id(getattr(full, f)) for f in fields])
+        hit = self._live_views.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        value = build()
+        self._live_views[name] = (key, value)
+        return value
+
     @property
     def params(self) -> kadam.GaussianParams:
         """Device-side view of the live parameters for the rasteriser (valid until the next structural change)."""
-        return _slice_struct(self.params_, _PARAM_FIELDS, self._n, kadam.GaussianParams)
+        return self._live("params", self.params_, _PARAM_FIELDS,
+                          lambda: _slice_struct(self.params_, _PARAM_FIELDS, self._n, kadam.GaussianParams))
 
     @property
     def grads(self) -> kadam.GaussianParams:
         """Gradient buffers of the live rows: the rasteriser's backward writes dL/d(parameter) here."""
-        return _slice_struct(self.grads_, _PARAM_FIELDS, self._n, kadam.GaussianParams)
+        return self._live("grads", self.grads_, _PARAM_FIELDS,
+                          lambda: _slice_struct(self.grads_, _PARAM_FIELDS, self._n, kadam.GaussianParams))
 
     def float_params(self) -> FloatParams:
         """The live parameters as float32 (n, 3) / (n, 4) / (n,) / (n, K, 3) views (same memory as :attr:`params`)."""
-        return FloatParams(**{f: kadam.float_view(getattr(self.params_, f)[: self._n]) for f in _PARAM_FIELDS})
+        return self._live("float_params", self.params_, _PARAM_FIELDS, lambda: FloatParams(
+            **{f: kadam.float_view(getattr(self.params_, f)[: self._n]) for f in _PARAM_FIELDS}))
 
     def float_grads(self) -> FloatParams:
         """The live gradient buffers as float32 views (same memory as :attr:`grads`), for the rasteriser's backward."""
-        return FloatParams(**{f: kadam.float_view(getattr(self.grads_, f)[: self._n]) for f in _PARAM_FIELDS})
+        return self._live("float_grads", self.grads_, _PARAM_FIELDS, lambda: FloatParams(
+            **{f: kadam.float_view(getattr(self.grads_, f)[: self._n]) for f in _PARAM_FIELDS}))
 
     @property
     def exp_avg(self) -> kadam.GaussianParams:
-        return _slice_struct(self.exp_avg_, _PARAM_FIELDS, self._n, kadam.GaussianParams)
+        return self._live("exp_avg", self.exp_avg_, _PARAM_FIELDS,
+                          lambda: _slice_struct(self.exp_avg_, _PARAM_FIELDS, self._n, kadam.GaussianParams))
 
     @property
     def exp_avg_sq(self) -> kadam.GaussianParams:
-        return _slice_struct(self.exp_avg_sq_, _PARAM_FIELDS, self._n, kadam.GaussianParams)
+        return self._live("exp_avg_sq", self.exp_avg_sq_, _PARAM_FIELDS,
+                          lambda: _slice_struct(self.exp_avg_sq_, _PARAM_FIELDS, self._n, kadam.GaussianParams))
 
     @property
     def stats(self) -> kadam.DensifyStats:
         """Densification statistics of the live rows (units: :mod:`mgso_kernels.adam`)."""
-        return _slice_struct(self.stats_, _STAT_FIELDS, self._n, kadam.DensifyStats)
+        return self._live("stats", self.stats_, _STAT_FIELDS,
+                          lambda: _slice_struct(self.stats_, _STAT_FIELDS, self._n, kadam.DensifyStats))
 
     @property
     def adam_steps(self) -> wp.array:       # [n] int32 Adam updates received

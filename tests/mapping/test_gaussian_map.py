@@ -277,6 +277,45 @@ def test_float_views_share_memory_and_int_radii(wp_device, rng):
     np.testing.assert_allclose(gm.stats.grad2d_sum.numpy()[0], 5.0)   # |(1 * 4, 1 * 3)|
 
 
+
+def test_the_views_of_the_live_rows_are_kept_until_the_rows_or_buffers_change(gmap, rng):
+    """The views a training step asks for (params, grads, moments, statistics, float views) are made once while the
+    rows and buffers stay, and follow every change of either: the row count (clone, remove) and the buffers (reserve);
+    each view always shows the rows it names. The control: a map changed between two asks gives new views."""
+    names = ("params", "grads", "exp_avg", "exp_avg_sq", "stats")
+
+    def views():
+        return [getattr(gmap, n) for n in names] + [gmap.float_params(), gmap.float_grads()]
+
+    def check(vs):
+        n = gmap.n
+        for v in vs:
+            for f in ("means", "vis_count"):
+                if hasattr(v, f):
+                    assert getattr(v, f).shape[0] == n
+        np.testing.assert_array_equal(vs[-2].means.numpy(), gmap.params_.means.numpy()[:n])
+
+    first = views()
+    check(first)
+    again = views()
+    assert all(a is b for a, b in zip(first, again))              # nothing changed: the same objects
+    gmap.clone(np.ones(gmap.n, bool), step=1)                       # 20 -> 40 rows
+    grown = views()
+    check(grown)
+    assert all(a is not b for a, b in zip(first, grown))
+    keep = np.zeros(gmap.n, bool)
+    keep[::3] = True
+    gmap.remove(~keep)
+    check(views())
+    before = views()
+    gmap.reserve(500)                                               # new buffers, the same rows
+    moved = views()
+    check(moved)
+    assert all(a is not b for a, b in zip(before, moved))
+    assert moved[-2].means.ptr == gmap.params_.means.ptr           # the new buffers' memory
+    gmap.float_grads().means.assign(np.full((gmap.n, 3), 2.0, np.float32))
+    assert np.all(gmap.grads.means.numpy() == 2.0)
+
 # ------------------------------------------------------------------------------------- anchors (loop closure)
 def _add(gm, arrays, **kw):
     return gm.add(arrays.means, arrays.log_scales, arrays.quats, arrays.opacity_logits, arrays.sh, **kw)
