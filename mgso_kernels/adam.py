@@ -40,6 +40,7 @@ import numpy as np
 import warp as wp
 
 from . import runtime
+from .dynamic import take_item
 
 wp.set_module_options({"enable_backward": False})
 
@@ -324,6 +325,27 @@ def adam_step_gaussians_blocks(offset: int, block: int, n: int, params: Gaussian
             adam_row(i, params, grads, exp_avg, exp_avg_sq, steps, visible, hp)
 
 
+
+@wp.kernel
+def adam_step_gaussians_blocks_dynamic(offset: int, shares: wp.array(dtype=wp.int64), n_blocks: int, block: int,
+                                       n: int, params: GaussianParams, grads: GaussianParams,
+                                       exp_avg: GaussianParams, exp_avg_sq: GaussianParams,
+                                       steps: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8),
+                                       hp: AdamHyper, status: wp.array(dtype=wp.int32)):
+    """:func:`adam_step_gaussians_blocks`' C++ blocks, a chunk a core taking blocks from ``shares``
+    (:mod:`mgso_kernels.dynamic`; a sparse step's rows in view are a run of a map in spatial order): the same values
+    bit for bit; a block the C++ declines is left undone with status 0 (the launcher then runs the static kernel)."""
+    chunk = offset + wp.tid()
+    chunks = shares.shape[0]
+    for k in range(chunks):   # its own range, then the others' from their far end
+        r = (chunk + k) % chunks
+        c = take_item(shares, r, k)
+        while c >= 0:
+            lo = c * block
+            status[c] = adam_block_cpp(lo, wp.min(lo + block, n), params, grads, exp_avg, exp_avg_sq, steps, hp)
+            c = take_item(shares, r, k)
+
+
 #: Gaussians a thread of the CPU's Adam (:func:`adam_step_gaussians_blocks`; the C++ block takes at most 256).
 ADAM_BLOCK = 256
 
@@ -493,7 +515,10 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
     if wp.get_device(device).is_cpu:
         return runtime.launch_blocks(adam_step_gaussians_blocks, n, ADAM_BLOCK,
                                      [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper], runtime.native_flag(),
-                                     device, min_chunk=8192)
+                                     device, min_chunk=8192,
+                                     # the C++ takes the dense mode of SH degree 0 only (else every block declines)
+                                     dynamic_kernel=(adam_step_gaussians_blocks_dynamic
+                                                     if not hyper.sparse and k == 1 else None))
     runtime.launch_split(adam_step_gaussians, n, [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper],
                          device, min_chunk=8192)
     return None

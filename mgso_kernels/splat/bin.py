@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..dynamic import take_item
 from .camera import TILE_SIZE, Camera
 from .common import LANES16_CPP, vec8
 
@@ -369,6 +370,41 @@ def bin_blocks(
                 emit_one(g, splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss)
 
 
+
+@wp.kernel
+def bin_blocks_dynamic(
+    offset: int,  # unused (launch_split's convention)
+    shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
+    n_blocks: int,
+    block: int,
+    n: int,
+    mode: int,
+    splats: wp.array(dtype=vec8),
+    depths: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.int32),
+    pair_offsets: wp.array(dtype=wp.int32),
+    cam: Camera,
+    tiles_touched: wp.array(dtype=wp.int32),
+    keys: wp.array(dtype=wp.int64),
+    slots: wp.array(dtype=wp.int32),
+    pair_gauss: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians, 0 where it declined
+):
+    """:func:`bin_blocks`' C++ blocks, a chunk a core taking blocks from ``shares`` (:mod:`mgso_kernels.dynamic`):
+    the same values bit for bit; a block the C++ declines is left undone with status 0 (the launcher then runs
+    :func:`bin_blocks`)."""
+    chunk = offset + wp.tid()
+    chunks = shares.shape[0]
+    for k in range(chunks):   # its own range, then the others' from their far end
+        r = (chunk + k) % chunks
+        c = take_item(shares, r, k)
+        while c >= 0:
+            lo = c * block
+            status[c] = bin_block_cpp(mode, lo, wp.min(lo + block, n), splats, depths, radii, pair_offsets, cam.width,
+                                      cam.height, cam.tiles_x, cam.tiles_y, tiles_touched, keys, slots, pair_gauss)
+            c = take_item(shares, r, k)
+
+
 @wp.kernel
 def tile_ranges(
     offset: int,
@@ -456,7 +492,7 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
               cam, i32 if tiles_touched is None else tiles_touched, i64 if keys is None else keys,
               i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss]
     return launch_blocks(bin_blocks, n, BIN_BLOCK, inputs, native_flag(), device, threads=threads,
-                         min_chunk=min_chunk)
+                         min_chunk=min_chunk, dynamic_kernel=bin_blocks_dynamic)
 
 
 #: Bits of a digit of the CPU's radix sort: 11 sorts a 640x480 view's 43 key bits in 4 passes where 8 took 6 (1.9 ->

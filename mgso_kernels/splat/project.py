@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
+from ..dynamic import take_item
 from ..image import finite
 from .common import (ALPHA_MIN, LANES16_CPP, R2_ABS_MARGIN, R2_REL_MARGIN,
                      cutoff_r2, vec6, vec8)
@@ -798,6 +799,85 @@ def project_gaussians_blocks(
                         opacities, radii, splats)
 
 
+
+@wp.kernel
+def project_gaussians_blocks_dynamic(
+    offset: int,  # unused (launch_split's convention)
+    shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
+    n_blocks: int,
+    block: int,
+    n: int,
+    means: wp.array2d(dtype=float),
+    log_scales: wp.array2d(dtype=float),
+    quats: wp.array2d(dtype=float),
+    opacity_logits: wp.array(dtype=float),
+    cam: Camera,
+    eps2d: float,
+    antialiased: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=float),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.int32),
+    splats: wp.array(dtype=vec8),
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians, 0 where it declined
+):
+    """:func:`project_gaussians_blocks`' C++ blocks, a chunk a core taking blocks from ``shares``
+    (:func:`mgso_kernels.runtime.launch_blocks`): the same values bit for bit. A block the C++ declines is left
+    undone with status 0 (the launcher then runs :func:`project_gaussians_blocks`)."""
+    chunk = offset + wp.tid()
+    chunks = shares.shape[0]
+    for k in range(chunks):   # its own range, then the others' from their far end
+        r = (chunk + k) % chunks
+        c = take_item(shares, r, k)
+        while c >= 0:
+            lo = c * block
+            status[c] = project_cpp(lo, wp.min(lo + block, n), means, log_scales, quats, opacity_logits, cam, eps2d,
+                                    antialiased, means2d, conics, depths, opacities, radii, splats)
+            c = take_item(shares, r, k)
+
+
+@wp.kernel
+def project_gaussians_backward_blocks_dynamic(
+    offset: int,  # unused (launch_split's convention)
+    shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
+    n_blocks: int,
+    block: int,
+    n: int,
+    means: wp.array2d(dtype=float),
+    log_scales: wp.array2d(dtype=float),
+    quats: wp.array2d(dtype=float),
+    opacity_logits: wp.array(dtype=float),
+    cam: Camera,
+    eps2d: float,
+    antialiased: int,
+    radii: wp.array(dtype=wp.int32),
+    v_means2d: wp.array(dtype=wp.vec2),
+    v_conics: wp.array(dtype=wp.vec3),
+    v_depths: wp.array(dtype=float),
+    v_opacities: wp.array(dtype=float),
+    v_means: wp.array2d(dtype=float),
+    v_log_scales: wp.array2d(dtype=float),
+    v_quats: wp.array2d(dtype=float),
+    v_opacity_logits: wp.array(dtype=float),
+    v_pose_partial: wp.array(dtype=vec6),
+    status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians, 0 where it declined
+):
+    """:func:`project_gaussians_backward_blocks`' C++ blocks, a chunk a core taking blocks from ``shares``
+    (see :func:`project_gaussians_blocks_dynamic`)."""
+    chunk = offset + wp.tid()
+    chunks = shares.shape[0]
+    for k in range(chunks):   # its own range, then the others' from their far end
+        r = (chunk + k) % chunks
+        c = take_item(shares, r, k)
+        while c >= 0:
+            lo = c * block
+            status[c] = project_backward_cpp(lo, wp.min(lo + block, n), means, log_scales, quats, opacity_logits, cam,
+                                             eps2d, antialiased, radii, v_means2d, v_conics, v_depths, v_opacities,
+                                             v_means, v_log_scales, v_quats, v_opacity_logits, v_pose_partial)
+            c = take_item(shares, r, k)
+
+
 @wp.kernel
 def reduce_pose(
     offset: int,
@@ -852,7 +932,7 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
         from .raster_tile import native_flag
 
         return launch_blocks(project_gaussians_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
-                             threads=threads, min_chunk=min_chunk)
+                             threads=threads, min_chunk=min_chunk, dynamic_kernel=project_gaussians_blocks_dynamic)
     launch_split(project_gaussians, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 
@@ -886,7 +966,8 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
         from .raster_tile import native_flag
 
         return launch_blocks(project_gaussians_backward_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
-                             threads=threads, min_chunk=min_chunk)
+                             threads=threads, min_chunk=min_chunk,
+                             dynamic_kernel=project_gaussians_backward_blocks_dynamic)
     launch_split(project_gaussians_backward, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 

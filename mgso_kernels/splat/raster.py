@@ -419,12 +419,11 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import native_flag, rasterize_forward_tile, status_buffer
+        from . import raster_tile as rt
 
-        launch_split(rasterize_forward_tile, dim, [cam, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
-                                                   alpha, T_final, n_contrib, native_flag(),
-                                                   status_buffer(dim, device)],
-                     device, threads=threads, min_chunk=max(1, min_chunk // seg))
+        rt.launch_tiles(rt.rasterize_forward_tile, rt.rasterize_forward_tile_dynamic, dim,
+                        [cam, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth, alpha, T_final, n_contrib],
+                        device, threads=threads, min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_forward, dim, [cam, seg, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,
                                           alpha, T_final, n_contrib],
@@ -450,12 +449,12 @@ def launch_rasterize_alpha(cam: Camera, ranges, splats, alpha, device: str, thre
         splat_rgbz, depth = placeholder(wp.vec4, 1, device), placeholder(wp.float32, 2, device)
     dim, per_tile = segment_threads(cam, seg)
     if seg == TILE_SIZE * TILE_SIZE:
-        from .raster_tile import native_flag, rasterize_alpha_depth_tile, rasterize_alpha_tile, status_buffer
+        from . import raster_tile as rt
 
-        launch_split(rasterize_alpha_depth_tile if with_depth else rasterize_alpha_tile, dim,
-                     [cam, ranges, splats, splat_rgbz, float(t_stop), alpha, depth, native_flag(),
-                      status_buffer(dim, device)], device, threads=threads,
-                     min_chunk=max(1, min_chunk // seg))
+        rt.launch_tiles(rt.rasterize_alpha_depth_tile if with_depth else rt.rasterize_alpha_tile,
+                        rt.rasterize_alpha_depth_tile_dynamic if with_depth else rt.rasterize_alpha_tile_dynamic, dim,
+                        [cam, ranges, splats, splat_rgbz, float(t_stop), alpha, depth], device, threads=threads,
+                        min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_alpha_depth if with_depth else rasterize_alpha, dim,
                  [cam, seg, ranges, splats, splat_rgbz, float(t_stop), alpha, depth], device, threads=threads,

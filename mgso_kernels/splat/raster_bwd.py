@@ -246,13 +246,16 @@ def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, ba
         from . import raster_tile as rt
 
         narrow = W * H <= NARROW_BACKWARD_PIXELS and _is_cpu(device)
-        kernel = ((rt.rasterize_backward_tile_narrow if narrow else rt.rasterize_backward_tile) if absgrad
-                  else (rt.rasterize_backward_tile_noabs_narrow if narrow else rt.rasterize_backward_tile_noabs))
-        launch_split(kernel, dim,
-                     [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
-                      v_depth, v_alpha, use_depth, use_alpha, rt.BWD_ACC_ROWS, pair_grads, rt.native_flag(),
-                      rt.status_buffer(dim, device)], device,
-                     threads=threads, min_chunk=max(1, min_chunk // seg))
+        if absgrad:
+            kernels = ((rt.rasterize_backward_tile_narrow, rt.rasterize_backward_tile_narrow_dynamic) if narrow
+                       else (rt.rasterize_backward_tile, rt.rasterize_backward_tile_dynamic))
+        else:
+            kernels = ((rt.rasterize_backward_tile_noabs_narrow, rt.rasterize_backward_tile_noabs_narrow_dynamic)
+                       if narrow else (rt.rasterize_backward_tile_noabs, rt.rasterize_backward_tile_noabs_dynamic))
+        rt.launch_tiles(*kernels, dim,
+                        [cam, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,
+                         v_depth, v_alpha, use_depth, use_alpha, rt.BWD_ACC_ROWS, pair_grads], device,
+                        threads=threads, min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_backward, dim,
                  [cam, seg, ranges, splats, splat_rgbz, slots, wp.vec3(*background), T_final, n_contrib, v_rgb,

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..dynamic import take_item
 from ..runtime import native_flag, use_native  # the one switch of the CPU's C++ snippets (re-exported here)
 from . import raster_tile_cpp
 from .camera import TILE_SIZE, Camera
@@ -326,6 +327,39 @@ def rasterize_forward_tile(
             n_contrib[y, x] = int(L[q, kk])
 
 
+
+@wp.kernel
+def rasterize_forward_tile_dynamic(
+    offset: int,  # unused (launch_split's convention)
+    shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
+    n_slots: int,
+    cam: Camera,
+    ranges: wp.array2d(dtype=wp.int32),
+    splats: wp.array(dtype=vec8),
+    splat_rgbz: wp.array(dtype=wp.vec4),
+    background: wp.vec3,
+    rgb: wp.array3d(dtype=float),
+    depth: wp.array2d(dtype=float),
+    alpha: wp.array2d(dtype=float),
+    T_final: wp.array2d(dtype=float),
+    n_contrib: wp.array2d(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),  # [slots] out: 1 where the snippet did the tile, 0 where it declined
+):
+    """:func:`rasterize_forward_tile`'s snippet, a chunk a core taking tile slots from ``shares``
+    (:func:`mgso_kernels.dynamic.launch_dynamic`): the same outputs bit for bit. A tile the snippet declines is
+    left undone with status 0 (the launcher then runs :func:`rasterize_forward_tile`)."""
+    chunk = offset + wp.tid()
+    chunks = shares.shape[0]
+    for k in range(chunks):   # its own range, then the others' from their far end
+        r = (chunk + k) % chunks
+        i = take_item(shares, r, k)
+        while i >= 0:
+            tl = tile_of(i, cam)
+            status[i] = forward_tile_cpp(tl[0], tl[1], tl[2], tl[3] % 32, tl[3] // 32, ranges, splats, splat_rgbz,
+                                         background, rgb, depth, alpha, T_final, n_contrib)
+            i = take_item(shares, r, k)
+
+
 def _alpha_tile_kernel(with_depth: bool):
     """The coverage kernel, with or without the accumulated depth (``wp.static``: two compiled variants).
 
@@ -435,11 +469,39 @@ def _alpha_tile_kernel(with_depth: bool):
                 if wp.static(with_depth):
                     depth[y0 + r, x0 + k] = D[r, k]
 
-    return rasterize_alpha_tile
+    @wp.kernel
+    def rasterize_alpha_tile_dynamic(
+        offset: int,  # unused (launch_split's convention)
+        shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
+        n_slots: int,
+        cam: Camera,
+        ranges: wp.array2d(dtype=wp.int32),
+        splats: wp.array(dtype=vec8),
+        splat_rgbz: wp.array(dtype=wp.vec4),
+        t_stop: float,
+        alpha: wp.array2d(dtype=float),
+        depth: wp.array2d(dtype=float),
+        status: wp.array(dtype=wp.int32),  # [slots] out: 1 where the snippet did the tile, 0 where it declined
+    ):
+        """The snippet of the kernel above, a chunk a core taking tile slots from ``shares`` (see
+        :func:`rasterize_forward_tile_dynamic`)."""
+        chunk = offset + wp.tid()
+        chunks = shares.shape[0]
+        for k in range(chunks):   # its own range, then the others' from their far end
+            r = (chunk + k) % chunks
+            i = take_item(shares, r, k)
+            while i >= 0:
+                tl = tile_of(i, cam)
+                status[i] = alpha_tile_cpp(tl[0], tl[1], tl[2], tl[3] % 32, tl[3] // 32, ranges, splats, splat_rgbz, t_stop,
+                                           alpha, depth)
+                i = take_item(shares, r, k)
+
+    return rasterize_alpha_tile, rasterize_alpha_tile_dynamic
 
 
-rasterize_alpha_tile = _alpha_tile_kernel(False)
-rasterize_alpha_depth_tile = _alpha_tile_kernel(True)   # the coverage alpha and the accumulated depth
+rasterize_alpha_tile, rasterize_alpha_tile_dynamic = _alpha_tile_kernel(False)
+# the coverage alpha and the accumulated depth
+rasterize_alpha_depth_tile, rasterize_alpha_depth_tile_dynamic = _alpha_tile_kernel(True)
 
 
 def _backward_tile_cpp(with_absgrad: bool, narrow: bool = False):
@@ -635,11 +697,72 @@ def _backward_tile_kernel(with_absgrad: bool, narrow: bool = False):
                     lane_sum(ACC[10]), 0.0, 0.0, 0.0)
                 wp.atomic_add(pair_grads, slots[j], g)
 
-    return rasterize_backward_tile
+    @wp.kernel
+    def rasterize_backward_tile_dynamic(
+        offset: int,  # unused (launch_split's convention)
+        shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
+        n_slots: int,
+        cam: Camera,
+        ranges: wp.array2d(dtype=wp.int32),
+        splats: wp.array(dtype=vec8),
+        splat_rgbz: wp.array(dtype=wp.vec4),
+        slots: wp.array(dtype=wp.int32),
+        background: wp.vec3,
+        T_final: wp.array2d(dtype=float),
+        n_contrib: wp.array2d(dtype=wp.int32),
+        v_rgb: wp.array3d(dtype=float),
+        v_depth: wp.array2d(dtype=float),
+        v_alpha: wp.array2d(dtype=float),
+        use_depth: int,
+        use_alpha: int,
+        acc_rows: int,  # unused (the Warp code's; the same inputs as the kernel above)
+        pair_grads: wp.array(dtype=vec16),  # [M] in/out (zeroed by the caller), indexed by slot
+        status: wp.array(dtype=wp.int32),  # [slots] out: 1 where the snippet did the tile, 0 where it declined
+    ):
+        """The snippet of the kernel above, a chunk a core taking tile slots from ``shares`` (see
+        :func:`rasterize_forward_tile_dynamic`): a tile's pairs are its own, so the sums are the static split's bit
+        for bit."""
+        chunk = offset + wp.tid()
+        chunks = shares.shape[0]
+        for k in range(chunks):   # its own range, then the others' from their far end
+            r = (chunk + k) % chunks
+            i = take_item(shares, r, k)
+            while i >= 0:
+                tl = tile_of(i, cam)
+                status[i] = backward_tile_cpp(tl[0], tl[1], tl[2], tl[3] % 32, tl[3] // 32, ranges, splats, splat_rgbz,
+                                              slots, background, T_final, n_contrib, v_rgb, v_depth, v_alpha, use_depth,
+                                              use_alpha, pair_grads)
+                i = take_item(shares, r, k)
+
+    return rasterize_backward_tile, rasterize_backward_tile_dynamic
 
 
-rasterize_backward_tile = _backward_tile_kernel(True)
-rasterize_backward_tile_noabs = _backward_tile_kernel(False)   # AbsGS sums skipped (absgrad = 0)
+rasterize_backward_tile, rasterize_backward_tile_dynamic = _backward_tile_kernel(True)
+# AbsGS sums skipped (absgrad = 0)
+rasterize_backward_tile_noabs, rasterize_backward_tile_noabs_dynamic = _backward_tile_kernel(False)
 # the same with the snippet at 8 lanes (half a tile row a vector) where the CPU has 16
-rasterize_backward_tile_narrow = _backward_tile_kernel(True, narrow=True)
-rasterize_backward_tile_noabs_narrow = _backward_tile_kernel(False, narrow=True)
+rasterize_backward_tile_narrow, rasterize_backward_tile_narrow_dynamic = _backward_tile_kernel(True, narrow=True)
+rasterize_backward_tile_noabs_narrow, rasterize_backward_tile_noabs_narrow_dynamic = _backward_tile_kernel(
+    False, narrow=True)
+
+
+def launch_tiles(kernel, dynamic_kernel, dim: int, inputs: list, device, *, threads: int | None = None,
+                 min_chunk: int = 1) -> None:
+    """Launch a tile kernel over its ``dim`` tile slots: ``kernel(offset, *inputs, native, status)`` split over the
+    cores by :func:`~mgso_kernels.runtime.launch_split`, or, on the CPU with the snippets on, where more than one
+    chunk would run and :func:`mgso_kernels.dynamic.use_dynamic` is on, ``dynamic_kernel(offset, shares, dim,
+    *inputs, status)``: each chunk takes its own range's slots, then what the others have left
+    (:mod:`mgso_kernels.dynamic`; the same outputs bit for bit). Should the snippet decline a tile there (arrays it
+    does not take), the static kernel runs all of them again, with its Warp code where the snippet declines.
+    ``min_chunk``: fewest slots a chunk."""
+    from .. import dynamic
+    from ..runtime import _is_cpu, cpu_threads, launch_split
+
+    status = status_buffer(dim, device)
+    n = threads if threads is not None else cpu_threads()
+    if (dynamic.dynamic_on() and _is_cpu(str(device)) and native_flag() and n > 1
+            and dim >= 2 * max(1, min_chunk)):
+        dynamic.launch_dynamic(dynamic_kernel, dim, [*inputs, status], device, threads=n, min_items=min_chunk)
+        if status.numpy()[:dim].all():
+            return
+    launch_split(kernel, dim, [*inputs, native_flag(), status], device, threads=threads, min_chunk=min_chunk)
