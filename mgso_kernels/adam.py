@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from . import runtime
+from . import dynamic, runtime
 from .dynamic import take_item
 
 wp.set_module_options({"enable_backward": False})
@@ -513,12 +513,12 @@ def adam_step(params: GaussianParams, grads: GaussianParams, exp_avg: GaussianPa
     if n == 0:
         return
     if wp.get_device(device).is_cpu:
-        return runtime.launch_blocks(adam_step_gaussians_blocks, n, ADAM_BLOCK,
-                                     [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper], runtime.native_flag(),
-                                     device, min_chunk=8192,
-                                     # the C++ takes the dense mode of SH degree 0 only (else every block declines)
-                                     dynamic_kernel=(adam_step_gaussians_blocks_dynamic
-                                                     if not hyper.sparse and k == 1 else None))
+        inputs = [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper]
+        if hyper.sparse or k != 1:   # the C++ takes the dense mode of SH degree 0 only (else every block declines)
+            return runtime.launch_blocks(adam_step_gaussians_blocks, n, ADAM_BLOCK, inputs, runtime.native_flag(),
+                                         device, min_chunk=8192)
+        return dynamic.launch_blocks(adam_step_gaussians_blocks, adam_step_gaussians_blocks_dynamic, n, ADAM_BLOCK,
+                                     inputs, runtime.native_flag(), device, min_chunk=8192)
     runtime.launch_split(adam_step_gaussians, n, [params, grads, exp_avg, exp_avg_sq, steps, visible, hyper],
                          device, min_chunk=8192)
     return None

@@ -359,32 +359,16 @@ def native_flag() -> int:
 
 
 def launch_blocks(kernel: Any, n: int, block: int, inputs: Sequence[Any], native: int, device: str, *,
-                  threads: int | None = None, min_chunk: int = 4096, dynamic_kernel: Any = None) -> Any:
+                  threads: int | None = None, min_chunk: int = 4096) -> Any:
     """The CPU's C++ blocks: ``kernel(offset, block, n, *inputs, native, status)`` with a thread per block of
     ``block`` of the ``n`` items, which runs its native snippet (``native`` 1) and its own Warp loop where that
     declines, spread over the cores by :func:`launch_split` (chunks of at least ``min_chunk`` items). Returns the
-    ``(blocks,)`` int32 status the kernel writes (1 where the snippet did the block).
-
-    ``dynamic_kernel``: ``(offset, shares, n_blocks, block, n, *inputs, status)``, the snippet's blocks, each chunk
-    taking its own range's and then what the others have left (:mod:`mgso_kernels.dynamic`), run instead where more
-    than one chunk would run with the snippets and :func:`mgso_kernels.dynamic.use_dynamic` on; where it leaves a
-    block undone (status 0: the snippet declined) the static kernel runs every block again."""
-    from . import dynamic
-
+    ``(blocks,)`` int32 status the kernel writes (1 where the snippet did the block)."""
     n_blocks = -(-int(n) // int(block))
     status = wp.empty(max(n_blocks, 1), dtype=wp.int32, device=device)
-    if not n_blocks:
-        return status[:0]
-    per_chunk = max(1, min_chunk // int(block))
-    n_threads = threads if threads is not None else cpu_threads()
-    if (dynamic_kernel is not None and native and dynamic.dynamic_on() and _is_cpu(str(device)) and n_threads > 1
-            and n_blocks >= 2 * per_chunk):
-        dynamic.launch_dynamic(dynamic_kernel, n_blocks, [int(block), int(n), *inputs, status], device,
-                               threads=n_threads, min_items=per_chunk)
-        if status.numpy()[:n_blocks].all():
-            return status[:n_blocks]
-    launch_split(kernel, n_blocks, [int(block), int(n), *inputs, int(native), status], device, threads=threads,
-                 min_chunk=per_chunk)
+    if n_blocks:
+        launch_split(kernel, n_blocks, [int(block), int(n), *inputs, int(native), status], device, threads=threads,
+                     min_chunk=max(1, min_chunk // int(block)))
     return status[:n_blocks]
 
 

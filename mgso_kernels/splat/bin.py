@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .. import dynamic
 from ..dynamic import take_item
 from .camera import TILE_SIZE, Camera
 from .common import LANES16_CPP, vec8
@@ -483,7 +484,7 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
                    device, threads, min_chunk):
     """The CPU's count (mode 0) or emit (1) in blocks of BIN_BLOCK Gaussians (:func:`bin_blocks`), spread over the
     cores; returns the blocks' status (1 where the C++ block ran)."""
-    from ..runtime import launch_blocks, placeholder
+    from ..runtime import placeholder
     from .raster_tile import native_flag
 
     f32, i32 = placeholder(wp.float32, 1, device), placeholder(wp.int32, 1, device)
@@ -491,8 +492,8 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
     inputs = [mode, splats, f32 if depths is None else depths, radii, i32 if pair_offsets is None else pair_offsets,
               cam, i32 if tiles_touched is None else tiles_touched, i64 if keys is None else keys,
               i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss]
-    return launch_blocks(bin_blocks, n, BIN_BLOCK, inputs, native_flag(), device, threads=threads,
-                         min_chunk=min_chunk, dynamic_kernel=bin_blocks_dynamic)
+    return dynamic.launch_blocks(bin_blocks, bin_blocks_dynamic, n, BIN_BLOCK, inputs, native_flag(), device,
+                                 threads=threads, min_chunk=min_chunk)
 
 
 #: Bits of a digit of the CPU's radix sort: 11 sorts a 640x480 view's 43 key bits in 4 passes where 8 took 6 (1.9 ->

@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
+from .. import dynamic
 from ..dynamic import take_item
 from ..image import finite
 from .common import (ALPHA_MIN, LANES16_CPP, R2_ABS_MARGIN, R2_REL_MARGIN,
@@ -823,7 +824,7 @@ def project_gaussians_blocks_dynamic(
     status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians, 0 where it declined
 ):
     """:func:`project_gaussians_blocks`' C++ blocks, a chunk a core taking blocks from ``shares``
-    (:func:`mgso_kernels.runtime.launch_blocks`): the same values bit for bit. A block the C++ declines is left
+    (:func:`mgso_kernels.dynamic.launch_blocks`): the same values bit for bit. A block the C++ declines is left
     undone with status 0 (the launcher then runs :func:`project_gaussians_blocks`)."""
     chunk = offset + wp.tid()
     chunks = shares.shape[0]
@@ -916,7 +917,7 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     """Project ``N = means.shape[0]`` Gaussians into the given output arrays (each at least N long). On the CPU in
     C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
     thread-per-Gaussian kernel (None)."""
-    from ..runtime import launch_blocks, launch_split
+    from ..runtime import launch_split
     from ._checks import check_array
 
     n = means.shape[0]
@@ -931,8 +932,8 @@ def launch_project(means, log_scales, quats, opacity_logits, cam: Camera, eps2d:
     if wp.get_device(device).is_cpu:
         from .raster_tile import native_flag
 
-        return launch_blocks(project_gaussians_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
-                             threads=threads, min_chunk=min_chunk, dynamic_kernel=project_gaussians_blocks_dynamic)
+        return dynamic.launch_blocks(project_gaussians_blocks, project_gaussians_blocks_dynamic, n, PROJECT_BLOCK,
+                                     inputs, native_flag(), device, threads=threads, min_chunk=min_chunk)
     launch_split(project_gaussians, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 
@@ -944,7 +945,7 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
     """Gradients through the projection (see :func:`project_gaussians_backward`); outputs are overwritten. On the
     CPU in C++ blocks of :data:`PROJECT_BLOCK` Gaussians (returns their status: 1 where the C++ ran), elsewhere the
     thread-per-Gaussian kernel (None)."""
-    from ..runtime import launch_blocks, launch_split
+    from ..runtime import launch_split
     from ._checks import check_array
 
     n = means.shape[0]
@@ -965,9 +966,9 @@ def launch_project_backward(means, log_scales, quats, opacity_logits, cam: Camer
     if wp.get_device(device).is_cpu:
         from .raster_tile import native_flag
 
-        return launch_blocks(project_gaussians_backward_blocks, n, PROJECT_BLOCK, inputs, native_flag(), device,
-                             threads=threads, min_chunk=min_chunk,
-                             dynamic_kernel=project_gaussians_backward_blocks_dynamic)
+        return dynamic.launch_blocks(project_gaussians_backward_blocks, project_gaussians_backward_blocks_dynamic, n,
+                                     PROJECT_BLOCK, inputs, native_flag(), device, threads=threads,
+                                     min_chunk=min_chunk)
     launch_split(project_gaussians_backward, n, inputs, device, threads=threads, min_chunk=min_chunk)
     return None
 
