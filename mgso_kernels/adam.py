@@ -325,7 +325,6 @@ def adam_step_gaussians_blocks(offset: int, block: int, n: int, params: Gaussian
             adam_row(i, params, grads, exp_avg, exp_avg_sq, steps, visible, hp)
 
 
-
 @wp.kernel
 def adam_step_gaussians_blocks_dynamic(offset: int, shares: wp.array(dtype=wp.int64), n_blocks: int, block: int,
                                        n: int, params: GaussianParams, grads: GaussianParams,

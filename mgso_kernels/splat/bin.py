@@ -371,10 +371,9 @@ def bin_blocks(
                 emit_one(g, splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss)
 
 
-
 @wp.kernel
 def bin_blocks_dynamic(
-    offset: int,  # unused (launch_split's convention)
+    offset: int,  # the chunk's index (launch_split's offset)
     shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
     n_blocks: int,
     block: int,

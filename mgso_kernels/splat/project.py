@@ -800,10 +800,9 @@ def project_gaussians_blocks(
                         opacities, radii, splats)
 
 
-
 @wp.kernel
 def project_gaussians_blocks_dynamic(
-    offset: int,  # unused (launch_split's convention)
+    offset: int,  # the chunk's index (launch_split's offset)
     shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
     n_blocks: int,
     block: int,
@@ -840,7 +839,7 @@ def project_gaussians_blocks_dynamic(
 
 @wp.kernel
 def project_gaussians_backward_blocks_dynamic(
-    offset: int,  # unused (launch_split's convention)
+    offset: int,  # the chunk's index (launch_split's offset)
     shares: wp.array(dtype=wp.int64),  # each chunk's range of blocks, taken from both ends (mgso_kernels.dynamic)
     n_blocks: int,
     block: int,

@@ -327,10 +327,9 @@ def rasterize_forward_tile(
             n_contrib[y, x] = int(L[q, kk])
 
 
-
 @wp.kernel
 def rasterize_forward_tile_dynamic(
-    offset: int,  # unused (launch_split's convention)
+    offset: int,  # the chunk's index (launch_split's offset)
     shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
     n_slots: int,
     cam: Camera,
@@ -471,7 +470,7 @@ def _alpha_tile_kernel(with_depth: bool):
 
     @wp.kernel
     def rasterize_alpha_tile_dynamic(
-        offset: int,  # unused (launch_split's convention)
+        offset: int,  # the chunk's index (launch_split's offset)
         shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
         n_slots: int,
         cam: Camera,
@@ -699,7 +698,7 @@ def _backward_tile_kernel(with_absgrad: bool, narrow: bool = False):
 
     @wp.kernel
     def rasterize_backward_tile_dynamic(
-        offset: int,  # unused (launch_split's convention)
+        offset: int,  # the chunk's index (launch_split's offset)
         shares: wp.array(dtype=wp.int64),  # each chunk's range of tile slots, taken from both ends (mgso_kernels.dynamic)
         n_slots: int,
         cam: Camera,
