@@ -332,8 +332,9 @@ def adam_step_gaussians_blocks_dynamic(offset: int, shares: wp.array(dtype=wp.in
                                        steps: wp.array(dtype=wp.int32), visible: wp.array(dtype=wp.uint8),
                                        hp: AdamHyper, status: wp.array(dtype=wp.int32)):
     """:func:`adam_step_gaussians_blocks`' C++ blocks, a chunk a core taking blocks from ``shares``
-    (:mod:`mgso_kernels.dynamic`; a sparse step's rows in view are a run of a map in spatial order): the same values
-    bit for bit; a block the C++ declines is left undone with status 0 (the launcher then runs the static kernel)."""
+    (:mod:`mgso_kernels.dynamic`; the dense step's blocks cost the same, but a core the odometry holds for a while
+    is helped): the same values bit for bit; a block the C++ declines is left undone with status 0 (the launcher
+    then runs the static kernel)."""
     chunk = offset + wp.tid()
     chunks = shares.shape[0]
     for k in range(chunks):   # its own range, then the others' from their far end
