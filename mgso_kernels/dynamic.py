@@ -41,7 +41,7 @@ from typing import Any, Sequence
 import numpy as np
 import warp as wp
 
-__all__ = ["take_item", "launch_dynamic", "launch_blocks", "use_dynamic", "dynamic_on"]
+__all__ = ["take_item", "launch_dynamic", "launch_shared", "launch_blocks", "use_dynamic", "dynamic_on"]
 
 
 @wp.func_native("""
@@ -115,24 +115,35 @@ def launch_dynamic(kernel: Any, n_items: int, inputs: Sequence[Any], device: str
     return len(ranges)
 
 
+def launch_shared(dynamic_kernel: Any, n_items: int, inputs: Sequence[Any], status: wp.array, device: str, *,
+                  threads: int | None = None, min_items: int = 1) -> bool:
+    """Run ``dynamic_kernel(offset, shares, n_items, *inputs, status)`` (:func:`launch_dynamic`) where it applies:
+    on the CPU, with :func:`use_dynamic` on, where more than one chunk of at least ``min_items`` items would run.
+    Returns whether it ran and did every item (``status``, [n_items] int32, all 1; a snippet that declines an item
+    leaves 0): where not, the caller runs its static kernel over every item."""
+    from . import runtime
+
+    n = threads if threads is not None else runtime.cpu_threads()
+    if not (dynamic_on() and runtime.device_is_cpu(str(device)) and n > 1 and n_items >= 2 * max(1, min_items)):
+        return False
+    launch_dynamic(dynamic_kernel, n_items, [*inputs, status], device, threads=n, min_items=min_items)
+    return bool(status.numpy()[:n_items].all())
+
+
 def launch_blocks(kernel: Any, dynamic_kernel: Any, n: int, block: int, inputs: Sequence[Any], native: int,
                   device: str, *, threads: int | None = None, min_chunk: int = 4096) -> Any:
     """:func:`mgso_kernels.runtime.launch_blocks` (``kernel(offset, block, n, *inputs, native, status)``, a block of
-    ``block`` items a thread, its C++ snippet first) with the blocks shared: where more than one chunk would run on
-    the CPU with the snippets and :func:`use_dynamic` on, ``dynamic_kernel(offset, shares, n_blocks, block, n,
-    *inputs, status)`` runs instead, each chunk taking its own range's blocks and then what the others have left;
-    where it leaves a block undone (status 0: the snippet declined) the static kernel runs every block again.
-    Returns the ``(blocks,)`` int32 status (1 where the snippet did the block)."""
+    ``block`` items a thread, its C++ snippet first) with the blocks shared where :func:`launch_shared` applies and
+    the snippets are on: ``dynamic_kernel(offset, shares, n_blocks, block, n, *inputs, status)``, each chunk taking
+    its own range's blocks and then what the others have left; where it leaves a block undone (status 0: the snippet
+    declined) the static kernel runs every block again. Returns the ``(blocks,)`` int32 status (1 where the snippet
+    did the block)."""
     from . import runtime
 
     n_blocks = -(-int(n) // int(block))
-    per_chunk = max(1, min_chunk // int(block))
-    n_threads = threads if threads is not None else runtime.cpu_threads()
-    if (native and dynamic_on() and runtime.device_is_cpu(str(device)) and n_threads > 1
-            and n_blocks >= 2 * per_chunk):
+    if native and n_blocks:
         status = wp.empty(n_blocks, dtype=wp.int32, device=device)
-        launch_dynamic(dynamic_kernel, n_blocks, [int(block), int(n), *inputs, status], device, threads=n_threads,
-                       min_items=per_chunk)
-        if status.numpy().all():
+        if launch_shared(dynamic_kernel, n_blocks, [int(block), int(n), *inputs], status, device, threads=threads,
+                         min_items=max(1, min_chunk // int(block))):
             return status
     return runtime.launch_blocks(kernel, n, block, inputs, native, device, threads=threads, min_chunk=min_chunk)

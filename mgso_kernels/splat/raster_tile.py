@@ -755,13 +755,10 @@ def launch_tiles(kernel, dynamic_kernel, dim: int, inputs: list, device, *, thre
     does not take), the static kernel runs all of them again, with its Warp code where the snippet declines.
     ``min_chunk``: fewest slots a chunk."""
     from .. import dynamic
-    from ..runtime import _is_cpu, cpu_threads, launch_split
+    from ..runtime import launch_split
 
     status = status_buffer(dim, device)
-    n = threads if threads is not None else cpu_threads()
-    if (dynamic.dynamic_on() and _is_cpu(str(device)) and native_flag() and n > 1
-            and dim >= 2 * max(1, min_chunk)):
-        dynamic.launch_dynamic(dynamic_kernel, dim, [*inputs, status], device, threads=n, min_items=min_chunk)
-        if status.numpy()[:dim].all():
-            return
+    if native_flag() and dynamic.launch_shared(dynamic_kernel, dim, inputs, status, device, threads=threads,
+                                               min_items=min_chunk):
+        return
     launch_split(kernel, dim, [*inputs, native_flag(), status], device, threads=threads, min_chunk=min_chunk)
