@@ -159,12 +159,48 @@ alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
 for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
 alignas(64) int mrow[16];
 alignas(64) float dyr[16], cyyr[16], bdyr[16];
-int hq[32], hm[32];
-float hc[32], hb[32], hd[32];
+alignas(64) int hq[32], hm[32];
+alignas(64) float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
 auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
     const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
+#if @W@ == 16 && defined(__AVX512F__)
+    // 16 lanes: a tile's rows (at most 16) are one vector, and the rows with a bit left are packed to the front of
+    // each list by one compress a list (vpcompressd into a register, then a plain store: the compress to memory is
+    // microcoded on Zen 4), in row order as the scalar loop below lists them, where that loop's stores and
+    // conditional increments took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md)
+    {
+        typedef int v16si_ __attribute__((__vector_size__(64)));
+        typedef float v16sf_ __attribute__((__vector_size__(64)));
+        const vi rr = (vi)lo + LANE;
+        const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
+        const vf disc = ar2 - g.det * dy * dy;
+        const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
+        const vf xc = g.mx - g.b * dy * g.inv_a;
+        const vi lm = __builtin_elementwise_max(
+            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
+        const vi h = __builtin_elementwise_min(
+            __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
+        const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo) > i);
+        const vi l = __builtin_elementwise_min(lm, (vi)15);
+        const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
+        const vi span = (((vi)1 << len) - 1) << l;
+        const vi m = span & ~ldi(done + lo) & live;
+        const unsigned short k = (unsigned short)lane_bits(m != 0);
+        const vi zi = 0;
+        const vf zf = 0.0f;
+        *(vi*)hq = (vi)__builtin_ia32_compresssi512_mask((v16si_)rr, (v16si_)zi, k);
+        *(vi*)hm = (vi)__builtin_ia32_compresssi512_mask((v16si_)m, (v16si_)zi, k);
+        *(vf*)hc = (vf)__builtin_ia32_compresssf512_mask((v16sf_)(hc_ * dy * dy), (v16sf_)zf, k);
+        *(vf*)hb = (vf)__builtin_ia32_compresssf512_mask((v16sf_)(g.b * dy), (v16sf_)zf, k);
+        *(vf*)hd = (vf)__builtin_ia32_compresssf512_mask((v16sf_)dy, (v16sf_)zf, k);
+        nl = __builtin_popcount(k);
+        nr = 0;
+        (void)nrows;
+        return;
+    }
+#endif
     for (int r8 = 0; r8 < nrows; r8 += @W@) {
         const vi rr = (vi)(lo + r8) + LANE;
         const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
@@ -239,11 +275,47 @@ auto entry_power = [&](int e) -> vf {
     return fmav(-(vf)hb[e], *(const vf*)(dxl + off), *(const vf*)(pa + off) + (vf)hc[e]);
 };
 // the forward's and the coverage's step for entry e of a Gaussian of opacity vop: its alpha, the transmittance
-// before (Tk) and after (Tn), the pixels it stops (stop) and those that take it (acc, 0/1); the lane row's T is
+// before (Tk) and after (Tn), the pixels it stops (stop) and those that take it (acc); the lane row's T is
 // updated to took ? Tn : Tk without a select on what was loaded from the same place (LLVM makes that a masked store,
-// which Zen 3 runs slowly and cannot forward to the next Gaussian's load): Tk * 1 is Tk
-struct Step { vf al, Tk, Tn, stop, acc; };
+// which Zen 3 runs slowly and cannot forward to the next Gaussian's load): Tk * 1 is Tk. What the blends read of a
+// step: took_w (the blending weight acc al Tk), took_or0(s, v) (acc ? v : 0), stop_bits(s) and cover_bits(s, t)
+// (the pixels that stop, and those that stop or take the transmittance below t, as W bits)
 typedef float LaneRow[@W@];   // a tile state's lane row (a pointer to float[W]: Warp defines a macro float(x))
+#if @W@ == 16 && defined(__AVX512F__)
+// 16 lanes on AVX-512: which pixels take and stop as mask registers, where the 0/1 float lanes made the chain from
+// one Gaussian's T to the next's a compare, a masked move, a subtraction and a second compare longer (a lane row's T
+// is loaded, updated and stored by each Gaussian of the list that reaches it, one after the other); the same values
+typedef float v16sf_ __attribute__((__vector_size__(64)));
+auto kcmp_ge = [](vf a, vf b, unsigned short m) -> unsigned short {   // m & (a >= b), ordered
+    return __builtin_ia32_cmpps512_mask((v16sf_)a, (v16sf_)b, 0x1d, m, 4);
+};
+auto kcmp_lt = [](vf a, vf b, unsigned short m) -> unsigned short {   // m & (a < b), ordered
+    return __builtin_ia32_cmpps512_mask((v16sf_)a, (v16sf_)b, 0x11, m, 4);
+};
+auto ksel = [](unsigned short m, vf a, vf b) -> vf {                  // m ? a : b per lane
+    return (vf)__builtin_ia32_selectps_512(m, (v16sf_)a, (v16sf_)b);
+};
+struct Step { vf al, Tk, Tn; unsigned short stop, acc; };
+auto front_step = [&](int e, LaneRow* T, vf vop) -> Step {
+    const int q = hq[e];
+    Step s;
+    s.al = vmin(kv(K_AMAX), vop * vexp(entry_power(e)));
+    const unsigned short ok = kcmp_ge(s.al, kv(K_AMIN), (unsigned short)hm[e]);
+    s.Tk = *(vf*)T[q];
+    const vf om = 1.0f - s.al;
+    s.Tn = s.Tk * om;
+    s.stop = kcmp_lt(s.Tn, kv(K_TMIN), ok);
+    s.acc = ok & ~s.stop;
+    *(vf*)T[q] = s.Tk * ksel(s.acc, om, (vf)1.0f);
+    return s;
+};
+// acc al Tk is al Tk where acc is 1 and +0 where it is 0 (al and Tk are finite and not negative)
+auto took_w = [&](const Step& s) -> vf { return ksel(s.acc, s.al * s.Tk, (vf)0.0f); };
+auto took_or0 = [&](const Step& s, vf v) -> vf { return ksel(s.acc, v, (vf)0.0f); };
+auto stop_bits = [](const Step& s) -> int { return s.stop; };
+auto cover_bits = [&](const Step& s, vf t) -> int { return s.stop | kcmp_lt(s.Tn, t, s.acc); };
+#else
+struct Step { vf al, Tk, Tn, stop, acc; };   // stop, acc: 0 or 1 per lane
 auto front_step = [&](int e, LaneRow* T, vf vop) -> Step {
     const int q = hq[e];
     Step s;
@@ -257,9 +329,25 @@ auto front_step = [&](int e, LaneRow* T, vf vop) -> Step {
     *(vf*)T[q] = s.Tk * sel(s.acc > 0.0f, 1.0f - s.al, (vf)1.0f);
     return s;
 };
+auto took_w = [&](const Step& s) -> vf { return s.acc * s.al * s.Tk; };
+auto took_or0 = [&](const Step& s, vf v) -> vf { return sel(s.acc > 0.0f, v, (vf)0.0f); };
+auto stop_bits = [&](const Step& s) -> int { return lane_bits(s.stop > 0.0f); };
+auto cover_bits = [&](const Step& s, vf t) -> int {
+    return lane_bits(s.stop + sel(s.Tn < t, s.acc, (vf)0.0f) > 0.0f);
+};
+#endif
 """
 
 FORWARD = r"""
+// the outputs are written through plain pointers (below), so the snippet declines images that are not contiguous
+// (the rasteriser's are)
+const long width = rgb.shape[1];
+auto flat2 = [&](const auto& a) -> bool {
+    return a.shape[1] == width && a.strides[1] == 4 && a.strides[0] == 4 * width;
+};
+if (!(rgb.strides[2] == 4 && rgb.strides[1] == 12 && rgb.strides[0] == 12 * width && flat2(depth) && flat2(alpha)
+      && flat2(T_final) && flat2(n_contrib)))
+    return 0;
 const int start = wp::index(ranges, tile, 0);
 const int end = wp::index(ranges, tile, 1);
 // the tile's state as NQ lane rows of W pixels (see the prelude)
@@ -282,36 +370,52 @@ for (int j = start; j < end; ++j) {
     for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
-        const vf w = st.acc * st.al * st.Tk;
+        const vf w = took_w(st);
         *(vf*)CR[q] = fmav(w, vc0, *(vf*)CR[q]);
         *(vf*)CG[q] = fmav(w, vc1, *(vf*)CG[q]);
         *(vf*)CB[q] = fmav(w, vc2, *(vf*)CB[q]);
         *(vf*)DD[q] = fmav(w, vc3, *(vf*)DD[q]);
         // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
-        *(vf*)LL[q] = vmax(*(vf*)LL[q], sel(st.acc > 0.0f, vpos, (vf)0.0f));
-        const int nh = lane_bits(st.stop > 0.0f);
+        *(vf*)LL[q] = vmax(*(vf*)LL[q], took_or0(st, vpos));
+        const int nh = stop_bits(st);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
 }
+// the outputs through plain pointers, which the compiler turns into vector stores, where wp::index's strided
+// stores, a pixel at a time, took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md); the
+// same values
+const float *Tf = &T[0][0], *Rf = &CR[0][0], *Gf = &CG[0][0], *Bf = &CB[0][0], *Df = &DD[0][0], *Lf = &LL[0][0];
+const float bg0 = background[0], bg1 = background[1], bg2 = background[2];
 for (int r = 0; r < ny; ++r) {
-    const int y = y0 + r;
+    // the lane rows of a tile row are contiguous: pixel (r, k) at 16 r + k of each state
+    const long o = (long)(y0 + r) * width + x0;
+    const int s0 = 16 * r;
+    float* pr = (float*)rgb.data + 3 * o;
+    float* pd = (float*)depth.data + o;
+    float* pa = (float*)alpha.data + o;
+    float* pt = (float*)T_final.data + o;
+    int* pn = (int*)n_contrib.data + o;
     for (int k = 0; k < nx; ++k) {
-        const int x = x0 + k, q = QPR * r + k / @W@, kk = k % @W@;
-        const float Tk = T[q][kk];
-        wp::index(rgb, y, x, 0) = CR[q][kk] + Tk * background[0];
-        wp::index(rgb, y, x, 1) = CG[q][kk] + Tk * background[1];
-        wp::index(rgb, y, x, 2) = CB[q][kk] + Tk * background[2];
-        wp::index(depth, y, x) = DD[q][kk];
-        wp::index(alpha, y, x) = 1.0f - Tk;
-        wp::index(T_final, y, x) = Tk;
-        wp::index(n_contrib, y, x) = (int)LL[q][kk];
+        const float Tk = Tf[s0 + k];
+        pr[3 * k] = Rf[s0 + k] + Tk * bg0;
+        pr[3 * k + 1] = Gf[s0 + k] + Tk * bg1;
+        pr[3 * k + 2] = Bf[s0 + k] + Tk * bg2;
+        pd[k] = Df[s0 + k];
+        pa[k] = 1.0f - Tk;
+        pt[k] = Tk;
+        pn[k] = (int)Lf[s0 + k];
     }
 }
 return 1;
 """
 
 ALPHA = r"""
+// the outputs are written through plain pointers (below): images that are not contiguous make the snippet decline
+const long width = alpha.shape[1];
+if (!(alpha.strides[1] == 4 && alpha.strides[0] == 4 * width
+      && (!@DEPTH@ || (depth.shape[1] == width && depth.strides[1] == 4 && depth.strides[0] == 4 * width))))
+    return 0;
 const int start = wp::index(ranges, tile, 0);
 const int end = wp::index(ranges, tile, 1);
 alignas(64) float T[NQ][@W@], DD[NQ][@W@];
@@ -331,19 +435,23 @@ for (int j = start; j < end; ++j) {
     for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
         const int q = hq[e];
         const Step st = front_step(e, T, vop);
-        if (@DEPTH@) *(vf*)DD[q] = fmav(st.acc * st.al * st.Tk, vz, *(vf*)DD[q]);
-        const vf covered = sel(st.Tn < vts, st.acc, (vf)0.0f);
-        const int nh = lane_bits(st.stop + covered > 0.0f);
+        if (@DEPTH@) *(vf*)DD[q] = fmav(took_w(st), vz, *(vf*)DD[q]);
+        const int nh = cover_bits(st, vts);
         mark_done(row_done, full, rows_left, q, nh);
     }
     if (rows_left == 0) break;
 }
-for (int r = 0; r < ny; ++r)
-    for (int k = 0; k < nx; ++k) {
-        const int q = QPR * r + k / @W@, kk = k % @W@;
-        wp::index(alpha, y0 + r, x0 + k) = 1.0f - T[q][kk];
-        if (@DEPTH@) wp::index(depth, y0 + r, x0 + k) = DD[q][kk];
+// the outputs through plain pointers (pixel (r, k) at 16 r + k of each state), as the forward's
+const float *Tf = &T[0][0], *Df = &DD[0][0];
+for (int r = 0; r < ny; ++r) {
+    const long o = (long)(y0 + r) * width + x0;
+    float* pa = (float*)alpha.data + o;
+    for (int k = 0; k < nx; ++k) pa[k] = 1.0f - Tf[16 * r + k];
+    if (@DEPTH@) {
+        float* pd = (float*)depth.data + o;
+        for (int k = 0; k < nx; ++k) pd[k] = Df[16 * r + k];
     }
+}
 return 1;
 """
 
@@ -360,25 +468,45 @@ for (int q = 0; q < NQ; ++q)
 alignas(32) int row_max[32];   // the largest n_contrib of each row (16 and a vector's overhang)
 for (int r = 0; r < 32; ++r) row_max[r] = 0;
 int n_max = 0;
-for (int r = 0; r < ny; ++r) {
-    const int y = y0 + r;
-    int rm = 0;
-    for (int k = 0; k < nx; ++k) {
-        const int x = x0 + k, q = QPR * r + k / @W@, kk = k % @W@;
-        const float Tf = wp::index(T_final, y, x);
-        T[q][kk] = Tf;
-        const float gr = wp::index(v_rgb, y, x, 0), gg = wp::index(v_rgb, y, x, 1), gb = wp::index(v_rgb, y, x, 2);
-        GR[q][kk] = gr; GG[q][kk] = gg; GB[q][kk] = gb;
-        float vA = 0.0f;
-        if (use_depth != 0) VD[q][kk] = wp::index(v_depth, y, x);
-        if (use_alpha != 0) vA = wp::index(v_alpha, y, x);
-        S[q][kk] = Tf * (background[0] * gr + background[1] * gg + background[2] * gb - vA);
-        const int nc = wp::index(n_contrib, y, x);
-        NC[q][kk] = (float)nc;
-        rm = rm > nc ? rm : nc;
+// the inputs through plain pointers (the lane rows of a tile row are contiguous: pixel (r, k) at 16 r + k of each
+// state), where wp::index's strided loads took a fifteenth of a 640x480 backward blend; images that are not
+// contiguous make the snippet decline
+const long width = v_rgb.shape[1];
+auto flat2 = [&](const auto& a) -> bool {
+    return a.shape[1] == width && a.strides[1] == 4 && a.strides[0] == 4 * width;
+};
+if (!(v_rgb.strides[2] == 4 && v_rgb.strides[1] == 12 && v_rgb.strides[0] == 12 * width && flat2(T_final)
+      && flat2(n_contrib) && (use_depth == 0 || flat2(v_depth)) && (use_alpha == 0 || flat2(v_alpha))))
+    return 0;
+{
+    float *Tp = &T[0][0], *Sp = &S[0][0], *Rp = &GR[0][0], *Gp = &GG[0][0], *Bp = &GB[0][0], *Dp = &VD[0][0];
+    float* Np = &NC[0][0];
+    const float bg0 = background[0], bg1 = background[1], bg2 = background[2];
+    for (int r = 0; r < ny; ++r) {
+        const long o = (long)(y0 + r) * width + x0;
+        const int s0 = 16 * r;
+        const float* pt = (const float*)T_final.data + o;
+        const float* pg = (const float*)v_rgb.data + 3 * o;
+        const float* pd = use_depth != 0 ? (const float*)v_depth.data + o : nullptr;
+        const float* pa = use_alpha != 0 ? (const float*)v_alpha.data + o : nullptr;
+        const int* pn = (const int*)n_contrib.data + o;
+        int rm = 0;
+        for (int k = 0; k < nx; ++k) {
+            const float Tf = pt[k];
+            Tp[s0 + k] = Tf;
+            const float gr = pg[3 * k], gg = pg[3 * k + 1], gb = pg[3 * k + 2];
+            Rp[s0 + k] = gr; Gp[s0 + k] = gg; Bp[s0 + k] = gb;
+            float vA = 0.0f;
+            if (use_depth != 0) Dp[s0 + k] = pd[k];
+            if (use_alpha != 0) vA = pa[k];
+            Sp[s0 + k] = Tf * (bg0 * gr + bg1 * gg + bg2 * gb - vA);
+            const int nc = pn[k];
+            Np[s0 + k] = (float)nc;
+            rm = rm > nc ? rm : nc;
+        }
+        row_max[r] = rm;
+        n_max = n_max > rm ? n_max : rm;
     }
-    row_max[r] = rm;
-    n_max = n_max > rm ? n_max : rm;
 }
 if (slots.strides[0] != 4 || pair_grads.strides[0] != 64) return 0;
 const int* slot_p = (const int*)slots.data;

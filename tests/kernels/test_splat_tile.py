@@ -680,3 +680,43 @@ if __name__ == "__main__":   # the 8-lane half of the test above, in its own pro
 
     device = runtime.init("cpu")
     np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), **_snippet_outputs(device))
+
+
+def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
+    """The forward snippet writes its outputs through plain pointers, so images that are views of wider ones (rows
+    not one after the other) make it decline (status 0) and the Warp code write them: the same images as the Warp
+    code into contiguous ones, bit for bit. The control: into contiguous images the snippet does every tile."""
+    from mgso_kernels.splat import raster as _raster
+
+    rng, scene, cam = _scene(5, 300, 53, 35)
+    h, w = 35, 53
+    dim = cam.tiles_x * cam.tiles_y
+
+    def blend(native: bool, pad: int):
+        before = raster_tile.use_native(native)
+        try:
+            rast = Rasterizer(wp_device)
+            out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3))
+            wide = [wp.zeros((h, w + pad, 3), dtype=wp.float32, device=wp_device)]
+            wide += [wp.zeros((h, w + pad), dtype=wp.float32, device=wp_device) for _ in range(3)]
+            wide += [wp.zeros((h, w + pad), dtype=wp.int32, device=wp_device)]
+            views = [a[:, :w] for a in wide]
+            _raster.launch_rasterize_forward(cam, rast.ranges_.full, rast.splats_.full, rast.splat_rgbz_.full,
+                                             (0.1, 0.2, 0.3), *views, wp_device, seg=rast.pixels_per_thread)
+            status = raster_tile.status_buffer(dim, wp_device).numpy().copy()
+            images = [a.numpy()[:, :w].copy() for a in wide]
+            reference = [getattr(out, k).numpy().copy() for k in ("rgb", "depth", "alpha", "T_final", "n_contrib")]
+        finally:
+            raster_tile.use_native(before)
+        return status, images, reference
+
+    status, images, _ = blend(True, 7)
+    assert not status.any()
+    _, _, warp_code = blend(False, 0)
+    for got, want in zip(images, warp_code):
+        assert np.abs(want).max() > 0
+        np.testing.assert_array_equal(got, want)
+    status, images, cpp = blend(True, 0)
+    assert (status == (1 if wp.get_device(wp_device).is_cpu else 0)).all()
+    for got, want in zip(images, cpp):
+        np.testing.assert_array_equal(got, want)
