@@ -688,7 +688,7 @@ def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
     code into contiguous ones, bit for bit. The control: into contiguous images the snippet does every tile."""
     from mgso_kernels.splat import raster as _raster
 
-    rng, scene, cam = _scene(5, 300, 53, 35)
+    _, scene, cam = _scene(5, 300, 53, 35)
     h, w = 35, 53
     dim = cam.tiles_x * cam.tiles_y
 
