@@ -102,6 +102,27 @@ auto lane_bits = [&](vi c) -> int {
 };
 // a b + c rounded once (an FMA instruction; the snippets say where they want one, contraction stays off)
 auto fmav = [](vf a, vf b, vf c) -> vf { return __builtin_elementwise_fma(a, b, c); };
+// AVX-512's mask registers for the lanes' decisions (16 lanes with AVX-512F, 8 with AVX-512VL): kcmp_ge / kcmp_lt /
+// kcmp_le(a, b, m) are m & (a >= b), m & (a < b), m & (a <= b), ordered (false where a lane is NaN, as C's
+// comparisons); ksel(m, a, b) is m ? a : b per lane
+#if (@W@ == 16 && defined(__AVX512F__)) || (@W@ == 8 && defined(__AVX512VL__))
+#define TILE_MASKS 1
+#if @W@ == 16
+typedef unsigned short kmask;
+typedef float vn_ __attribute__((__vector_size__(64)));
+auto kcmp_ge = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps512_mask((vn_)a, (vn_)b, 0x1d, m, 4); };
+auto kcmp_lt = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps512_mask((vn_)a, (vn_)b, 0x11, m, 4); };
+auto kcmp_le = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps512_mask((vn_)a, (vn_)b, 0x12, m, 4); };
+auto ksel = [](kmask m, vf a, vf b) -> vf { return (vf)__builtin_ia32_selectps_512(m, (vn_)a, (vn_)b); };
+#else
+typedef unsigned char kmask;
+typedef float vn_ __attribute__((__vector_size__(32)));
+auto kcmp_ge = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps256_mask((vn_)a, (vn_)b, 0x1d, m); };
+auto kcmp_lt = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps256_mask((vn_)a, (vn_)b, 0x11, m); };
+auto kcmp_le = [](vf a, vf b, kmask m) -> kmask { return __builtin_ia32_cmpps256_mask((vn_)a, (vn_)b, 0x12, m); };
+auto ksel = [](kmask m, vf a, vf b) -> vf { return (vf)__builtin_ia32_selectps_256(m, (vn_)a, (vn_)b); };
+#endif
+#endif
 // vexp's constants and the blend's thresholds as vectors in a stack array that the compiler cannot fold back into
 // constants (the empty asm statement tells it the array may have changed): the loops read them as memory operands,
 // where LLVM rematerialised each from the constant pool on every list entry (a movabs and a broadcast, under Warp's
@@ -281,26 +302,16 @@ auto entry_power = [&](int e) -> vf {
 // step: took_w (the blending weight acc al Tk), took_or0(s, v) (acc ? v : 0), stop_bits(s) and cover_bits(s, t)
 // (the pixels that stop, and those that stop or take the transmittance below t, as W bits)
 typedef float LaneRow[@W@];   // a tile state's lane row (a pointer to float[W]: Warp defines a macro float(x))
-#if @W@ == 16 && defined(__AVX512F__)
-// 16 lanes on AVX-512: which pixels take and stop as mask registers, where the 0/1 float lanes made the chain from
-// one Gaussian's T to the next's a compare, a masked move, a subtraction and a second compare longer (a lane row's T
-// is loaded, updated and stored by each Gaussian of the list that reaches it, one after the other); the same values
-typedef float v16sf_ __attribute__((__vector_size__(64)));
-auto kcmp_ge = [](vf a, vf b, unsigned short m) -> unsigned short {   // m & (a >= b), ordered
-    return __builtin_ia32_cmpps512_mask((v16sf_)a, (v16sf_)b, 0x1d, m, 4);
-};
-auto kcmp_lt = [](vf a, vf b, unsigned short m) -> unsigned short {   // m & (a < b), ordered
-    return __builtin_ia32_cmpps512_mask((v16sf_)a, (v16sf_)b, 0x11, m, 4);
-};
-auto ksel = [](unsigned short m, vf a, vf b) -> vf {                  // m ? a : b per lane
-    return (vf)__builtin_ia32_selectps_512(m, (v16sf_)a, (v16sf_)b);
-};
-struct Step { vf al, Tk, Tn; unsigned short stop, acc; };
+#ifdef TILE_MASKS
+// with AVX-512 the pixels that take and stop are mask registers, where the 0/1 float lanes made the chain from one
+// Gaussian's T to the next's a compare, a masked move, a subtraction and a second compare longer (a lane row's T is
+// loaded, updated and stored by each Gaussian of the list that reaches it, one after the other); the same values
+struct Step { vf al, Tk, Tn; kmask stop, acc; };
 auto front_step = [&](int e, LaneRow* T, vf vop) -> Step {
     const int q = hq[e];
     Step s;
     s.al = vmin(kv(K_AMAX), vop * vexp(entry_power(e)));
-    const unsigned short ok = kcmp_ge(s.al, kv(K_AMIN), (unsigned short)hm[e]);
+    const kmask ok = kcmp_ge(s.al, kv(K_AMIN), (kmask)hm[e]);
     s.Tk = *(vf*)T[q];
     const vf om = 1.0f - s.al;
     s.Tn = s.Tk * om;
@@ -550,8 +561,6 @@ for (int jj = 0; jj < n_max; ++jj) {
             const vf ev = vexp(entry_power(e));
             const vf raw = vop * ev;
             const vf al = vmin(kv(K_AMAX), raw);
-            const vf bit = __builtin_convertvector(((vi)hm[e] >> LANE) & 1, vf);
-            const vf ok = sel(*(const vf*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (vf)0.0f), (vf)0.0f);
             const vf inv = 1.0f / (1.0f - al);
             const vf Tq = *(const vf*)T[q];
             const vf Sq = *(const vf*)S[q];
@@ -561,15 +570,29 @@ for (int jj = 0; jj < n_max; ++jj) {
             const vf w = al * Tk;
             const vf gi = fmav((vf)c3, vD, fmav((vf)c2, gB, fmav((vf)c1, gG, c0 * gR)));
             const vf v_al = fmav(Tk, gi, -(Sq * inv));
-            const vi okb = ok > 0.0f;
             // T = ok ? Tk : T and S = ok ? S + w gi : S, without a select on what was loaded from the same place
             // (see the forward): T inv is Tk, T 1 is T; S + -0 is S (also where S is -0)
+#ifdef TILE_MASKS
+            // ok as a mask register; where the float lanes multiplied by 0 (a -0 where v_al < 0) the masked lanes
+            // are +0: the same sums bit for bit (each starts at +0 and x + -0, x + +0 and fma(y, -0, x) are x there)
+            const kmask okm = kcmp_lt((vf)fi, *(const vf*)NC[q], kcmp_ge(al, kv(K_AMIN), (kmask)hm[e]));
+            *(vf*)T[q] = Tq * ksel(okm, inv, (vf)1.0f);
+            *(vf*)S[q] = Sq + ksel(okm, w * gi, (vf)-0.0f);
+            const vf v_raw = ksel(kcmp_le(raw, kv(K_AMAX), okm), v_al, (vf)0.0f);
+            s3 = fmav(v_raw, ev, s3);
+            *(vf*)VP[e] = v_raw * raw;
+            *(vf*)WK[e] = ksel(okm, w, (vf)0.0f);
+#else
+            const vf bit = __builtin_convertvector(((vi)hm[e] >> LANE) & 1, vf);
+            const vf ok = sel(*(const vf*)NC[q] > fi, sel(al >= kv(K_AMIN), bit, (vf)0.0f), (vf)0.0f);
+            const vi okb = ok > 0.0f;
             *(vf*)T[q] = Tq * sel(okb, inv, (vf)1.0f);
             *(vf*)S[q] = Sq + sel(okb, w * gi, (vf)-0.0f);
             const vf v_raw = sel(raw <= kv(K_AMAX), v_al, (vf)0.0f) * ok;
             s3 = fmav(v_raw, ev, s3);
             *(vf*)VP[e] = v_raw * raw;
             *(vf*)WK[e] = w * ok;
+#endif
         }
         for (int e = e0; e < e1; ++e) {
             const int q = hq[e];
@@ -693,7 +716,7 @@ def fill(body: str, consts: dict[str, float | int], lanes: int | None = None) ->
     pixels of a tile row: ``mgso_kernels.splat.raster_bwd.NARROW_BACKWARD_PIXELS``)."""
     if lanes not in (None, 8):
         raise ValueError(f"raster_tile_cpp.fill: lanes must be None or 8, got {lanes!r}")
-    code = _PRELUDE + body
+    code = _PRELUDE + body + "\n#undef TILE_MASKS\n"
     wide = _with_lanes(code, 16) if _LANES == 16 and lanes is None else None
     text = "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n{\n#pragma clang fp contract(off)\n"
     if wide is not None:
