@@ -57,7 +57,7 @@ wp.set_module_options({
     "cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -mllvm -slp-schedule-budget=1000000",
 })
 
-__all__ = ["TILE_PIXELS", "use_native", "native_flag", "native_lanes", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
+__all__ = ["TILE_PIXELS", "use_native", "native_flag", "native_lanes", "native_masks", "status_buffer", "exp_lane", "rasterize_forward_tile", "rasterize_alpha_tile", "rasterize_alpha_depth_tile",
            "rasterize_backward_tile", "rasterize_backward_tile_noabs", "rasterize_backward_tile_narrow",
            "rasterize_backward_tile_noabs_narrow", "BWD_ACC_ROWS"]
 
@@ -94,6 +94,27 @@ def _lanes_cpp() -> int:
 @wp.kernel
 def _lanes_kernel(out: wp.array(dtype=wp.int32)):
     out[0] = _lanes_cpp()
+
+
+@wp.func_native(raster_tile_cpp.masks_probe())
+def _masks_cpp() -> int:
+    """1 where this module's tile snippets take their lanes' decisions in AVX-512 mask registers, else 0."""
+    ...
+
+
+@wp.kernel
+def _masks_kernel(out: wp.array(dtype=wp.int32)):
+    out[0] = _masks_cpp()
+
+
+def native_masks(device="cpu") -> bool:
+    """Whether the tile snippets as compiled on ``device`` keep their lanes' decisions (which pixels take a Gaussian,
+    which stop) in AVX-512 mask registers (16 lanes with AVX-512F, 8 with AVX-512VL); False where they keep them in
+    0/1 float lanes (no AVX-512, or ``MGSO_TILE_MASKS=0``) or do not run (CUDA). Either way the same outputs bit for
+    bit."""
+    out = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(_masks_kernel, dim=1, inputs=[out], device=device)
+    return bool(out.numpy()[0])
 
 
 def native_lanes(device="cpu") -> int:

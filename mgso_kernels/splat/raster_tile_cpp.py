@@ -43,7 +43,7 @@ import os
 
 import numpy as np
 
-__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill", "lanes_probe"]
+__all__ = ["FORWARD", "ALPHA", "BACKWARD", "fill", "lanes_probe", "masks_probe"]
 
 
 def _f32(x: float) -> str:
@@ -105,7 +105,7 @@ auto fmav = [](vf a, vf b, vf c) -> vf { return __builtin_elementwise_fma(a, b, 
 // AVX-512's mask registers for the lanes' decisions (16 lanes with AVX-512F, 8 with AVX-512VL): kcmp_ge / kcmp_lt /
 // kcmp_le(a, b, m) are m & (a >= b), m & (a < b), m & (a <= b), ordered (false where a lane is NaN, as C's
 // comparisons); ksel(m, a, b) is m ? a : b per lane
-#if (@W@ == 16 && defined(__AVX512F__)) || (@W@ == 8 && defined(__AVX512VL__))
+#if @MASKS@ && ((@W@ == 16 && defined(__AVX512F__)) || (@W@ == 8 && defined(__AVX512VL__)))
 #define TILE_MASKS 1
 #if @W@ == 16
 typedef unsigned short kmask;
@@ -690,6 +690,30 @@ def lanes_probe() -> str:
     return "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n" + wide + "#else\nreturn 0;\n#endif\n"
 
 
+def masks_probe() -> str:
+    """A snippet that returns 1 where :func:`fill`'s snippets at the module's lane width take their lanes' decisions
+    in AVX-512 mask registers (16 lanes with AVX-512F, 8 with AVX-512VL; not with ``MGSO_TILE_MASKS=0``), 0 where
+    they keep them in 0/1 float lanes or do not run (CUDA)."""
+    vl = "#if defined(__AVX512VL__)\nreturn 1;\n#else\nreturn 0;\n#endif\n"
+    if not _MASKS:
+        wide = "return 0;\n"
+    elif _LANES == 16:
+        wide = "#if defined(__AVX512F__)\nreturn 1;\n#else\n" + vl + "#endif\n"
+    else:
+        wide = vl
+    return "#if defined(__clang__) && !defined(__CUDA_ARCH__)\n" + wide + "#else\nreturn 0;\n#endif\n"
+
+
+def _masks_from_env() -> bool:
+    """Whether the snippets may take their lanes' decisions in AVX-512 mask registers (the default) or keep them in
+    0/1 float lanes as on a CPU without AVX-512 (``MGSO_TILE_MASKS=0`` in the environment, read once at import: for
+    the test that compares the two, bit for bit)."""
+    value = os.environ.get("MGSO_TILE_MASKS", "1").strip()
+    if value not in ("0", "1"):
+        raise ValueError(f"MGSO_TILE_MASKS={value!r}: 1 (AVX-512 mask registers where the CPU has them) or 0")
+    return value == "1"
+
+
 def _lanes_from_env() -> int:
     """The lane width the snippets ask for where the CPU has AVX-512: 16 (a whole tile row a vector), or 8 when the
     environment sets ``MGSO_TILE_LANES=8`` (read once, at import: for the test and profiles that compare the two).
@@ -701,6 +725,7 @@ def _lanes_from_env() -> int:
 
 
 _LANES = _lanes_from_env()
+_MASKS = _masks_from_env()
 
 
 def _with_lanes(text: str, width: int) -> str:
@@ -724,7 +749,7 @@ def fill(body: str, consts: dict[str, float | int], lanes: int | None = None) ->
     else:
         text += _with_lanes(code, 8)
     text += "\n}\n#else\nreturn 0;\n#endif\n"
-    for name, value in consts.items():
+    for name, value in dict(consts, MASKS=int(_MASKS)).items():
         text = text.replace(f"@{name}@", str(value) if isinstance(value, int) else _f32(value))
     if "@" in text:
         raise ValueError("raster_tile_cpp: a value of the snippet is not filled in")

@@ -605,11 +605,15 @@ def _snippet_outputs(device, narrow_pixels: int = 0) -> dict:
         raster_bwd.NARROW_BACKWARD_PIXELS = before
 
 
-def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_path):
+@pytest.mark.parametrize("masks", ["1", "0"])
+def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_path, masks):
     # Where the CPU has AVX-512 the snippets blend a whole tile row (16 pixels) a vector instead of half of one:
     # each pixel's arithmetic and the order of every lane's sums are those of the 8 lanes, so the images, coverage,
     # n_contrib and gradients are equal bit for bit. The 8 lanes run in a second process (MGSO_TILE_LANES=8 is read
     # at import); both processes report the width they compiled at, so the comparison is between two code paths.
+    # The lanes' decisions (which pixels take a Gaussian, which stop) are AVX-512 mask registers here and, with
+    # MGSO_TILE_MASKS=0 in the second process, 0/1 float lanes as on a CPU without AVX-512: the same bits again (each
+    # process reports which it compiled).
     import os
     import subprocess
     import sys
@@ -620,12 +624,14 @@ def test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit(wp_device, tmp_pa
     if lanes != 16:
         pytest.skip(f"this CPU compiles the snippets at {lanes} lanes only (no AVX-512)")
     dump = tmp_path / "lanes8.npz"
-    env = dict(os.environ, MGSO_TILE_LANES="8")
+    env = dict(os.environ, MGSO_TILE_LANES="8", MGSO_TILE_MASKS=masks)
     proc = subprocess.run([sys.executable, __file__, str(dump)], env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     narrow = dict(np.load(dump))
     assert int(narrow.pop("lanes")) == 8
+    assert raster_tile.native_masks(wp_device)
+    assert bool(narrow.pop("masks")) == (masks == "1")
     wide = _snippet_outputs(wp_device)
     assert sorted(wide) == sorted(narrow)
     for key, value in wide.items():
@@ -679,7 +685,8 @@ if __name__ == "__main__":   # the 8-lane half of the test above, in its own pro
     from mgso_kernels import runtime
 
     device = runtime.init("cpu")
-    np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), **_snippet_outputs(device))
+    np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), masks=raster_tile.native_masks(device),
+             **_snippet_outputs(device))
 
 
 def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
