@@ -258,7 +258,8 @@ class TrainStep:
         p = gmap.float_params()
         r = rasterizer if rasterizer is not None else self.rasterizer
         out = r.forward(p.means, p.log_scales, p.quats, p.opacity_logits, p.sh,
-                        self.camera_struct(camera, world_to_cam), self.background, sh_degree=sh_degree)
+                        self.camera_struct(camera, world_to_cam), self.background, sh_degree=sh_degree,
+                        rgb_only=True)
         rgb = np.array(out.rgb.numpy(), dtype=np.float32, copy=True)
         if exposure is not None:
             rgb = (math.exp(exposure[0]) * rgb + exposure[1]).astype(np.float32)

@@ -67,7 +67,8 @@ class RenderOutput:
 
     ``rgb`` (H, W, 3) in [0, 1]-ish units of the SH colours, background blended in with ``T_final``;
     ``depth`` (H, W): ``sum_i w_i z_i`` (camera z, **not** normalised: ``depth / alpha`` is the expected depth of
-    the visible surface where ``alpha > 0``); ``alpha`` (H, W) = ``1 - T_final``.
+    the visible surface where ``alpha > 0``); ``alpha`` (H, W) = ``1 - T_final``; ``depth``, ``alpha``, ``T_final``
+    and ``n_contrib`` are None after a ``forward(..., rgb_only=True)`` on the CPU.
     Per Gaussian (N,): ``radii`` int32 3-sigma screen radius in pixels (0 = culled / not visible);
     ``means2d`` (N, 2) pixels; ``depths`` (N,) camera z; ``tiles_touched`` (N,) int32.
     ``n_pairs``: number of (tile, Gaussian) pairs blended.
@@ -75,7 +76,7 @@ class RenderOutput:
 
     rgb: wp.array | None
     depth: wp.array | None
-    alpha: wp.array
+    alpha: wp.array | None
     radii: wp.array
     means2d: wp.array
     depths: wp.array
@@ -337,12 +338,17 @@ class Rasterizer:
 
     # --------------------------------------------------------------------------------------------- forward
     def forward(self, means, log_scales, quats, opacity_logits, sh, camera: Camera,
-                background: Sequence[float] = (0.0, 0.0, 0.0), *, sh_degree: int | None = None) -> RenderOutput:
+                background: Sequence[float] = (0.0, 0.0, 0.0), *, sh_degree: int | None = None,
+                rgb_only: bool = False) -> RenderOutput:
         """Render RGB, depth and alpha (see :class:`RenderOutput`) and keep what :meth:`backward` needs.
 
         ``sh_degree``: SH degree to use (default: the full degree of ``sh``; lower uses the first
         ``(sh_degree + 1)^2`` coefficients, as 3DGS does while it raises the degree during training).
-        ``background``: RGB (3,), added as ``T_final * background``.
+        ``background``: RGB (3,), added as ``T_final * background``. ``rgb_only``: the colour image alone, for renders
+        that need no gradient (the evaluation, the viewer): where the blend takes a whole tile a thread (the CPU) the
+        output's ``depth``, ``alpha``, ``T_final`` and ``n_contrib`` are then None and :meth:`backward` refuses it;
+        the blend keeps neither the depth nor the last list position (about 9 % of a 640x480 forward on one Zen 4
+        thread; docs/rasteriser.md), the same colours bit for bit. Elsewhere it renders everything.
         """
         self._check_camera(camera)
         params = self._params(means, log_scales, quats, opacity_logits, sh)
@@ -373,11 +379,16 @@ class Rasterizer:
                                    self.splats_.full, self.splat_rgbz_.full, dev, **sp)
         t = self._stage("pack", t)
         H, W = camera.height, camera.width
-        rgb, depth, alpha = self._image("rgb", H, W), self._image("depth", H, W), self._image("alpha", H, W)
-        T_final, n_contrib = self._image("T_final", H, W), self._image("n_contrib", H, W)
+        only_rgb = bool(rgb_only) and self.pixels_per_thread == TILE_SIZE * TILE_SIZE
+        rgb = self._image("rgb", H, W)
+        if only_rgb:
+            depth = alpha = T_final = n_contrib = None
+        else:
+            depth, alpha = self._image("depth", H, W), self._image("alpha", H, W)
+            T_final, n_contrib = self._image("T_final", H, W), self._image("n_contrib", H, W)
         _raster.launch_rasterize_forward(camera, self.ranges_.full, self.splats_.full, self.splat_rgbz_.full, bg,
                                          rgb, depth, alpha, T_final, n_contrib, dev, **sp,
-                                         seg=self.pixels_per_thread)
+                                         seg=self.pixels_per_thread, only_rgb=only_rgb)
         self._stage("blend", t)
         return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=radii, means2d=self.means2d_.view(n).view(
             wp.float32), depths=self.depths_.view(n), tiles_touched=self.tiles_touched_.view(n), n_pairs=n_pairs,
@@ -436,6 +447,9 @@ class Rasterizer:
         ``Gradients.v_means2d``, ``absgrad`` and ``radii`` feed :func:`mgso_kernels.adam.accumulate_stats`
         (``GaussianMap.accumulate_stats``).
         """
+        if out.generation == self._generation and out.T_final is None and out.rgb is not None:
+            raise ValueError("backward: this RenderOutput was rendered with rgb_only=True (no T_final or n_contrib "
+                             "kept); render with forward(..., rgb_only=False) to take a gradient")
         if out.generation != self._generation or out.T_final is None:
             raise RuntimeError("backward: this RenderOutput is stale: the rasteriser ran forward/render_alpha since "
                                "(its buffers were reused); call backward before the next forward, or use one "

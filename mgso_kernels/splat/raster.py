@@ -404,17 +404,26 @@ PACK_BLOCK = 1024
 
 def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
                              n_contrib, device: str, threads: int | None = None, min_chunk: int = 4096,
-                             seg: int = TILE_SIZE) -> None:
+                             seg: int = TILE_SIZE, only_rgb: bool = False) -> None:
     """Blend every pixel; outputs (H, W[, 3]) are fully overwritten. ``seg``: pixels per thread; ``min_chunk``:
-    fewest pixels per CPU chunk."""
-    from ..runtime import launch_split
+    fewest pixels per CPU chunk. ``only_rgb`` (a whole tile a thread only): the colour alone, ``depth``, ``alpha``,
+    ``T_final`` and ``n_contrib`` may be None and are not written (renders without a gradient: on the CPU the blend
+    then keeps neither the depth nor the last list position, a little cheaper; the same colours bit for bit)."""
+    from ..runtime import launch_split, placeholder
     from ._checks import check_array
 
     H, W = cam.height, cam.width
     check_array(rgb, "rgb", wp.float32, (H, W, 3), device)
-    for name, a in (("depth", depth), ("alpha", alpha), ("T_final", T_final)):
-        check_array(a, name, wp.float32, (H, W), device)
-    check_array(n_contrib, "n_contrib", wp.int32, (H, W), device)
+    if only_rgb and seg != TILE_SIZE * TILE_SIZE:
+        raise ValueError(f"rasterize_forward: only_rgb needs a whole tile a thread (seg={TILE_SIZE * TILE_SIZE}), "
+                         f"got seg={seg}")
+    if only_rgb:
+        f32, i32 = placeholder(wp.float32, 2, device), placeholder(wp.int32, 2, device)
+        depth, alpha, T_final, n_contrib = f32, f32, f32, i32
+    else:
+        for name, a in (("depth", depth), ("alpha", alpha), ("T_final", T_final)):
+            check_array(a, name, wp.float32, (H, W), device)
+        check_array(n_contrib, "n_contrib", wp.int32, (H, W), device)
     if ranges.shape[0] < cam.tiles_x * cam.tiles_y:
         raise ValueError("rasterize_forward: ranges has fewer rows than the camera has tiles")
     dim, per_tile = segment_threads(cam, seg)
@@ -422,7 +431,8 @@ def launch_rasterize_forward(cam: Camera, ranges, splats, splat_rgbz, background
         from . import raster_tile as rt
 
         rt.launch_tiles(rt.rasterize_forward_tile, rt.rasterize_forward_tile_dynamic, dim,
-                        [cam, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth, alpha, T_final, n_contrib],
+                        [cam, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth, alpha, T_final, n_contrib,
+                         int(bool(only_rgb))],
                         device, threads=threads, min_chunk=max(1, min_chunk // seg))
         return
     launch_split(rasterize_forward, dim, [cam, seg, ranges, splats, splat_rgbz, wp.vec3(*background), rgb, depth,

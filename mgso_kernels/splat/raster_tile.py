@@ -214,10 +214,10 @@ _CONSTS = {"ALPHA_MAX": 0.99, "ALPHA_MIN": 1.0 / 255.0, "T_MIN": 1.0e-4, "LOG2E"
 def forward_tile_cpp(tile: int, x0: int, y0: int, nx: int, ny: int, ranges: wp.array2d(dtype=wp.int32),
                      splats: wp.array(dtype=vec8), splat_rgbz: wp.array(dtype=wp.vec4), background: wp.vec3,
                      rgb: wp.array3d(dtype=float), depth: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float),
-                     T_final: wp.array2d(dtype=float), n_contrib: wp.array2d(dtype=wp.int32)) -> int:
+                     T_final: wp.array2d(dtype=float), n_contrib: wp.array2d(dtype=wp.int32), only_rgb: int) -> int:
     """:func:`rasterize_forward_tile`'s work for one tile in C++ (:mod:`~mgso_kernels.splat.raster_tile_cpp`): the
-    same outputs to float rounding, the same stop decisions. Returns 1, or 0 (nothing written) where it does not
-    apply."""
+    same outputs to float rounding, the same stop decisions; ``only_rgb``: the colour alone (the other images are not
+    written). Returns 1, or 0 (nothing written) where it does not apply."""
     ...
 
 
@@ -234,6 +234,7 @@ def rasterize_forward_tile(
     alpha: wp.array2d(dtype=float),  # [H, W] out, 1 - T_final
     T_final: wp.array2d(dtype=float),  # [H, W] out
     n_contrib: wp.array2d(dtype=wp.int32),  # [H, W] out, 1 + tile-list position of the last accumulated Gaussian
+    only_rgb: int,  # 1: rgb alone (depth, alpha, T_final and n_contrib may be placeholders, not written)
     native: int,  # 1: the C++ snippet where it applies (the CPU); 0: this kernel's own code
     status: wp.array(dtype=wp.int32),  # [threads] out: 1 where the snippet did the tile
 ):
@@ -246,7 +247,7 @@ def rasterize_forward_tile(
     ny = tl[3] // 32
     if native != 0:
         if forward_tile_cpp(tile, x0, y0, nx, ny, ranges, splats, splat_rgbz, background, rgb, depth, alpha, T_final,
-                            n_contrib) != 0:
+                            n_contrib, only_rgb) != 0:
             status[i] = 1
             return
     status[i] = 0
@@ -342,10 +343,11 @@ def rasterize_forward_tile(
             rgb[y, x, 0] = Cr[q, kk] + Tk * background[0]
             rgb[y, x, 1] = Cg[q, kk] + Tk * background[1]
             rgb[y, x, 2] = Cb[q, kk] + Tk * background[2]
-            depth[y, x] = D[q, kk]
-            alpha[y, x] = 1.0 - Tk
-            T_final[y, x] = Tk
-            n_contrib[y, x] = int(L[q, kk])
+            if only_rgb == 0:
+                depth[y, x] = D[q, kk]
+                alpha[y, x] = 1.0 - Tk
+                T_final[y, x] = Tk
+                n_contrib[y, x] = int(L[q, kk])
 
 
 @wp.kernel
@@ -363,6 +365,7 @@ def rasterize_forward_tile_dynamic(
     alpha: wp.array2d(dtype=float),
     T_final: wp.array2d(dtype=float),
     n_contrib: wp.array2d(dtype=wp.int32),
+    only_rgb: int,
     status: wp.array(dtype=wp.int32),  # [slots] out: 1 where the snippet did the tile, 0 where it declined
 ):
     """:func:`rasterize_forward_tile`'s snippet, a chunk a core taking tile slots from ``shares``
@@ -376,7 +379,7 @@ def rasterize_forward_tile_dynamic(
         while i >= 0:
             tl = tile_of(i, cam)
             status[i] = forward_tile_cpp(tl[0], tl[1], tl[2], tl[3] % 32, tl[3] // 32, ranges, splats, splat_rgbz,
-                                         background, rgb, depth, alpha, T_final, n_contrib)
+                                         background, rgb, depth, alpha, T_final, n_contrib, only_rgb)
             i = take_item(shares, r, k)
 
 

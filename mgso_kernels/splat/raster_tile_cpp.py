@@ -356,8 +356,8 @@ const long width = rgb.shape[1];
 auto flat2 = [&](const auto& a) -> bool {
     return a.shape[1] == width && a.strides[1] == 4 && a.strides[0] == 4 * width;
 };
-if (!(rgb.strides[2] == 4 && rgb.strides[1] == 12 && rgb.strides[0] == 12 * width && flat2(depth) && flat2(alpha)
-      && flat2(T_final) && flat2(n_contrib)))
+if (!(rgb.strides[2] == 4 && rgb.strides[1] == 12 && rgb.strides[0] == 12 * width
+      && (only_rgb != 0 || (flat2(depth) && flat2(alpha) && flat2(T_final) && flat2(n_contrib)))))
     return 0;
 const int start = wp::index(ranges, tile, 0);
 const int end = wp::index(ranges, tile, 1);
@@ -371,28 +371,39 @@ alignas(32) int row_done[32];   // 16 rows and a vector's overhang
 for (int r = 0; r < 32; ++r) row_done[r] = 0;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
-for (int j = start; j < end; ++j) {
-    const Splat g = load_splat(j);
-    list_rows(g, row_done, all_rows, 0);
-    if (nl + nr == 0) continue;
-    lane_constants(g);
-    const float* col = cp + 4L * j;
-    const vf vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
-    for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
-        const int q = hq[e];
-        const Step st = front_step(e, T, vop);
-        const vf w = took_w(st);
-        *(vf*)CR[q] = fmav(w, vc0, *(vf*)CR[q]);
-        *(vf*)CG[q] = fmav(w, vc1, *(vf*)CG[q]);
-        *(vf*)CB[q] = fmav(w, vc2, *(vf*)CB[q]);
-        *(vf*)DD[q] = fmav(w, vc3, *(vf*)DD[q]);
-        // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
-        *(vf*)LL[q] = vmax(*(vf*)LL[q], took_or0(st, vpos));
-        const int nh = stop_bits(st);
-        mark_done(row_done, full, rows_left, q, nh);
+// the blend, once with the depth and the last list position (FULL, what the backward needs) and once with the colour
+// alone (only_rgb: renders without a gradient), the choice made once a tile: tag's type says which
+auto blend = [&](auto tag) {
+    constexpr bool FULL = sizeof(*tag) == 2;
+    for (int j = start; j < end; ++j) {
+        const Splat g = load_splat(j);
+        list_rows(g, row_done, all_rows, 0);
+        if (nl + nr == 0) continue;
+        lane_constants(g);
+        const float* col = cp + 4L * j;
+        const vf vc0 = col[0], vc1 = col[1], vc2 = col[2], vc3 = col[3], vop = g.op, vpos = (float)(j - start + 1);
+        for (int e = first_entry(); e < 16 + nr; e = next_entry(e)) {
+            const int q = hq[e];
+            const Step st = front_step(e, T, vop);
+            const vf w = took_w(st);
+            *(vf*)CR[q] = fmav(w, vc0, *(vf*)CR[q]);
+            *(vf*)CG[q] = fmav(w, vc1, *(vf*)CG[q]);
+            *(vf*)CB[q] = fmav(w, vc2, *(vf*)CB[q]);
+            if constexpr (FULL) {
+                *(vf*)DD[q] = fmav(w, vc3, *(vf*)DD[q]);
+                // L = took ? pos : L without a select on the loaded value (see front_step): L only grows along the list
+                *(vf*)LL[q] = vmax(*(vf*)LL[q], took_or0(st, vpos));
+            }
+            const int nh = stop_bits(st);
+            mark_done(row_done, full, rows_left, q, nh);
+        }
+        if (rows_left == 0) break;
     }
-    if (rows_left == 0) break;
-}
+};
+if (only_rgb != 0)
+    blend((const char(*)[1])nullptr);
+else
+    blend((const char(*)[2])nullptr);
 // the outputs through plain pointers, which the compiler turns into vector stores, where wp::index's strided
 // stores, a pixel at a time, took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md); the
 // same values
@@ -403,15 +414,19 @@ for (int r = 0; r < ny; ++r) {
     const long o = (long)(y0 + r) * width + x0;
     const int s0 = 16 * r;
     float* pr = (float*)rgb.data + 3 * o;
+    for (int k = 0; k < nx; ++k) {
+        const float Tk = Tf[s0 + k];
+        pr[3 * k] = Rf[s0 + k] + Tk * bg0;
+        pr[3 * k + 1] = Gf[s0 + k] + Tk * bg1;
+        pr[3 * k + 2] = Bf[s0 + k] + Tk * bg2;
+    }
+    if (only_rgb != 0) continue;
     float* pd = (float*)depth.data + o;
     float* pa = (float*)alpha.data + o;
     float* pt = (float*)T_final.data + o;
     int* pn = (int*)n_contrib.data + o;
     for (int k = 0; k < nx; ++k) {
         const float Tk = Tf[s0 + k];
-        pr[3 * k] = Rf[s0 + k] + Tk * bg0;
-        pr[3 * k + 1] = Gf[s0 + k] + Tk * bg1;
-        pr[3 * k + 2] = Bf[s0 + k] + Tk * bg2;
         pd[k] = Df[s0 + k];
         pa[k] = 1.0f - Tk;
         pt[k] = Tk;

@@ -727,3 +727,29 @@ def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
     assert (status == (1 if wp.get_device(wp_device).is_cpu else 0)).all()
     for got, want in zip(images, cpp):
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_colour_only_render_gives_the_full_renders_colours(wp_device, native):
+    """``forward(..., rgb_only=True)`` (the evaluation's and the viewer's renders) blends without the depth and the
+    last list position: the same colours bit for bit as the full forward, with the C++ snippet (every tile done by it
+    on the CPU) and with the Warp code (the control, native off); no depth, alpha, T_final or n_contrib where a whole
+    tile is a thread, and a backward of it is refused with a clear error."""
+    _, scene, cam = _scene(7, 400, 53, 35)
+    dim = cam.tiles_x * cam.tiles_y
+    before = raster_tile.use_native(native)
+    try:
+        rast = Rasterizer(wp_device)
+        full = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3)).rgb.numpy().copy()
+        out = rast.forward(*(scene[k] for k in PARAMS), cam, (0.1, 0.2, 0.3), rgb_only=True)
+        status = raster_tile.status_buffer(dim, wp_device).numpy().copy()
+        rgb = out.rgb.numpy().copy()
+    finally:
+        raster_tile.use_native(before)
+    assert np.abs(full - (0.1, 0.2, 0.3)).max() > 0.1
+    np.testing.assert_array_equal(rgb, full)
+    if rast.pixels_per_thread == 256:
+        assert (status == (1 if native and wp.get_device(wp_device).is_cpu else 0)).all()
+        assert out.depth is None and out.alpha is None and out.T_final is None and out.n_contrib is None
+        with pytest.raises(ValueError, match="rgb_only"):
+            rast.backward(out, np.zeros((35, 53, 3), np.float32))
