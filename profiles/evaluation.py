@@ -81,8 +81,12 @@ def main(argv=None) -> int:
     if args.frames:
         tracked = tracked[:args.frames]
 
+    # the colour alone, as mgso run renders for its evaluation (a tree older than rgb_only renders everything)
+    import inspect
+    rgb_kw = {"rgb_only": True} if "rgb_only" in inspect.signature(Rasterizer.forward).parameters else {}
+
     def render(i, r=rast):
-        out = r.forward(*params, TrainStep.camera_struct(cam, w2c[i]), (0.0, 0.0, 0.0))
+        out = r.forward(*params, TrainStep.camera_struct(cam, w2c[i]), (0.0, 0.0, 0.0), **rgb_kw)
         return np.array(out.rgb.numpy(), np.float32)
 
     from mgso_kernels import runtime
