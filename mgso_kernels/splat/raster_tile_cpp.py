@@ -183,44 +183,65 @@ alignas(64) float dyr[16], cyyr[16], bdyr[16];
 alignas(64) int hq[32], hm[32];
 alignas(64) float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
+// a pair prepared before its turn: the Gaussian and, with 16 lanes, its rows' spans inside its cut-off ellipse and
+// their constants, none of which depends on the tile's state; list_prepared(p, done) then lists the rows with a bit
+// left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
+// the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
+// was otherwise waited for, pair after pair (a fifth of a forward blend; docs/rasteriser.md)
+#if @W@ == 16 && defined(__AVX512F__)
+struct Pre { Splat g; vi rr, sl; vf dy, cyy, bdy; };   // sl: the rows' spans where the rows are live
+auto spans_of = [&](const Splat& g, const int* rmax, int i) -> Pre {
+    Pre p;
+    p.g = g;
+    const int lo = g.lo, hi = g.hi;
+    const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
+    const vi rr = (vi)lo + LANE;
+    const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
+    const vf disc = ar2 - g.det * dy * dy;
+    const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
+    const vf xc = g.mx - g.b * dy * g.inv_a;
+    const vi lm = __builtin_elementwise_max(
+        __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
+    const vi h = __builtin_elementwise_min(
+        __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
+    const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo) > i);
+    const vi l = __builtin_elementwise_min(lm, (vi)15);
+    const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
+    p.rr = rr;
+    p.sl = ((((vi)1 << len) - 1) << l) & live;
+    p.dy = dy;
+    p.cyy = hc_ * dy * dy;
+    p.bdy = g.b * dy;
+    return p;
+};
+auto prepare = [&](int j, const int* rmax, int i) -> Pre { return spans_of(load_splat(j), rmax, i); };
+// 16 lanes: a tile's rows (at most 16) are one vector, and the rows with a bit left are packed to the front of
+// each list by one compress a list (vpcompressd into a register, then a plain store: the compress to memory is
+// microcoded on Zen 4), in row order as list_rows' scalar loop lists them, where that loop's stores and conditional
+// increments took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md)
+auto list_prepared = [&](const Pre& p, const int* done) {
+    typedef int v16si_ __attribute__((__vector_size__(64)));
+    typedef float v16sf_ __attribute__((__vector_size__(64)));
+    const vi m = p.sl & ~ldi(done + p.g.lo);
+    const unsigned short k = (unsigned short)lane_bits(m != 0);
+    const vi zi = 0;
+    const vf zf = 0.0f;
+    *(vi*)hq = (vi)__builtin_ia32_compresssi512_mask((v16si_)p.rr, (v16si_)zi, k);
+    *(vi*)hm = (vi)__builtin_ia32_compresssi512_mask((v16si_)m, (v16si_)zi, k);
+    *(vf*)hc = (vf)__builtin_ia32_compresssf512_mask((v16sf_)p.cyy, (v16sf_)zf, k);
+    *(vf*)hb = (vf)__builtin_ia32_compresssf512_mask((v16sf_)p.bdy, (v16sf_)zf, k);
+    *(vf*)hd = (vf)__builtin_ia32_compresssf512_mask((v16sf_)p.dy, (v16sf_)zf, k);
+    nl = __builtin_popcount(k);
+    nr = 0;
+};
+#endif
 auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
     const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
 #if @W@ == 16 && defined(__AVX512F__)
-    // 16 lanes: a tile's rows (at most 16) are one vector, and the rows with a bit left are packed to the front of
-    // each list by one compress a list (vpcompressd into a register, then a plain store: the compress to memory is
-    // microcoded on Zen 4), in row order as the scalar loop below lists them, where that loop's stores and
-    // conditional increments took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md)
-    {
-        typedef int v16si_ __attribute__((__vector_size__(64)));
-        typedef float v16sf_ __attribute__((__vector_size__(64)));
-        const vi rr = (vi)lo + LANE;
-        const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
-        const vf disc = ar2 - g.det * dy * dy;
-        const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
-        const vf xc = g.mx - g.b * dy * g.inv_a;
-        const vi lm = __builtin_elementwise_max(
-            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
-        const vi h = __builtin_elementwise_min(
-            __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
-        const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo) > i);
-        const vi l = __builtin_elementwise_min(lm, (vi)15);
-        const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
-        const vi span = (((vi)1 << len) - 1) << l;
-        const vi m = span & ~ldi(done + lo) & live;
-        const unsigned short k = (unsigned short)lane_bits(m != 0);
-        const vi zi = 0;
-        const vf zf = 0.0f;
-        *(vi*)hq = (vi)__builtin_ia32_compresssi512_mask((v16si_)rr, (v16si_)zi, k);
-        *(vi*)hm = (vi)__builtin_ia32_compresssi512_mask((v16si_)m, (v16si_)zi, k);
-        *(vf*)hc = (vf)__builtin_ia32_compresssf512_mask((v16sf_)(hc_ * dy * dy), (v16sf_)zf, k);
-        *(vf*)hb = (vf)__builtin_ia32_compresssf512_mask((v16sf_)(g.b * dy), (v16sf_)zf, k);
-        *(vf*)hd = (vf)__builtin_ia32_compresssf512_mask((v16sf_)dy, (v16sf_)zf, k);
-        nl = __builtin_popcount(k);
-        nr = 0;
-        (void)nrows;
-        return;
-    }
+    list_prepared(spans_of(g, rmax, i), done);
+    (void)lo; (void)hi; (void)nrows; (void)ar2; (void)hc_;
+    return;
 #endif
     for (int r8 = 0; r8 < nrows; r8 += @W@) {
         const vi rr = (vi)(lo + r8) + LANE;
@@ -262,6 +283,11 @@ auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     nr = 0;
 #endif
 };
+#if !(@W@ == 16 && defined(__AVX512F__))
+struct Pre { Splat g; const int* rmax; int i; };
+auto prepare = [&](int j, const int* rmax, int i) -> Pre { return Pre{load_splat(j), rmax, i}; };
+auto list_prepared = [&](const Pre& p, const int* done) { list_rows(p.g, done, p.rmax, p.i); };
+#endif
 // the list's entries in order: the left block [0, nl), then the right one [16, 16 + nr)
 auto first_entry = [&]() -> int { return nl > 0 ? 0 : 16; };
 auto next_entry = [&](int e) -> int { return e + 1 == nl ? 16 : e + 1; };
@@ -375,9 +401,13 @@ int rows_left = ny;
 // alone (only_rgb: renders without a gradient), the choice made once a tile: tag's type says which
 auto blend = [&](auto tag) {
     constexpr bool FULL = sizeof(*tag) == 2;
+    Pre nxt;
+    if (start < end) nxt = prepare(start, all_rows, 0);
     for (int j = start; j < end; ++j) {
-        const Splat g = load_splat(j);
-        list_rows(g, row_done, all_rows, 0);
+        const Pre cur = nxt;
+        if (j + 1 < end) nxt = prepare(j + 1, all_rows, 0);
+        const Splat& g = cur.g;
+        list_prepared(cur, row_done);
         if (nl + nr == 0) continue;
         lane_constants(g);
         const float* col = cp + 4L * j;
@@ -452,9 +482,13 @@ for (int r = 0; r < 32; ++r) row_done[r] = 0;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
 const vf vts = t_stop;
+Pre nxt;
+if (start < end) nxt = prepare(start, all_rows, 0);
 for (int j = start; j < end; ++j) {
-    const Splat g = load_splat(j);
-    list_rows(g, row_done, all_rows, 0);
+    const Pre cur = nxt;
+    if (j + 1 < end) nxt = prepare(j + 1, all_rows, 0);
+    const Splat& g = cur.g;
+    list_prepared(cur, row_done);
     if (nl + nr == 0) continue;
     lane_constants(g);
     const vf vz = @DEPTH@ ? cp[4L * j + 3] : 0.0f, vop = g.op;
@@ -550,12 +584,16 @@ auto tree16 = [](v16f v) -> float {
     const v2f r = __builtin_shufflevector(q, q, 0, 1) + __builtin_shufflevector(q, q, 2, 3);
     return r[0] + r[1];
 };
+Pre nxt;
+if (n_max > 0) nxt = prepare(start + n_max - 1, row_max, n_max - 1);
 for (int jj = 0; jj < n_max; ++jj) {
     const int i = n_max - 1 - jj;
     const float fi = (float)i;
     const int j = start + i;
-    const Splat g = load_splat(j);
-    list_rows(g, no_rows, row_max, i);
+    const Pre cur = nxt;
+    if (i > 0) nxt = prepare(j - 1, row_max, i - 1);
+    const Splat& g = cur.g;
+    list_prepared(cur, no_rows);
     if (nl + nr == 0) continue;
     lane_constants(g);
     const float a = g.a, b = g.b, c = g.c;
