@@ -17,6 +17,11 @@ row after the other. These snippets compute the same thing in another order of w
   costs one entry instead of two (640x480 on a real 7-Scenes map, one Zen 5 thread: forward blend 41-42 -> 30-31 ms,
   backward blend 63-74 -> 51-56 ms; docs/rasteriser.md). ``MGSO_TILE_LANES=8`` in the environment keeps 8 lanes
   (read at import; for the test and profiles that compare the two).
+- With AVX-512 the rows with a bit left are packed into each list by one compress (16 lanes), the lanes' decisions
+  (which pixels take a Gaussian, which stop) are mask registers (16 lanes with AVX-512F, 8 with AVX-512VL; 0/1 float
+  lanes elsewhere, or with ``MGSO_TILE_MASKS=0``), and each loop prepares the next pair (its Gaussian, its rows'
+  spans) before it blends the entries of the pair before it; the images are read and written through plain
+  pointers. The same outputs bit for bit (docs/rasteriser.md, "The blends' bookkeeping").
 - No select on a value just loaded from the same place (``T = Tk * (took ? 1 - alpha : 1)`` instead of
   ``took ? Tn : Tk``): LLVM makes such a select a masked store, slow on Zen 3 and not forwarded to the next load.
 - The backward lists lane rows the same way (with 8 lanes the left halves and the right ones in two blocks) and
