@@ -193,30 +193,39 @@ int nl = 0, nr = 0;
 // left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
 // the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
 // was otherwise waited for, pair after pair (a fifth of a forward blend; docs/rasteriser.md)
+// W rows of g from row r0 (r0 .. r0 + W - 1 of the tile): their index, dy, and the span inside the cut-off ellipse
+// as W bits (row_span_mask's operations) where the row is live (inside the image, within [lo, hi], and rmax[r] > i)
+struct RowSpans { vi rr, sl; vf dy; };
+auto row_spans = [&](const Splat& g, int r0, const int* rmax, int i) -> RowSpans {
+    const float ar2 = g.a * g.r2;
+    RowSpans o;
+    o.rr = (vi)r0 + LANE;
+    o.dy = ((vf)fy0 + __builtin_convertvector(o.rr, vf)) - g.my;
+    const vf disc = ar2 - g.det * o.dy * o.dy;
+    const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
+    const vf xc = g.mx - g.b * o.dy * g.inv_a;
+    const vi lm = __builtin_elementwise_max(
+        __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
+    const vi h = __builtin_elementwise_min(
+        __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
+    const vi live = ~(disc < 0.0f) & (lm <= h) & (o.rr <= g.hi) & (ldi(rmax + r0) > i);
+    // shift counts kept in [0, 16] where the row is not live (a vector shift by 32 or more is undefined)
+    const vi l = __builtin_elementwise_min(lm, (vi)15);
+    const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
+    o.sl = ((((vi)1 << len) - 1) << l) & live;
+    return o;
+};
 #if @W@ == 16 && defined(__AVX512F__)
 struct Pre { Splat g; vi rr, sl; vf dy, cyy, bdy; };   // sl: the rows' spans where the rows are live
 auto spans_of = [&](const Splat& g, const int* rmax, int i) -> Pre {
     Pre p;
     p.g = g;
-    const int lo = g.lo, hi = g.hi;
-    const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
-    const vi rr = (vi)lo + LANE;
-    const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
-    const vf disc = ar2 - g.det * dy * dy;
-    const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
-    const vf xc = g.mx - g.b * dy * g.inv_a;
-    const vi lm = __builtin_elementwise_max(
-        __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
-    const vi h = __builtin_elementwise_min(
-        __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
-    const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo) > i);
-    const vi l = __builtin_elementwise_min(lm, (vi)15);
-    const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
-    p.rr = rr;
-    p.sl = ((((vi)1 << len) - 1) << l) & live;
-    p.dy = dy;
-    p.cyy = hc_ * dy * dy;
-    p.bdy = g.b * dy;
+    const RowSpans o = row_spans(g, g.lo, rmax, i);
+    p.rr = o.rr;
+    p.sl = o.sl;
+    p.dy = o.dy;
+    p.cyy = -0.5f * g.c * o.dy * o.dy;
+    p.bdy = g.b * o.dy;
     return p;
 };
 auto prepare = [&](int j, const int* rmax, int i) -> Pre { return spans_of(load_splat(j), rmax, i); };
@@ -242,31 +251,18 @@ auto list_prepared = [&](const Pre& p, const int* done) {
 #endif
 auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
-    const float ar2 = g.a * g.r2, hc_ = -0.5f * g.c;
+    const float hc_ = -0.5f * g.c;
 #if @W@ == 16 && defined(__AVX512F__)
     list_prepared(spans_of(g, rmax, i), done);
-    (void)lo; (void)hi; (void)nrows; (void)ar2; (void)hc_;
+    (void)lo; (void)hi; (void)nrows; (void)hc_;
     return;
 #endif
     for (int r8 = 0; r8 < nrows; r8 += @W@) {
-        const vi rr = (vi)(lo + r8) + LANE;
-        const vf dy = ((vf)fy0 + __builtin_convertvector(rr, vf)) - g.my;
-        const vf disc = ar2 - g.det * dy * dy;
-        const vf half = __builtin_elementwise_sqrt(sel(disc < 0.0f, (vf)0.0f, disc)) * g.inv_a;
-        const vf xc = g.mx - g.b * dy * g.inv_a;
-        const vi lm = __builtin_elementwise_max(
-            __builtin_convertvector(__builtin_elementwise_ceil(xc - half), vi) - x0, (vi)0);
-        const vi h = __builtin_elementwise_min(
-            __builtin_convertvector(__builtin_elementwise_floor(xc + half), vi) - x0, (vi)(nx - 1));
-        const vi live = ~(disc < 0.0f) & (lm <= h) & (rr <= hi) & (ldi(rmax + lo + r8) > i);
-        // shift counts kept in [0, 16] where the row is not live (a vector shift by 32 or more is undefined)
-        const vi l = __builtin_elementwise_min(lm, (vi)15);
-        const vi len = __builtin_elementwise_min(__builtin_elementwise_max(h - l + 1, (vi)0), (vi)16);
-        const vi span = (((vi)1 << len) - 1) << l;
-        *(vi*)(mrow + r8) = span & ~ldi(done + lo + r8) & live;
-        *(vf*)(dyr + r8) = dy;
-        *(vf*)(cyyr + r8) = hc_ * dy * dy;
-        *(vf*)(bdyr + r8) = g.b * dy;
+        const RowSpans o = row_spans(g, lo + r8, rmax, i);
+        *(vi*)(mrow + r8) = o.sl & ~ldi(done + lo + r8);
+        *(vf*)(dyr + r8) = o.dy;
+        *(vf*)(cyyr + r8) = hc_ * o.dy * o.dy;
+        *(vf*)(bdyr + r8) = g.b * o.dy;
     }
 #if @W@ == 8
     int a = 0, b = 16;
@@ -293,6 +289,18 @@ struct Pre { Splat g; const int* rmax; int i; };
 auto prepare = [&](int j, const int* rmax, int i) -> Pre { return Pre{load_splat(j), rmax, i}; };
 auto list_prepared = [&](const Pre& p, const int* done) { list_rows(p.g, done, p.rmax, p.i); };
 #endif
+// the forward's and the coverage's walk down a tile's list: first_pair(start, end) prepares the first pair; each
+// step hands over the prepared pair j and prepares j + 1 (next_pair(j, end, nxt))
+auto first_pair = [&](int start, int end) -> Pre {
+    Pre p;
+    if (start < end) p = prepare(start, all_rows, 0);
+    return p;
+};
+auto next_pair = [&](int j, int end, Pre& nxt) -> Pre {
+    const Pre cur = nxt;
+    if (j + 1 < end) nxt = prepare(j + 1, all_rows, 0);
+    return cur;
+};
 // the list's entries in order: the left block [0, nl), then the right one [16, 16 + nr)
 auto first_entry = [&]() -> int { return nl > 0 ? 0 : 16; };
 auto next_entry = [&](int e) -> int { return e + 1 == nl ? 16 : e + 1; };
@@ -406,11 +414,9 @@ int rows_left = ny;
 // alone (only_rgb: renders without a gradient), the choice made once a tile: tag's type says which
 auto blend = [&](auto tag) {
     constexpr bool FULL = sizeof(*tag) == 2;
-    Pre nxt;
-    if (start < end) nxt = prepare(start, all_rows, 0);
+    Pre nxt = first_pair(start, end);
     for (int j = start; j < end; ++j) {
-        const Pre cur = nxt;
-        if (j + 1 < end) nxt = prepare(j + 1, all_rows, 0);
+        const Pre cur = next_pair(j, end, nxt);
         const Splat& g = cur.g;
         list_prepared(cur, row_done);
         if (nl + nr == 0) continue;
@@ -487,11 +493,9 @@ for (int r = 0; r < 32; ++r) row_done[r] = 0;
 const int full = (1 << nx) - 1;
 int rows_left = ny;
 const vf vts = t_stop;
-Pre nxt;
-if (start < end) nxt = prepare(start, all_rows, 0);
+Pre nxt = first_pair(start, end);
 for (int j = start; j < end; ++j) {
-    const Pre cur = nxt;
-    if (j + 1 < end) nxt = prepare(j + 1, all_rows, 0);
+    const Pre cur = next_pair(j, end, nxt);
     const Splat& g = cur.g;
     list_prepared(cur, row_done);
     if (nl + nr == 0) continue;
