@@ -188,11 +188,6 @@ alignas(64) float dyr[16], cyyr[16], bdyr[16];
 alignas(64) int hq[32], hm[32];
 alignas(64) float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
-// a pair prepared before its turn: the Gaussian and, with 16 lanes, its rows' spans inside its cut-off ellipse and
-// their constants, none of which depends on the tile's state; list_prepared(p, done) then lists the rows with a bit
-// left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
-// the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
-// was otherwise waited for, pair after pair (a fifth of a forward blend; docs/rasteriser.md)
 // W rows of g from row r0 (r0 .. r0 + W - 1 of the tile): their index, dy, and the span inside the cut-off ellipse
 // as W bits (row_span_mask's operations) where the row is live (inside the image, within [lo, hi], and rmax[r] > i)
 struct RowSpans { vi rr, sl; vf dy; };
@@ -215,6 +210,11 @@ auto row_spans = [&](const Splat& g, int r0, const int* rmax, int i) -> RowSpans
     o.sl = ((((vi)1 << len) - 1) << l) & live;
     return o;
 };
+// a pair prepared before its turn: the Gaussian and, with 16 lanes, its rows' spans inside its cut-off ellipse and
+// their constants, none of which depends on the tile's state; list_prepared(p, done) then lists the rows with a bit
+// left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
+// the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
+// was otherwise waited for, pair after pair (a fifth of a forward blend; docs/rasteriser.md)
 #if @W@ == 16 && defined(__AVX512F__)
 struct Pre { Splat g; vi rr, sl; vf dy, cyy, bdy; };   // sl: the rows' spans where the rows are live
 auto spans_of = [&](const Splat& g, const int* rmax, int i) -> Pre {
