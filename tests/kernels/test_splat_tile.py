@@ -679,16 +679,6 @@ def test_small_images_take_the_8_lane_backward_with_the_same_gradients(wp_device
             assert tiles == [want], (limit, absgrad, [k.key for k in tiles])
 
 
-if __name__ == "__main__":   # the 8-lane half of the test above, in its own process
-    import sys
-
-    from mgso_kernels import runtime
-
-    device = runtime.init("cpu")
-    np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), masks=raster_tile.native_masks(device),
-             **_snippet_outputs(device))
-
-
 def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
     """The forward snippet writes its outputs through plain pointers, so images that are views of wider ones (rows
     not one after the other) make it decline (status 0) and the Warp code write them: the same images as the Warp
@@ -753,3 +743,13 @@ def test_a_colour_only_render_gives_the_full_renders_colours(wp_device, native):
         assert out.depth is None and out.alpha is None and out.T_final is None and out.n_contrib is None
         with pytest.raises(ValueError, match="rgb_only"):
             rast.backward(out, np.zeros((35, 53, 3), np.float32))
+
+
+if __name__ == "__main__":   # the 8-lane half of test_the_snippets_16_lanes_equal_their_8_lanes_bit_for_bit
+    import sys
+
+    from mgso_kernels import runtime
+
+    device = runtime.init("cpu")
+    np.savez(sys.argv[1], lanes=raster_tile.native_lanes(device), masks=raster_tile.native_masks(device),
+             **_snippet_outputs(device))
