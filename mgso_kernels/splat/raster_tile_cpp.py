@@ -214,7 +214,8 @@ auto row_spans = [&](const Splat& g, int r0, const int* rmax, int i) -> RowSpans
 // their constants, none of which depends on the tile's state; list_prepared(p, done) then lists the rows with a bit
 // left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
 // the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
-// was otherwise waited for, pair after pair (a fifth of a forward blend; docs/rasteriser.md)
+// was otherwise waited for, pair after pair (the per-pair work was a quarter of a 640x480 forward blend's samples;
+// preparing ahead took the blend 5-10 % down, docs/rasteriser.md)
 #if @W@ == 16 && defined(__AVX512F__)
 struct Pre { Splat g; vi rr, sl; vf dy, cyy, bdy; };   // sl: the rows' spans where the rows are live
 auto spans_of = [&](const Splat& g, const int* rmax, int i) -> Pre {
@@ -538,8 +539,9 @@ alignas(32) int row_max[32];   // the largest n_contrib of each row (16 and a ve
 for (int r = 0; r < 32; ++r) row_max[r] = 0;
 int n_max = 0;
 // the inputs through plain pointers (the lane rows of a tile row are contiguous: pixel (r, k) at 16 r + k of each
-// state), where wp::index's strided loads took a fifteenth of a 640x480 backward blend; images that are not
-// contiguous make the snippet decline
+// state) instead of wp::index's strided loads, a pixel at a time (with the mask registers and the prepared pairs, the
+// backward blend 92-93 -> 66-70 ms at 640x480 on one thread; docs/rasteriser.md); images that are not contiguous
+// make the snippet decline
 const long width = v_rgb.shape[1];
 auto flat2 = [&](const auto& a) -> bool {
     return a.shape[1] == width && a.strides[1] == 4 && a.strides[0] == 4 * width;
