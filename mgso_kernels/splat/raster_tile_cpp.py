@@ -175,16 +175,19 @@ auto load_splat = [&](int j) -> Splat {
     g.hi = hi0 < ny - 1 ? hi0 : ny - 1;
     return g;
 };
-// list_rows(g, done, rmax, i): per row r in [lo, hi] (W rows a vector) the span of the row inside the cut-off
-// ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none where rmax[r] <= i; then
-// the lane rows with a bit left, listed in hq (their index q in the state) and hm (their W bits) with the row's
-// -0.5 c dy^2, b dy and dy in hc, hb, hd. With 8 lanes: the left halves (q = 2 r) at 0, 1, ..., the right ones
-// (q = 2 r + 1) at 16, 17, ..., each block in row order; with 16: the rows at 0, 1, ... Sets nl and nr to the
-// blocks' sizes (nr = 0 with 16 lanes). done and rmax hold 32 rows (16 and a vector's overhang).
+// The lists: prepare(j, rmax, i) takes pair j (its Gaussian, and with 16 lanes its rows' spans and constants, none
+// of which depends on the tile's state); list_prepared(p, done) then lists, per row r in [lo, hi], the span of the
+// row inside the cut-off ellipse as a bit mask (row_span_mask's operations), less the bits of done[r], and none
+// where rmax[r] <= i: the lane rows with a bit left, in hq (their index q in the state) and hm (their W bits) with
+// the row's -0.5 c dy^2, b dy and dy in hc, hb, hd. With 16 lanes the rows at 0, 1, ...; with 8 the left halves
+// (q = 2 r) at 0, 1, ..., the right ones (q = 2 r + 1) at 16, 17, ..., each block in row order. Sets nl and nr to
+// the blocks' sizes (nr = 0 with 16 lanes). done and rmax hold 32 rows (16 and a vector's overhang).
+// The loops prepare the next pair before they blend the entries of the pair before it, so the core works on both at
+// once: a pair's chain from its loads through the divisions and square roots to its list was otherwise waited for,
+// pair after pair (the per-pair work was a quarter of a 640x480 forward blend's samples; preparing ahead took the
+// blend 5-10 % down, docs/rasteriser.md)
 alignas(32) int no_rows[32], all_rows[32];     // none done; no row's list ends
 for (int r = 0; r < 32; ++r) { no_rows[r] = 0; all_rows[r] = 2147483647; }
-alignas(64) int mrow[16];
-alignas(64) float dyr[16], cyyr[16], bdyr[16];
 alignas(64) int hq[32], hm[32];
 alignas(64) float hc[32], hb[32], hd[32];
 int nl = 0, nr = 0;
@@ -210,29 +213,22 @@ auto row_spans = [&](const Splat& g, int r0, const int* rmax, int i) -> RowSpans
     o.sl = ((((vi)1 << len) - 1) << l) & live;
     return o;
 };
-// a pair prepared before its turn: the Gaussian and, with 16 lanes, its rows' spans inside its cut-off ellipse and
-// their constants, none of which depends on the tile's state; list_prepared(p, done) then lists the rows with a bit
-// left as list_rows does. The loops prepare the next pair before they blend the entries of the pair before it, so
-// the core works on both at once: a pair's chain from its loads through the divisions and square roots to its list
-// was otherwise waited for, pair after pair (the per-pair work was a quarter of a 640x480 forward blend's samples;
-// preparing ahead took the blend 5-10 % down, docs/rasteriser.md)
 #if @W@ == 16 && defined(__AVX512F__)
 struct Pre { Splat g; vi rr, sl; vf dy, cyy, bdy; };   // sl: the rows' spans where the rows are live
-auto spans_of = [&](const Splat& g, const int* rmax, int i) -> Pre {
+auto prepare = [&](int j, const int* rmax, int i) -> Pre {
     Pre p;
-    p.g = g;
-    const RowSpans o = row_spans(g, g.lo, rmax, i);
+    p.g = load_splat(j);
+    const RowSpans o = row_spans(p.g, p.g.lo, rmax, i);
     p.rr = o.rr;
     p.sl = o.sl;
     p.dy = o.dy;
-    p.cyy = -0.5f * g.c * o.dy * o.dy;
-    p.bdy = g.b * o.dy;
+    p.cyy = -0.5f * p.g.c * o.dy * o.dy;
+    p.bdy = p.g.b * o.dy;
     return p;
 };
-auto prepare = [&](int j, const int* rmax, int i) -> Pre { return spans_of(load_splat(j), rmax, i); };
 // 16 lanes: a tile's rows (at most 16) are one vector, and the rows with a bit left are packed to the front of
 // each list by one compress a list (vpcompressd into a register, then a plain store: the compress to memory is
-// microcoded on Zen 4), in row order as list_rows' scalar loop lists them, where that loop's stores and conditional
+// microcoded on Zen 4), in row order, where that loop's stores and conditional
 // increments took a tenth of a 640x480 forward blend (one Zen 4 thread, docs/rasteriser.md)
 auto list_prepared = [&](const Pre& p, const int* done) {
     typedef int v16si_ __attribute__((__vector_size__(64)));
@@ -249,23 +245,24 @@ auto list_prepared = [&](const Pre& p, const int* done) {
     nl = __builtin_popcount(k);
     nr = 0;
 };
-#endif
-auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
-    const int lo = g.lo, hi = g.hi, nrows = hi - lo + 1;
+#else
+// 8 lanes (the only width without AVX-512): the rows' spans 8 rows a vector, then each row's two halves listed in
+// their blocks by a scalar loop
+struct Pre { Splat g; const int* rmax; int i; };
+auto prepare = [&](int j, const int* rmax, int i) -> Pre { return Pre{load_splat(j), rmax, i}; };
+alignas(64) int mrow[16];
+alignas(64) float dyr[16], cyyr[16], bdyr[16];
+auto list_prepared = [&](const Pre& p, const int* done) {
+    const Splat& g = p.g;
+    const int lo = g.lo, nrows = g.hi - lo + 1;
     const float hc_ = -0.5f * g.c;
-#if @W@ == 16 && defined(__AVX512F__)
-    list_prepared(spans_of(g, rmax, i), done);
-    (void)lo; (void)hi; (void)nrows; (void)hc_;
-    return;
-#endif
     for (int r8 = 0; r8 < nrows; r8 += @W@) {
-        const RowSpans o = row_spans(g, lo + r8, rmax, i);
+        const RowSpans o = row_spans(g, lo + r8, p.rmax, p.i);
         *(vi*)(mrow + r8) = o.sl & ~ldi(done + lo + r8);
         *(vf*)(dyr + r8) = o.dy;
         *(vf*)(cyyr + r8) = hc_ * o.dy * o.dy;
         *(vf*)(bdyr + r8) = g.b * o.dy;
     }
-#if @W@ == 8
     int a = 0, b = 16;
     for (int t = 0; t < nrows; ++t) {
         const int m = mrow[t], q = 2 * (lo + t);
@@ -275,20 +272,7 @@ auto list_rows = [&](const Splat& g, const int* done, const int* rmax, int i) {
     }
     nl = a;
     nr = b - 16;
-#else
-    int a = 0;
-    for (int t = 0; t < nrows; ++t) {
-        const int m = mrow[t];
-        hq[a] = lo + t; hm[a] = m; hc[a] = cyyr[t]; hb[a] = bdyr[t]; hd[a] = dyr[t]; a += m != 0;
-    }
-    nl = a;
-    nr = 0;
-#endif
 };
-#if !(@W@ == 16 && defined(__AVX512F__))
-struct Pre { Splat g; const int* rmax; int i; };
-auto prepare = [&](int j, const int* rmax, int i) -> Pre { return Pre{load_splat(j), rmax, i}; };
-auto list_prepared = [&](const Pre& p, const int* done) { list_rows(p.g, done, p.rmax, p.i); };
 #endif
 // the forward's and the coverage's walk down a tile's list: first_pair(start, end) prepares the first pair; each
 // step hands over the prepared pair j and prepares j + 1 (next_pair(j, end, nxt))
