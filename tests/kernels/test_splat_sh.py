@@ -94,6 +94,76 @@ def test_lower_sh_degree_uses_leading_coefficients(wp_device):
                                wp_device)
 
 
+def _sh_both_ways(sh, means, radii, depths, v_rgb, num_bases, cam):
+    """Forward and backward on the CPU with the C++ blocks and with the Warp kernels' code (runtime.use_native off):
+    each way's outputs and the blocks' statuses."""
+    from mgso_kernels import runtime
+
+    out = []
+    for native in (True, False):
+        before = runtime.use_native(native)
+        try:
+            n, K = sh.shape[0], sh.shape[1]
+            d_sh, d_means = wp.array(sh, device="cpu"), wp.array(means, device="cpu")
+            d_radii = wp.array(radii, device="cpu")
+            rgbz = wp.array(np.full((n, 4), 9.0, np.float32), dtype=wp.vec4, device="cpu")   # all overwritten
+            st_f = wsh.launch_evaluate_sh(d_sh, d_means, num_bases, cam, d_radii, wp.array(depths, device="cpu"),
+                                          rgbz, "cpu")
+            v_sh = wp.array(np.full((n, K, 3), 9.0, np.float32), device="cpu")
+            v_means = wp.array(np.full((n, 3), 0.25, np.float32), device="cpu")
+            v_pose = wp.array(np.full((n, 6), 0.5, np.float32), dtype=vec6, device="cpu")
+            st_b = wsh.launch_evaluate_sh_backward(d_sh, d_means, num_bases, cam, d_radii,
+                                                   wp.array(v_rgb, dtype=wp.vec3, device="cpu"), v_sh, v_means,
+                                                   v_pose, "cpu")
+            out.append(([rgbz.numpy(), v_sh.numpy(), v_means.numpy(), v_pose.numpy()],
+                        st_f.numpy(), st_b.numpy()))
+        finally:
+            runtime.use_native(before)
+    return out
+
+
+@pytest.mark.parametrize("K", [1, 4])
+def test_sh_degree0_blocks_equal_the_kernels_bit_for_bit(K):
+    """The CPU's C++ blocks at degree 0 (num_bases 1; K 4: a map that will raise its degree later) write what the
+    Warp kernels write, bit for bit: culled Gaussians, colours clamped at 0 (and one exactly at 0), NaN coefficients,
+    a -0 upstream gradient, the trailing coefficients' zeros; a block boundary falls inside the range. The blocks ran
+    (status 1); with use_native off they did not (status 0: the control compares two different code paths)."""
+    rng = np.random.default_rng(K)
+    n = 2 * wsh.SH_BLOCK + 37
+    cam, _, sh, means, _ = _setup(rng, n, 0, "cpu")
+    sh = np.concatenate([sh, rng.normal(size=(n, K - 1, 3))], axis=1).astype(np.float32)
+    sh[::97, 0, 1] = np.nan
+    sh[5, 0, 2] = np.float32(-0.5) / np.float32(wsh.SH_C0)    # a colour at (or within a rounding of) 0
+    sh[6, 0, :] = -10.0                                         # clamped
+    means = means.astype(np.float32)
+    radii = (rng.random(n) > 0.3).astype(np.int32)
+    depths = rng.uniform(1, 5, n).astype(np.float32)
+    v_rgb = rng.normal(size=(n, 3)).astype(np.float32)
+    v_rgb[7] = -0.0
+    (native, st_f, st_b), (warp_code, st_f0, st_b0) = _sh_both_ways(sh, means, radii, depths, v_rgb, 1, cam)
+    assert st_f.min() == 1 and st_b.min() == 1 and st_f0.max() == 0 and st_b0.max() == 0
+    for a, b in zip(native, warp_code):
+        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    rgb = native[0][:, :3]
+    assert np.any(rgb[radii > 0] == 0) and np.all(rgb[radii == 0] == 0) and np.any(np.isnan(sh[radii > 0, 0]))
+    assert np.all(native[1][:, 1:] == 0) and np.any(native[1][:, 0] != 0)
+    assert np.all(native[2] == 0.25) and np.all(native[3] == 0.5)     # degree 0 adds nothing there
+
+
+def test_sh_blocks_decline_above_degree0():
+    """At degree 1 the blocks decline (status 0) and the Warp code writes (the test above's outputs for degree 0 are
+    the blocks')."""
+    rng = np.random.default_rng(3)
+    n = 100
+    cam, _, sh, means, _ = _setup(rng, n, 1, "cpu")
+    (native, st_f, st_b), (warp_code, _, _) = _sh_both_ways(
+        sh.astype(np.float32), means.astype(np.float32), np.ones(n, np.int32), np.ones(n, np.float32),
+        rng.normal(size=(n, 3)).astype(np.float32), 4, cam)
+    assert st_f.max() == 0 and st_b.max() == 0
+    for a, b in zip(native, warp_code):
+        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+
+
 def test_twin_sh_gradient_matches_finite_differences():
     rng = np.random.default_rng(3)
     n, degree = 6, 3
