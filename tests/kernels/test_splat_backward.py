@@ -330,3 +330,51 @@ def test_backward_into_given_arrays_is_identical(wp_device):
     out = rast.forward(*(scene[k] for k in PARAMS), _wcam(cam))
     with pytest.raises(ValueError, match="into.quats"):
         rast.backward(out, v_rgb, into=Into)
+
+
+def test_gather_blocks_equal_the_kernel_bit_for_bit():
+    """The CPU's gather in C++ blocks sums each Gaussian's slots as the kernel does, bit for bit: Gaussians with no
+    slot (culled), one slot, many; -0, NaN and inf among the pairs' gradients; a block boundary inside the range. The
+    blocks ran (status 1); with use_native off the kernel's loop did (status 0: two different code paths compared)."""
+    from mgso_kernels import runtime
+    from mgso_kernels.splat import raster_bwd
+    from mgso_kernels.splat.common import vec16
+
+    rng = np.random.default_rng(4)
+    n = 2 * raster_bwd.GATHER_BLOCK + 77
+    touched = rng.integers(0, 9, n).astype(np.int32)
+    touched[::5] = 0
+    offsets = (np.cumsum(touched) - touched).astype(np.int32)
+    m = int(touched.sum())
+    grads = (rng.normal(size=(m, 16)) * 1e3 ** rng.integers(-2, 3, (m, 16))).astype(np.float32)
+    grads[::37, 3] = -0.0
+    grads[11, 5] = np.nan
+    grads[12, 6] = np.inf
+    out = []
+    for native in (True, False):
+        before = runtime.use_native(native)
+        try:
+            arrays = [wp.array(np.full((n, 2), 9.0, np.float32), dtype=wp.vec2, device="cpu"),
+                      wp.array(np.full((n, 3), 9.0, np.float32), dtype=wp.vec3, device="cpu"),
+                      wp.array(np.full(n, 9.0, np.float32), device="cpu"),
+                      wp.array(np.full((n, 3), 9.0, np.float32), dtype=wp.vec3, device="cpu"),
+                      wp.array(np.full(n, 9.0, np.float32), device="cpu"),
+                      wp.array(np.full((n, 2), 9.0, np.float32), dtype=wp.vec2, device="cpu"),
+                      wp.array(np.full(n, 9.0, np.float32), device="cpu")]
+            status = raster_bwd.launch_gather_gaussian_grads(
+                wp.array(offsets, device="cpu"), wp.array(touched, device="cpu"),
+                wp.array(grads, dtype=vec16, device="cpu"), *arrays, "cpu")
+            out.append(([a.numpy().reshape(n, -1) for a in arrays], status.numpy()))
+        finally:
+            runtime.use_native(before)
+    (got, st), (want, st0) = out
+    assert st.min() == 1 and st0.max() == 0
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    # and against NumPy: each Gaussian's slots summed in order
+    k = int(np.argmax(touched > 3))
+    acc = np.zeros(16, np.float32)
+    for row in grads[offsets[k]:offsets[k] + touched[k]]:
+        acc = acc + row
+    np.testing.assert_array_equal(np.concatenate([a[k] for a in got]), acc[:13])
+    assert np.all(np.concatenate([a[touched == 0] for a in got], axis=1) == 0)
