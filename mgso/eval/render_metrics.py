@@ -171,8 +171,8 @@ def _ssim_strips(rendered, reference, border: str, data_range: float, what: str,
         y1 = min(y0 + step, hi)
         s0, s1 = max(y0 - r, 0), min(y1 + r, H)
         rows = slice(y0 - s0, y1 - s0)        # the strip's own rows among the halo's
-        A = a[s0:s1].astype(dtype)
-        B = b[s0:s1].astype(dtype)
+        A = np.ascontiguousarray(a[s0:s1], dtype=dtype)     # a copy only where needed (float32 renders: none)
+        B = np.ascontiguousarray(b[s0:s1], dtype=dtype)
         mu1, mu2 = _blur(A, g, rows), _blur(B, g, rows)
         s11, s22, s12 = _blur(A * A, g, rows), _blur(B * B, g, rows), _blur(A * B, g, rows)
         mu12 = mu1 * mu2
