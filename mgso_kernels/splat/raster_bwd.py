@@ -300,13 +300,48 @@ GATHER_BLOCK = 1024
 
 
 # ------------------------------------------------------------------------------------------------- launchers
+def _narrow_backward_pixels() -> int:
+    """:data:`NARROW_BACKWARD_PIXELS`' value: ``$MGSO_NARROW_BACKWARD_PIXELS`` where set, else by the CPU's maker, as
+    measured (the same gradients either way, bit for bit: ``tests/kernels/test_splat_tile.py``):
+
+    - Intel (a 2-core Xeon with AVX-512, 2026-12-07, before the 16-lane listing by compress and the mask registers;
+      backward blend, one thread, 16 -> 8 lanes, real maps, ``profiles/splat_raster.py --run DIR --downscale N``):
+      7-Scenes 160x120 19.2 -> 15.4 ms, 213x160 24.4 -> 22.6, 320x240 36.5 -> 40.2 (slower), KITTI 310x94 23.0 ->
+      17.6, 620x188 42.5 -> 42.8: 8 lanes up to 40,000 pixels;
+    - AMD (a 2-core EPYC, Zen 4, 2026-12-08, with them; three rounds alternated): 7-Scenes 160x120 8 -> 16 lanes
+      11.3-13.1 -> 9.5-11.7 ms, KITTI 310x94 12.1-15.3 -> 11.5-13.0 ms; the deterministic KITTI run 163.1 / 170.0 s
+      against 176.0 s between them, 7-Scenes 146.0 against 148.4 s, the same maps: 16 lanes at every size (0).
+
+    Where the CPU has no AVX-512 both are 8 lanes. Read once, at import (docs/rasteriser.md)."""
+    import os
+
+    env = os.environ.get("MGSO_NARROW_BACKWARD_PIXELS")
+    if env is not None:
+        try:
+            value = int(env)
+        except ValueError:
+            raise ValueError(f"MGSO_NARROW_BACKWARD_PIXELS={env!r}: a number of pixels (0: never 8 lanes)") from None
+        if value < 0:
+            raise ValueError(f"MGSO_NARROW_BACKWARD_PIXELS={env!r}: a number of pixels (0: never 8 lanes)")
+        return value
+    vendor = ""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("vendor_id"):
+                    vendor = line
+                    break
+    except OSError:
+        import platform
+
+        vendor = platform.processor()
+    return 0 if "AMD" in vendor else 40_000
+
+
 #: On the CPU, images of at most this many pixels take the backward tile snippet at 8 lanes (half a tile row a vector)
-#: where the CPU has 16: the same gradients bit for bit (``tests/kernels/test_splat_tile.py``), and on small images,
-#: where most Gaussians reach a few pixels of a tile row, the 16-lane vector mostly blends empty lanes. Backward
-#: blend on one thread of the 2-core Intel machine (AVX-512), 16 -> 8 lanes, real maps (``profiles/splat_raster.py
-#: --run DIR --downscale N``, 2026-12-07): 7-Scenes 160x120 19.2 -> 15.4 ms, 213x160 24.4 -> 22.6, 320x240 36.5 ->
-#: 40.2 (slower), KITTI 310x94 23.0 -> 17.6, 620x188 42.5 -> 42.8 (docs/rasteriser.md).
-NARROW_BACKWARD_PIXELS = 40_000
+#: where the CPU has 16: the same gradients bit for bit, and where most Gaussians reach a few pixels of a tile row the
+#: 16-lane vector mostly blends empty lanes. Which is faster depends on the CPU (:func:`_narrow_backward_pixels`).
+NARROW_BACKWARD_PIXELS = _narrow_backward_pixels()
 
 
 def launch_rasterize_backward(cam: Camera, ranges, splats, splat_rgbz, slots, background, T_final, n_contrib, v_rgb,

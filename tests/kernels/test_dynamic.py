@@ -14,7 +14,7 @@ from mgso.geometry import se3_exp
 from mgso_kernels import adam as wa
 from mgso_kernels import dynamic, runtime
 from mgso_kernels.reference import splat as ref
-from mgso_kernels.splat import Rasterizer, make_camera, raster_tile
+from mgso_kernels.splat import Rasterizer, make_camera, raster_bwd, raster_tile
 from mgso_kernels.splat import bin as _bin
 from mgso_kernels.splat import project as _project
 from mgso_kernels.splat import raster as _raster
@@ -134,7 +134,7 @@ def test_the_dynamic_render_equals_the_static_split_bit_for_bit(cpu, monkeypatch
     for key, want in static.items():
         assert np.array_equal(got[key], want), key
     names = set(count.calls)
-    small = size[0] * size[1] <= 40_000             # the 8-lane backward (raster_bwd.NARROW_BACKWARD_PIXELS)
+    small = size[0] * size[1] <= raster_bwd.NARROW_BACKWARD_PIXELS       # the 8-lane backward
     want_kernels = {raster_tile.rasterize_forward_tile_dynamic.key, raster_tile.rasterize_alpha_tile_dynamic.key,
                     raster_tile.rasterize_alpha_depth_tile_dynamic.key,
                     (raster_tile.rasterize_backward_tile_narrow_dynamic if small
