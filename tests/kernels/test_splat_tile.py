@@ -679,6 +679,28 @@ def test_small_images_take_the_8_lane_backward_with_the_same_gradients(wp_device
             assert tiles == [want], (limit, absgrad, [k.key for k in tiles])
 
 
+def test_the_8_lane_backward_threshold_by_maker_and_environment(monkeypatch):
+    """NARROW_BACKWARD_PIXELS: ``$MGSO_NARROW_BACKWARD_PIXELS`` where set (0 allowed: never 8 lanes), a clear error for
+    a value that is not a number of pixels, else 0 on AMD and 40,000 elsewhere (as measured: docs/rasteriser.md)."""
+    from mgso_kernels.splat import raster_bwd
+
+    monkeypatch.setenv("MGSO_NARROW_BACKWARD_PIXELS", "1234")
+    assert raster_bwd._narrow_backward_pixels() == 1234
+    monkeypatch.setenv("MGSO_NARROW_BACKWARD_PIXELS", "0")
+    assert raster_bwd._narrow_backward_pixels() == 0
+    for bad in ("many", "-5"):
+        monkeypatch.setenv("MGSO_NARROW_BACKWARD_PIXELS", bad)
+        with pytest.raises(ValueError, match="MGSO_NARROW_BACKWARD_PIXELS"):
+            raster_bwd._narrow_backward_pixels()
+    monkeypatch.delenv("MGSO_NARROW_BACKWARD_PIXELS")
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            amd = any(line.startswith("vendor_id") and "AMD" in line for line in f)
+    except OSError:
+        pytest.skip("no /proc/cpuinfo to say the CPU's maker")
+    assert raster_bwd._narrow_backward_pixels() == (0 if amd else 40_000)
+
+
 def test_the_forward_snippet_declines_images_that_are_not_contiguous(wp_device):
     """The forward snippet writes its outputs through plain pointers, so images that are views of wider ones (rows
     not one after the other) make it decline (status 0) and the Warp code write them: the same images as the Warp
