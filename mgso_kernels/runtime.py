@@ -382,11 +382,14 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     chunks). Chunks are at least ``min_chunk`` threads, so tiny launches stay single. On CUDA this is one launch.
     Returns the number of chunks launched.
 
-    ``recorded``: a dict the caller owns, for a kernel launched again and again with the same arrays (an iterative
-    solver's workspace): the chunks' launches are recorded once (``wp.launch(record_cmd=True)``) and later calls with
-    the same arrays only set the other inputs (structs, scalars) before launching, 17 us against 69 us for a full
-    launch of the tracker's 13 arguments. The entries keep their kernel and arrays alive (so an ``id`` is never
-    reused while cached); the dict is cleared when it reaches 16 entries.
+    ``recorded``: a dict of recorded launches, for a kernel launched again and again (an iterative solver's
+    workspace, a training step's rasteriser): the chunks' launches are recorded once (``wp.launch(record_cmd=True)``)
+    for a kernel and split, and later calls only set the inputs that are not the very objects of the last call (a new
+    array, a scalar, another struct; a struct is held by reference, its fields as they are now) before launching: 17
+    us against 69 us for a full launch of the tracker's 13 arguments. The entries keep the last call's inputs alive,
+    so identity compares are sound; the dict is cleared when it reaches :data:`RECORDED_MAX` entries. A CPU launch of
+    more than one chunk without a ``recorded`` of its own uses the calling thread's (recording a launch of a
+    rasteriser kernel's 15-20 arguments a chunk took about a thirteenth of a 160x120 training step on two threads).
     """
     device = device or device_of(*inputs)
     if dim <= 0:
@@ -398,21 +401,22 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     is_cpu = _is_cpu(device)
     parts = 1 if not is_cpu else max(1, min(n, dim // max(1, min_chunk)))
     ranges = _split_ranges(dim, parts, align)
+    if recorded is None and not record_tape and len(ranges) > 1:
+        recorded = _thread_recorded()
     if recorded is not None and not record_tape:
         # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key
-        key = (id(kernel), kernel.key, str(device), tuple(ranges),
-               tuple([id(a) if isinstance(a, wp.array) else None for a in inputs]))
+        key = (id(kernel), kernel.key, str(device), tuple(ranges), len(inputs))
         entry = recorded.get(key)
         if entry is None:
-            if len(recorded) >= 16:
+            if len(recorded) >= RECORDED_MAX:
                 recorded.clear()
             cmds = _record(kernel, ranges, inputs, device)
-            recorded[key] = (cmds, kernel, list(inputs))  # the inputs of the last launch, arrays kept alive
+            recorded[key] = (cmds, kernel, list(inputs))  # the inputs of the last launch, kept alive
         else:
             cmds, _, last = entry
             for i, a in enumerate(inputs):
-                if a is last[i] or key[4][i] is not None:
-                    # an array (part of the key) or the very object of the last launch: a struct is held by
+                if a is last[i]:
+                    # the very object of the last launch: an array is the same memory, a struct is held by
                     # reference (its fields as they are now), a scalar is the same value
                     continue
                 last[i] = a
@@ -438,6 +442,18 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     for f in futures:
         f.result()
     return len(ranges)
+
+
+#: Entries a dict of recorded launches keeps (:func:`launch_split`) before it starts again.
+RECORDED_MAX = 64
+
+
+def _thread_recorded() -> dict:
+    """The calling thread's recorded launches (:func:`launch_split`)."""
+    d = getattr(_local, "recorded", None)
+    if d is None:
+        d = _local.recorded = {}
+    return d
 
 
 def _record(kernel: Any, ranges: list[tuple[int, int]], inputs: Sequence[Any], device: str) -> list:

@@ -112,8 +112,9 @@ def scale_add(offset: int, gain: float, src: wp.array(dtype=wp.float32), out: wp
 
 
 def test_recorded_launches_follow_new_scalars_and_arrays(wp_device):
-    """launch_split(recorded=...) replays recorded launches: a changed scalar input must reach the kernel, a new array
-    must get its own recording, and the result must equal a plain launch, split over the cores or not."""
+    """launch_split(recorded=...) replays recorded launches: a changed scalar input and a new array must reach the
+    kernel (set into the recorded launch, one recording a split), and the result must equal a plain launch, split over
+    the cores or not."""
     rng = np.random.default_rng(1)
     src = wp.array(rng.random(20000).astype(np.float32), device=wp_device)
     src2 = wp.array(rng.random(20000).astype(np.float32), device=wp_device)
@@ -128,7 +129,46 @@ def test_recorded_launches_follow_new_scalars_and_arrays(wp_device):
             np.testing.assert_array_equal(out.numpy(), ref.numpy())
             np.testing.assert_allclose(out.numpy(), gain * s.numpy() + np.arange(20000), rtol=1e-6)
             assert n == (threads if wp.get_device(wp_device).is_cpu else 1)
-    assert len(cache) == (4 if wp.get_device(wp_device).is_cpu else 2)  # (src, src2) x (1, 2 chunks)
+    assert len(cache) == (2 if wp.get_device(wp_device).is_cpu else 1)  # a recording for 1 and for 2 chunks
+
+
+@wp.struct
+class _Gain:
+    g: float
+
+
+@wp.kernel(enable_backward=False)
+def scale_add_struct(offset: int, gain: _Gain, src: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+    i = offset + wp.tid()
+    out[i] = gain.g * src[i] + float(i)
+
+
+def test_split_cpu_launches_replay_the_threads_recordings():
+    """A CPU launch of several chunks without a ``recorded`` of its own replays the calling thread's recording of the
+    same kernel and split: new arrays, new scalars, a new struct and a struct changed in place all reach the kernel
+    (the result equals the formula every time), one recording for all the calls; a launch of one chunk records
+    nothing; the thread's dict starts again at RECORDED_MAX entries."""
+    rng = np.random.default_rng(2)
+    srcs = [wp.array(rng.random(20000).astype(np.float32), device="cpu") for _ in range(3)]
+    outs = [wp.zeros(20000, dtype=wp.float32, device="cpu") for _ in range(2)]
+    rec = runtime._thread_recorded()
+    rec.clear()
+    gain = _Gain()
+    for k, g in enumerate([2.0, 3.0, 3.0, -1.0, 0.5]):
+        s, o = srcs[k % 3], outs[k % 2]
+        if k == 2:
+            gain = _Gain()                  # a new struct object
+        gain.g = g                          # changed in place (k = 1, 3, 4)
+        assert runtime.launch_split(scale_add_struct, 20000, [gain, s, o], "cpu", min_chunk=1000, threads=2) == 2
+        np.testing.assert_allclose(o.numpy(), g * s.numpy() + np.arange(20000), rtol=1e-6)
+        assert runtime.launch_split(scale_add, 20000, [g, s, o], "cpu", min_chunk=1000, threads=2) == 2
+        np.testing.assert_allclose(o.numpy(), g * s.numpy() + np.arange(20000), rtol=1e-6)
+    assert len(rec) == 2                    # one recording a kernel and split
+    runtime.launch_split(scale_add, 20000, [1.0, srcs[0], outs[0]], "cpu", min_chunk=1000, threads=1)
+    assert len(rec) == 2                    # one chunk: a plain launch
+    for n in range(runtime.RECORDED_MAX):   # other splits of the same kernel fill the dict, then it starts again
+        runtime.launch_split(scale_add, 2000 + 2 * n, [1.0, srcs[0], outs[0]], "cpu", min_chunk=1, threads=2)
+    assert 0 < len(rec) < runtime.RECORDED_MAX
 
 
 def test_the_device_is_passed_not_a_module_default(wp_device, monkeypatch):
