@@ -404,8 +404,10 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
     if recorded is None and not record_tape and len(ranges) > 1:
         recorded = _thread_recorded()
     if recorded is not None and not record_tape:
-        # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key
-        key = (id(kernel), kernel.key, str(device), tuple(ranges), len(inputs))
+        # the kernel object, not only its key: the variants a factory makes (``wp.static`` flags) share one key; the
+        # inputs' types and arrays' dtypes and ranks: a generic kernel (``Any``) is an overload for each
+        key = (id(kernel), kernel.key, str(device), tuple(ranges),
+               tuple([(type(a), a.dtype, a.ndim) if isinstance(a, wp.array) else type(a) for a in inputs]))
         entry = recorded.get(key)
         if entry is None:
             if len(recorded) >= RECORDED_MAX:

@@ -143,6 +143,25 @@ def scale_add_struct(offset: int, gain: _Gain, src: wp.array(dtype=wp.float32), 
     out[i] = gain.g * src[i] + float(i)
 
 
+def test_split_cpu_launches_of_a_generic_kernel_keep_each_overloads_recording():
+    """A generic kernel (``dtype=Any``) is an overload for each dtype: replaying the recording of one with the arrays
+    of another must not happen (the Gaussian map's gather of vec3 rows, then of vec4 rows, failed so). Each dtype's
+    launch gives the gathered rows, alternating, on several chunks."""
+    from mgso_kernels import adam as kadam
+
+    rng = np.random.default_rng(3)
+    n = 9000
+    index = wp.array(rng.permutation(n).astype(np.int32), device="cpu")
+    for _ in range(2):
+        for dt, width in ((wp.vec3, 3), (wp.vec4, 4), (wp.float32, 1)):
+            src_np = rng.random((n, width)).astype(np.float32).reshape((n,) if width == 1 else (n, width))
+            src = wp.array(src_np, dtype=dt, device="cpu")
+            dst = wp.zeros(n, dtype=dt, device="cpu")
+            assert runtime.launch_split(kadam.gather_rows, n, [src, index, dst], "cpu", min_chunk=1000,
+                                        threads=2) == 2
+            np.testing.assert_array_equal(dst.numpy(), src_np[index.numpy()])
+
+
 def test_split_cpu_launches_replay_the_threads_recordings():
     """A CPU launch of several chunks without a ``recorded`` of its own replays the calling thread's recording of the
     same kernel and split: new arrays, new scalars, a new struct and a struct changed in place all reach the kernel
