@@ -421,7 +421,9 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
                     # the very object of the last launch: an array is the same memory, a struct is held by
                     # reference (its fields as they are now), a scalar is the same value
                     continue
-                last[i] = a
+                # None until every chunk took it: an input Warp refuses raises here, and the next call sets its input
+                # again (a refused object passed again must fail again, not run with the last call's)
+                last[i] = None
                 if wp.types.is_struct(a):
                     ct = a.__ctype__()  # what Warp's pack_arg makes of a struct, without its chain of type tests
                     for c in cmds:
@@ -429,6 +431,7 @@ def launch_split(kernel: Any, dim: int, inputs: Sequence[Any], device: str | Non
                 else:
                     for c in cmds:
                         c.set_param_at_index(i + 1, a)
+                last[i] = a
         return _run(cmds)
     if len(ranges) <= 1:
         wp.launch(kernel, dim=dim, inputs=[0, *inputs], device=device, record_tape=record_tape)

@@ -183,6 +183,12 @@ def test_split_cpu_launches_replay_the_threads_recordings():
         assert runtime.launch_split(scale_add, 20000, [g, s, o], "cpu", min_chunk=1000, threads=2) == 2
         np.testing.assert_allclose(o.numpy(), g * s.numpy() + np.arange(20000), rtol=1e-6)
     assert len(rec) == 2                    # one recording a kernel and split
+    bad = wp.zeros(20000, dtype=wp.int32, device="cpu")
+    for _ in range(2):                      # refused each time (its dtype: a recording of its own, which fails)
+        with pytest.raises(RuntimeError, match="src"):
+            runtime.launch_split(scale_add, 20000, [1.0, bad, outs[0]], "cpu", min_chunk=1000, threads=2)
+    runtime.launch_split(scale_add, 20000, [4.0, srcs[1], outs[0]], "cpu", min_chunk=1000, threads=2)
+    np.testing.assert_allclose(outs[0].numpy(), 4.0 * srcs[1].numpy() + np.arange(20000), rtol=1e-6)
     runtime.launch_split(scale_add, 20000, [1.0, srcs[0], outs[0]], "cpu", min_chunk=1000, threads=1)
     assert len(rec) == 2                    # one chunk: a plain launch
     for n in range(runtime.RECORDED_MAX):   # other splits of the same kernel fill the dict, then it starts again
