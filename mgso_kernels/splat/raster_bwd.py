@@ -29,6 +29,9 @@ Twin: :func:`mgso_kernels.reference.splat.render_vjp`.
 
 from __future__ import annotations
 
+import os
+import platform
+
 import warp as wp
 
 from .camera import TILE_SIZE, Camera
@@ -313,8 +316,6 @@ def _narrow_backward_pixels() -> int:
       against 176.0 s between them, 7-Scenes 146.0 against 148.4 s, the same maps: 16 lanes at every size (0).
 
     Where the CPU has no AVX-512 both are 8 lanes. Read once, at import (docs/rasteriser.md)."""
-    import os
-
     env = os.environ.get("MGSO_NARROW_BACKWARD_PIXELS")
     if env is not None:
         try:
@@ -332,8 +333,6 @@ def _narrow_backward_pixels() -> int:
                     vendor = line
                     break
     except OSError:
-        import platform
-
         vendor = platform.processor()
     return 0 if "AMD" in vendor else 40_000
 
