@@ -1158,6 +1158,18 @@ class LoopConfig:
                                    "the out-and-back 7-Scenes recording it closes 55 loops, ATE 0.554 -> 0.240 m, "
                                    "docs/loop.md); both = the two keyframes' DSO depths, Sim(3) RANSAC on 3D-3D "
                                    "pairs (LDSO; closes none there)")
+    epipolar_check: bool = opt(True, "geometry current: the candidate's matches, with a depth or not, must agree with "
+                                     "one rigid motion (an essential matrix, RANSAC, min_inliers of them within "
+                                     "inlier_px of their epipolar lines) before PnP, which then needs only "
+                                     "min_pnp_inliers of those with a new keyframe's depth: the matches that carry a "
+                                     "depth (descriptors at DSO's points) are the fewest right ones at a new viewpoint "
+                                     "(freiburg1_rpy at 5-18 degrees: 4 of 24 right, against 17 of 26 on ORB's own "
+                                     "corners; docs/loop.md); false = PnP on the matches with a depth alone, "
+                                     "min_inliers of them")
+    min_pnp_inliers: int = opt(20, "with the epipolar check: the PnP inliers among its inliers with a new keyframe's "
+                                   "depth (the initial pose and the scale for the photometric check; ORB-SLAM's Sim3 "
+                                   "needs 20). 10 accepts more on freiburg1_rpy, among them two loops of 11 inliers "
+                                   "at its scale-collapsed start that cost its map 2.1 dB (docs/loop.md)")
     ransac_iterations: int = opt(300, "RANSAC hypotheses per candidate (3 point pairs each for Sim(3), 4 points for "
                                       "PnP)")
     inlier_px: float = opt(3.0, "a match is an inlier when it reprojects within this many pixels in both keyframes "
@@ -1197,6 +1209,7 @@ class LoopConfig:
 
     def __post_init__(self):
         c = _Checks("loop", self)
+        c.ge(4, "min_pnp_inliers")
         c.ge(1, "orb_features", "max_candidates", "ransac_iterations", "odometry_neighbours", "graph_iterations",
              "prefilter_keep", "vocabulary_words")
         c.ge(0, "prefilter_above", "min_depth_compared")

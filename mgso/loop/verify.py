@@ -42,9 +42,19 @@ On a real revisit the old keyframe's depths are the loosest of the map (on the o
 first pass's depths, even its marginalised ones, are uncorrelated with the true structure: docs/loop.md), and the
 3D-3D pairs of step 2 disagree beyond any Sim(3). ORB-SLAM and LDSO take the geometry from the well-constrained side:
 
+2'a. **Epipolar check** (``loop.epipolar_check``, on by default; :func:`epipolar_inliers`): every match, with a
+    depth or not, against one rigid motion (an essential matrix, RANSAC, ``inlier_px`` from the epipolar lines);
+    fewer than ``min_inliers`` matches: ``"too few matches"``, fewer inliers: ``"too few inliers"``. At a new
+    viewpoint the matches that carry a depth (the descriptors at DSO's points, projected into the keyframe, not at
+    repeatable corners) are the fewest right ones: on TUM freiburg1_rpy's keyframe pairs 5-18 degrees apart, 4 of
+    the 24 with a depth are right (median), against 17 of the 26 on ORB's own corners, which have none
+    (docs/loop.md). Step 2' then takes the epipolar inliers with a current depth and needs ``min_pnp_inliers`` of
+    them (``"too few with depth"``): the consensus is the epipolar check's. Off: PnP on the matches with a current
+    depth, ``min_inliers`` of them (``"too few matches"`` before, ``"too few inliers"`` after).
 2'. **PnP RANSAC** (:func:`pnp_ransac`, OpenCV's AP3P hypotheses, ``ransac_iterations``, ``inlier_px``) of the
     current keyframe's 3D points (its pairs with a current depth) on the candidate's keypoints: the rigid motion
-    into the candidate's camera at the current keyframe's scale. Fewer than ``min_inliers``: ``"too few inliers"``.
+    into the candidate's camera at the current keyframe's scale. Fewer than ``min_inliers`` (``min_pnp_inliers``
+    after the epipolar check): ``"too few inliers"`` (``"too few with depth"``).
     The loop's scale is the median ratio of the candidate's depths to the predicted ones over the inliers that have a
     candidate depth (at least :data:`MIN_SCALE_PAIRS`, else ``"scale unknown"``): one robust number from the
     loose side, where step 2 needed every pair to agree.
@@ -101,10 +111,11 @@ PLANE_TOLERANCE = 0.02
 PLANE_ITERATIONS = 200
 
 __all__ = ["Verification", "verify", "mutual_matches", "sim3_ransac", "OneSided", "photometric_check", "REASONS",
-           "pnp_ransac", "photometric_check_from_current", "planar_fraction"]
+           "pnp_ransac", "epipolar_inliers", "photometric_check_from_current", "planar_fraction"]
 
 #: Every reason a verification gives (the closer counts them).
-REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too few inliers", "scale unknown",
+REASONS = ("accepted", "camera mismatch", "too few matches", "degenerate", "too few inliers", "too few with depth",
+           "scale unknown",
            "photometric no points", "photometric tracking failed", "photometric rmse", "photometric inliers",
            "depth unverified", "depth inconsistent", "planar look-alike")
 
@@ -132,6 +143,7 @@ class Verification:
     matches_3d3d: int = 0
     depth_compared: int = 0
     depth_consistent: float | None = None
+    epipolar_inliers: int | None = None
     planar_current: float | None = None
     planar_candidate: float | None = None
 
@@ -429,6 +441,32 @@ def pnp_ransac(X: np.ndarray, uv: np.ndarray, cam, iterations: int, inlier_px: f
     return T, _reproj_error(cam, X @ T[:3, :3].T + T[:3, 3], uv) < inlier_px
 
 
+def epipolar_inliers(uv_a: np.ndarray, uv_b: np.ndarray, cam_a, cam_b, px: float) -> np.ndarray:
+    """Matches ``uv_a[i] <-> uv_b[i]`` (pixels of ``cam_a`` and ``cam_b``) consistent with one rigid motion: the
+    inliers of an essential matrix (OpenCV's five-point RANSAC, a fixed seed, so deterministic) within ``px`` pixels
+    of their epipolar lines. No depth is needed, so every match counts; a pure rotation (any translation fits it)
+    passes as well. All False with fewer than 5 matches or where RANSAC finds none."""
+    import cv2
+
+    n = len(uv_a)
+    none = np.zeros(n, bool)
+    if n < 5:
+        return none
+
+    def norm(uv, c):
+        return np.c_[(uv[:, 0] - c.cx) / c.fx, (uv[:, 1] - c.cy) / c.fy].astype(np.float64)
+
+    f = 0.25 * (cam_a.fx + cam_a.fy + cam_b.fx + cam_b.fy)     # the threshold in normalised coordinates
+    try:
+        E, mask = cv2.findEssentialMat(norm(uv_a, cam_a), norm(uv_b, cam_b), np.eye(3), method=cv2.RANSAC,
+                                       prob=0.999, threshold=float(px) / f)
+    except cv2.error:
+        return none
+    if E is None or mask is None:
+        return none
+    return mask.ravel().astype(bool)[:n]
+
+
 def photometric_check_from_current(current: KeyframeFeatures, candidate: KeyframeFeatures, T: np.ndarray,
                                    scale: float, tracking: TrackingConfig | None = None, device: str | None = None,
                                    depth_tolerance: float | None = None) -> PhotometricResult:
@@ -509,7 +547,8 @@ def verify(current: KeyframeFeatures, candidate: KeyframeFeatures, settings: Loo
     n_depth = n_both + len(cur_only) + len(cand_only)
     if getattr(cfg, "geometry", "both") == "current":
         n_depth = int(np.count_nonzero(hc))                    # the 2D-3D pairs: a current depth
-        if n_depth < cfg.min_inliers:
+        # with the epipolar check every match counts (it needs no depth), else those with a current depth
+        if (n_match if getattr(cfg, "epipolar_check", False) else n_depth) < cfg.min_inliers:
             return reject("too few matches", matches=n_match, matches_with_depth=n_depth, matches_3d3d=n_both)
     elif n_both < 3 or n_depth < cfg.min_inliers:
         return reject("too few matches", matches=n_match, matches_with_depth=n_depth, matches_3d3d=n_both)
@@ -564,18 +603,32 @@ def _verify_from_current(current, candidate, cfg, pairs, hc, hk, device, trackin
                          min_compared, reject, rng_seed: int = 0) -> Verification:
     """Steps 2-5 with the geometry of the current keyframe alone (``loop.geometry = "current"``; module text)."""
     n_match = len(pairs)
+    common = dict(matches=n_match, matches_with_depth=int(np.count_nonzero(hc)),
+                  matches_3d3d=int(np.count_nonzero(hc & hk)))
+    need, short = cfg.min_inliers, "too few inliers"
+    if getattr(cfg, "epipolar_check", False):
+        # step 2a: every match, depth or not, against one rigid motion; PnP then takes those of its inliers with a
+        # current depth, of which it needs only min_pnp_inliers (the epipolar inliers are the consensus)
+        epi = epipolar_inliers(current.keypoints[pairs[:, 0]], candidate.keypoints[pairs[:, 1]], current.camera,
+                               candidate.camera, cfg.inlier_px)
+        common["epipolar_inliers"] = int(epi.sum())
+        if common["epipolar_inliers"] < cfg.min_inliers:
+            return reject("too few inliers", **common)
+        pairs, hc, hk = pairs[epi], hc[epi], hk[epi]
+        need, short = int(cfg.min_pnp_inliers), "too few with depth"
+        if int(np.count_nonzero(hc)) < need:
+            return reject(short, **common)
     cur = pairs[hc]                     # the current keyframe's 3D points seen at the candidate's keypoints
     cand_depth = hk[hc]
     X = _backproject(current.camera, current.keypoints[cur[:, 0]], current.idepths[cur[:, 0]])
     uv_k = candidate.keypoints[cur[:, 1]]
-    common = dict(matches=n_match, matches_with_depth=len(cur), matches_3d3d=int(np.count_nonzero(cand_depth)))
     T, inl = pnp_ransac(X, uv_k, candidate.camera, cfg.ransac_iterations, cfg.inlier_px)
     if T is None:
         return reject("degenerate", **common)
     n_in = int(inl.sum())
     common["inliers"] = n_in
-    if n_in < cfg.min_inliers:
-        return reject("too few inliers", **common)
+    if n_in < need:
+        return reject(short, **common)
     # the loop's scale: the candidate's depths over the current points' depths in the candidate's camera (at the
     # current keyframe's scale), their median over the inliers with a candidate depth
     both = inl & cand_depth

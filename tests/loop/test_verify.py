@@ -269,3 +269,57 @@ def test_planar_fraction_of_a_wall_a_room_and_loose_depths(current):
     assert planar_fraction(loose, rng()) < 0.2                                            # measured 0.09
     few = dataclasses.replace(cur, points_uv=cur.points_uv[:2], points_idepth=cur.points_idepth[:2])
     assert planar_fraction(few, rng()) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- the epipolar check
+def _few_depths(cur, keep: float, seed: int = 5):
+    """The current keyframe with a depth on only ``keep`` of its features (the rest NaN): a real keyframe's matches
+    at a new viewpoint, most of them on corners without a DSO point."""
+    idp = np.array(cur.idepths)
+    idp[np.random.default_rng(seed).random(len(idp)) > keep] = np.nan
+    return dataclasses.replace(cur, idepths=idp)
+
+
+@pytest.mark.parametrize("frame", [20, 60])
+def test_the_epipolar_check_closes_where_few_matches_carry_a_depth(current, frame):
+    """loop.epipolar_check (the default): every match counts against one essential matrix, then PnP needs only
+    min_pnp_inliers of the epipolar inliers with a current depth. With a depth on 35 % of the current keyframe's
+    features, fewer than min_inliers matches carry one: the control (epipolar_check false) rejects at the
+    first gate, the check accepts with the true Sim(3)."""
+    cur, _ = current
+    sparse = _few_depths(cur, 0.35)
+    cand = candidate_at(frame)
+    off = verify(sparse, cand, dataclasses.replace(DEFAULTS, epipolar_check=False))
+    assert not off.accepted and off.reason == "too few matches", off
+    assert off.matches >= DEFAULTS.min_inliers > off.matches_with_depth >= DEFAULTS.min_pnp_inliers, off
+    v = verify(sparse, cand, DEFAULTS)
+    assert v.accepted, v
+    # measured: 97 of 97 / 67 of 67 epipolar inliers, 29 / 24 matches with a depth, 28 / 22 PnP inliers
+    assert v.epipolar_inliers >= 0.9 * v.matches and v.inliers >= DEFAULTS.min_pnp_inliers, v
+    rot, tdir, scale = errors(v.relative, true_relative(frame))
+    # measured: 0.012 / 0.006 degrees, 0.065 / 0.031 degrees, 2.8e-3 / 0.9e-3
+    assert rot < 0.05 and tdir < 0.5 and scale < 0.03, (rot, tdir, scale)
+    np.testing.assert_array_equal(v.relative, verify(sparse, cand, DEFAULTS).relative)        # deterministic
+    # too few of the epipolar inliers with a depth: its own reason
+    bare = verify(_few_depths(cur, 0.02), cand, DEFAULTS)
+    assert not bare.accepted and bare.reason == "too few with depth", bare
+
+
+def test_the_epipolar_check_refuses_matches_no_motion_explains(current):
+    """The candidate's keypoints shuffled among themselves (each descriptor now at another feature's place): as many
+    matches, no rigid motion relates them, so the epipolar check leaves fewer than min_inliers; true matches are
+    nearly all its inliers. (Uniformly random matches at 640x480 leave 12-14 inliers of 100 and 23-24 of 400 at 3
+    px: min_inliers, 30, holds below about 800.)"""
+    from mgso.loop.verify import epipolar_inliers, mutual_matches
+
+    cur, _ = current
+    cand = candidate_at(20)
+    pairs = mutual_matches(cur.descriptors, cand.descriptors, DEFAULTS.match_ratio)
+    true_in = epipolar_inliers(cur.keypoints[pairs[:, 0]], cand.keypoints[pairs[:, 1]], CAM, CAM, DEFAULTS.inlier_px)
+    assert true_in.sum() >= 0.9 * len(pairs) >= DEFAULTS.min_inliers                    # measured 97 of 97
+    perm = np.random.default_rng(0).permutation(cand.num_features)
+    shuffled = dataclasses.replace(cand, keypoints=cand.keypoints[perm])
+    v = verify(cur, shuffled, DEFAULTS)
+    assert not v.accepted and v.reason == "too few inliers", v
+    assert v.matches >= DEFAULTS.min_inliers and v.epipolar_inliers < DEFAULTS.min_inliers, v   # measured 22 of 97
+    assert "too few with depth" in REASONS
