@@ -1163,8 +1163,8 @@ class LoopConfig:
                                      "inlier_px of their epipolar lines) before PnP, which then needs only "
                                      "min_pnp_inliers of those with a new keyframe's depth: the matches that carry a "
                                      "depth (descriptors at DSO's points) are the fewest right ones at a new viewpoint "
-                                     "(freiburg1_rpy at 5-18 degrees: 4 of 24 right, against 17 of 26 on ORB's own "
-                                     "corners; docs/loop.md); false = PnP on the matches with a depth alone, "
+                                     "(freiburg1_rpy at 5-18 degrees: 4 of 24 right, against 20 right among the "
+                                     "corners' matches without one; docs/loop.md); false = PnP on the matches with a depth alone, "
                                      "min_inliers of them")
     min_pnp_inliers: int = opt(20, "with the epipolar check: the PnP inliers among its inliers with a new keyframe's "
                                    "depth (the initial pose and the scale for the photometric check; ORB-SLAM's Sim3 "

@@ -47,7 +47,7 @@ first pass's depths, even its marginalised ones, are uncorrelated with the true 
     fewer than ``min_inliers`` matches: ``"too few matches"``, fewer inliers: ``"too few inliers"``. At a new
     viewpoint the matches that carry a depth (the descriptors at DSO's points, projected into the keyframe, not at
     repeatable corners) are the fewest right ones: on TUM freiburg1_rpy's keyframe pairs 5-18 degrees apart, 4 of
-    the 24 with a depth are right (median), against 17 of the 26 on ORB's own corners, which have none
+    the 24 with a depth are right (median), against 20 among those without one (on ORB's own corners)
     (docs/loop.md). Step 2' then takes the epipolar inliers with a current depth and needs ``min_pnp_inliers`` of
     them (``"too few with depth"``): the consensus is the epipolar check's. Off: PnP on the matches with a current
     depth, ``min_inliers`` of them (``"too few matches"`` before, ``"too few inliers"`` after).
