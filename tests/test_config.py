@@ -221,7 +221,7 @@ BAD = {
     "input.live_timeout_s": [0, 3601], "input.live_max_frames": [-1], "input.live_duration_s": [-0.1],
     "loop.orb_features": [0], "loop.depth_radius_px": [0], "loop.min_keyframe_gap": [-1],
     "loop.max_candidates": [0], "loop.proximity_depths": [-0.1], "loop.min_matches": [-1], "loop.geometry": ["old"],
-    "loop.match_ratio": [0, 1.01], "loop.ransac_iterations": [0], "loop.inlier_px": [0], "loop.min_inliers": [2],
+    "loop.match_ratio": [0, 1.01], "loop.ransac_iterations": [0], "loop.inlier_px": [0], "loop.min_inliers": [2], "loop.min_pnp_inliers": [3],
     "loop.max_photometric_rmse": [0], "loop.min_photometric_inliers": [0, 1.1], "loop.odometry_neighbours": [0],
     "loop.loop_edge_weight": [0], "loop.graph_iterations": [0],
     "loop.prefilter_above": [-1], "loop.prefilter_keep": [0], "loop.vocabulary_words": [0],
