@@ -208,6 +208,7 @@ class Rasterizer:
         self.keys_ = _Buffer(wp.int64)    # after binning: sorted on CUDA; on the CPU as emitted (only slots_ sorted)
         self.slots_ = _Buffer(wp.int32)
         self.sort_scratch_ = _Buffer(wp.int32)   # the CPU's sort from the Gaussians' side (bin.sort_pairs_and_ranges)
+        self.bin_cache_ = _Buffer(wp.int32)   # CPU: the count's tile ranges kept for the emit (4 ints a Gaussian)
         self.pair_gauss_ = _Buffer(wp.int32)
         self.splats_ = _Buffer(_common.vec8)
         self.splat_rgbz_ = _Buffer(wp.vec4)
@@ -310,7 +311,11 @@ class Rasterizer:
         touched = self.tiles_touched_.view(n + 1)
         offsets = self.pair_offsets_.view(n + 1)
         touched[n:].zero_()
-        _bin.launch_count_tiles(splat_g, radii, camera, touched[:n], dev, **sp)
+        cache = None
+        if self.device_is_cpu:
+            self._ensure(self.bin_cache_, 4 * n)
+            cache = self.bin_cache_.view(4 * n)
+        _bin.launch_count_tiles(splat_g, radii, camera, touched[:n], dev, **sp, cache=cache)
         wp.utils.array_scan(touched, offsets, inclusive=False)
         n_pairs = int(offsets[n:].numpy()[0])
         t = self._stage("bin_count", t)
@@ -319,7 +324,7 @@ class Rasterizer:
             self._ensure(buf, max(m, 1))
         keys, slots = self.keys_.full, self.slots_.full
         _bin.launch_emit_pairs(splat_g, depths, radii, offsets[:n], camera, keys, slots, self.pair_gauss_.full,
-                               n_pairs, dev, **sp)
+                               n_pairs, dev, **sp, cache=cache)
         t = self._stage("bin_keys", t)
         n_tiles = camera.tiles_x * camera.tiles_y
         self._ensure(self.ranges_, n_tiles)

@@ -187,7 +187,8 @@ def emit_pairs(
 # half-heights and half-width, the extreme points' dy) a vector at a time, lists the (Gaussian, tile row) items, then
 # computes 16 items' column ranges a vector at a time (two roots and four divisions each), and only then counts or
 # writes the pairs, in the kernels' order. mode 0: tiles_touched of [lo, hi); mode 1: their keys, slots and
-# pair_gauss. Returns 1, or 0 where it does not apply (CUDA, arrays not contiguous, a block too large, more than 1024
+# pair_gauss. With a cache of 4 ints a Gaussian the count keeps the ranges of the Gaussians of up to 3 tile rows and
+# the emit writes their pairs from them (docs/rasteriser.md, "The count's tile ranges kept for the emit"). Returns 1, or 0 where it does not apply (CUDA, arrays not contiguous, a block too large, more than 1024
 # tile rows) and nothing is written.
 _BIN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
@@ -198,6 +199,10 @@ if (n < 0 || n > BLK || tiles_y < 1 || tiles_y > 1024 || tiles_x < 1 || splats.s
 if (mode == 0 && tiles_touched.strides[0] != 4) return 0;
 if (mode == 1 && (depths.strides[0] != 4 || pair_offsets.strides[0] != 4 || keys.strides[0] != 8
                   || slots.strides[0] != 4 || pair_gauss.strides[0] != 4)) return 0;
+// the count's row and column ranges kept for the emit (cache[4 g .. 4 g + 3]: the first tile row | rows << 16, then
+// tx0 | tx1 << 16 of up to 3 rows; -1: not kept), where the caller gives a cache of 4 n ints
+const bool use_cache = cache.shape[0] >= 4L * hi && cache.strides[0] == 4 && tiles_x < 32768;
+int* CC = (int*)cache.data;
 @LANES16@
 const float* S = (const float*)splats.data;
 const int* R = (const int*)radii.data;
@@ -245,6 +250,12 @@ auto flush = [&]() {
     if (mode == 0) {
         for (int i = 0; i < ni; ++i)
             if (IX1[i] >= IX0[i]) CNT[IK[i]] += IX1[i] - IX0[i] + 1;
+        if (use_cache) {
+            for (int i = 0; i < ni; ++i) {  // the rows of the Gaussians kept (their first row and count: listed)
+                int* c = CC + 4L * (lo + IK[i]);
+                if (c[0] >= 0) c[1 + ITY[i] - (c[0] & 0xffff)] = IX0[i] | (IX1[i] << 16);
+            }
+        }
     } else {
         long long* K = (long long*)keys.data;
         int* SL = (int*)slots.data;
@@ -269,8 +280,42 @@ for (int k0 = 0; k0 < n; k0 += V) {
     int shown = 0;
     for (int k = k0; k < k0 + V && k < n; ++k) shown |= R[lo + k];
     if (shown == 0) {
-        for (int k = k0; k < k0 + V && k < n; ++k) CNT[k] = 0;
+        for (int k = k0; k < k0 + V && k < n; ++k) {
+            CNT[k] = 0;
+            if (mode == 0 && use_cache) CC[4L * (lo + k)] = 0;
+        }
         continue;
+    }
+    // the emit: the Gaussians whose ranges the count kept write their pairs from them (the same pairs in the same
+    // order), the rest are computed below
+    int kept = 0;
+    if (mode == 1 && use_cache) {
+        long long* K = (long long*)keys.data;
+        int* SL = (int*)slots.data;
+        int* PG = (int*)pair_gauss.data;
+        for (int j = 0; j < V && k0 + j < n; ++j) {
+            const int g = lo + k0 + j;
+            const int* c = CC + 4L * g;
+            if (c[0] < 0) continue;
+            kept |= 1 << j;
+            const int r = c[0] >> 16;
+            if (r == 0) continue;
+            int p = ((const int*)pair_offsets.data)[g];
+            int bits;
+            __builtin_memcpy(&bits, (const float*)depths.data + g, 4);
+            const long long db = (long long)bits;
+            for (int q = 0; q < r; ++q) {
+                const long long row = (long long)((c[0] & 0xffff) + q) * tiles_x;
+                const int tx1 = c[1 + q] >> 16;
+                for (int tx = c[1 + q] & 0xffff; tx <= tx1; ++tx, ++p) {
+                    K[p] = ((row + tx) << 32) | db;
+                    SL[p] = p;
+                    PG[p] = g;
+                }
+            }
+        }
+        const int full = (n - k0 < V ? (1 << (n - k0)) : (1 << V)) - 1;
+        if (kept == full) continue;
     }
     vf a, b, c, r2, m0, m1;
     vi live;
@@ -300,6 +345,7 @@ for (int k0 = 0; k0 < n; k0 += V) {
         CA[k] = a[j]; CNB[k] = nb[j]; CDET[k] = det[j]; CAR2[k] = ar2[j]; CRY[k] = ry[j]; CEX[k] = ex[j];
         CDYR[k] = dyr[j]; CM0[k] = m0[j]; CM1[k] = m1[j];
         CNT[k] = 0;
+        if ((kept >> j) & 1) continue;          // its pairs written from the count's ranges above
         if (mode == 1 && live[j]) {
             CUR[k] = ((const int*)pair_offsets.data)[lo + k];
             int bits;
@@ -307,8 +353,12 @@ for (int k0 = 0; k0 < n; k0 += V) {
             DB[k] = (long long)bits;
         }
         const int rows = ty1[j] - ty0[j] + 1;
-        if (rows <= 0) continue;
+        if (rows <= 0) {
+            if (mode == 0 && use_cache) CC[4L * (lo + k)] = 0;
+            continue;
+        }
         if (ni + rows > CAP) flush();
+        if (mode == 0 && use_cache) CC[4L * (lo + k)] = rows <= 3 ? (ty0[j] | (rows << 16)) : -1;
         for (int t = ty0[j]; t <= ty1[j]; ++t) { IK[ni] = k; ITY[ni] = t; ++ni; }
     }
 }
@@ -329,9 +379,11 @@ def bin_block_cpp(mode: int, lo: int, hi: int, splats: wp.array(dtype=vec8), dep
                   radii: wp.array(dtype=wp.int32), pair_offsets: wp.array(dtype=wp.int32), width: int, height: int,
                   tiles_x: int, tiles_y: int, tiles_touched: wp.array(dtype=wp.int32),
                   keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
-                  pair_gauss: wp.array(dtype=wp.int32)) -> int:
+                  pair_gauss: wp.array(dtype=wp.int32), cache: wp.array(dtype=wp.int32)) -> int:
     """count_tiles (``mode`` 0) or emit_pairs (1) for the Gaussians ``[lo, hi)`` in C++ (above): the same tiles and
-    pairs. Returns 1, or 0 where it does not apply (nothing written)."""
+    pairs. ``cache`` (4 ints a Gaussian, or shorter for none): the count keeps the ranges of Gaussians of up to 3
+    tile rows there and the emit writes their pairs from them. Returns 1, or 0 where it does not apply (nothing
+    written)."""
     ...
 
 
@@ -350,6 +402,7 @@ def bin_blocks(
     keys: wp.array(dtype=wp.int64),  # mode 1 out
     slots: wp.array(dtype=wp.int32),  # mode 1 out
     pair_gauss: wp.array(dtype=wp.int32),  # mode 1 out
+    cache: wp.array(dtype=wp.int32),  # [4 n] the count's kept ranges for the emit (shorter: none)
     native: int,  # 1: the C++ block where it applies; 0: this kernel's loop (raster_tile.use_native)
     status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians
 ):
@@ -361,12 +414,14 @@ def bin_blocks(
     done = int(0)
     if native != 0:
         done = bin_block_cpp(mode, lo, hi, splats, depths, radii, pair_offsets, cam.width, cam.height, cam.tiles_x,
-                             cam.tiles_y, tiles_touched, keys, slots, pair_gauss)
+                             cam.tiles_y, tiles_touched, keys, slots, pair_gauss, cache)
     status[c] = done
     if done == 0:
         for g in range(lo, hi):
             if mode == 0:
                 tiles_touched[g] = count_one(g, splats, radii, cam)
+                if cache.shape[0] >= 4 * hi:
+                    cache[4 * g] = -1  # nothing kept: the emit computes this Gaussian's pairs
             else:
                 emit_one(g, splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss)
 
@@ -388,6 +443,7 @@ def bin_blocks_dynamic(
     keys: wp.array(dtype=wp.int64),
     slots: wp.array(dtype=wp.int32),
     pair_gauss: wp.array(dtype=wp.int32),
+    cache: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),  # [blocks] out: 1 where the C++ block did the Gaussians, 0 where it declined
 ):
     """:func:`bin_blocks`' C++ blocks, a chunk a core taking blocks from ``shares`` (:mod:`mgso_kernels.dynamic`):
@@ -401,7 +457,8 @@ def bin_blocks_dynamic(
         while c >= 0:
             lo = c * block
             status[c] = bin_block_cpp(mode, lo, wp.min(lo + block, n), splats, depths, radii, pair_offsets, cam.width,
-                                      cam.height, cam.tiles_x, cam.tiles_y, tiles_touched, keys, slots, pair_gauss)
+                                      cam.height, cam.tiles_x, cam.tiles_y, tiles_touched, keys, slots, pair_gauss,
+                                      cache)
             c = take_item(shares, r, k)
 
 
@@ -431,9 +488,12 @@ def tile_key_bits(n_tiles: int) -> int:
 
 
 def launch_count_tiles(splats, radii, cam: Camera, tiles_touched, device: str, threads: int | None = None,
-                       min_chunk: int = 4096):
+                       min_chunk: int = 4096, cache=None):
     """``tiles_touched[g]`` = number of tiles Gaussian g is listed in (0 if culled). On the CPU the C++ blocks of
-    :func:`bin_blocks` (returns their status array: 1 where the C++ ran); elsewhere :func:`count_tiles` (None)."""
+    :func:`bin_blocks` (returns their status array: 1 where the C++ ran); elsewhere :func:`count_tiles` (None).
+    ``cache``: an int32 array of at least 4 n ints (CPU) where the count keeps the tile ranges of the Gaussians of up
+    to 3 tile rows, for the :func:`launch_emit_pairs` that follows with the same arrays (it then writes their pairs
+    without computing them again: the same pairs)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -443,15 +503,16 @@ def launch_count_tiles(splats, radii, cam: Camera, tiles_touched, device: str, t
         check_array(a, name, dt, (n,), device)
     if _is_cpu(device):
         return _launch_blocks(0, n, splats, None, radii, None, cam, tiles_touched, None, None, None, device,
-                              threads, min_chunk)
+                              threads, min_chunk, cache)
     launch_split(count_tiles, n, [splats, radii, cam, tiles_touched], device, threads=threads, min_chunk=min_chunk)
     return None
 
 
 def launch_emit_pairs(splats, depths, radii, pair_offsets, cam: Camera, keys, slots, pair_gauss, n_pairs: int,
-                      device: str, threads: int | None = None, min_chunk: int = 4096):
+                      device: str, threads: int | None = None, min_chunk: int = 4096, cache=None):
     """Write the unsorted keys, slots and slot->Gaussian map; keys/slots need ``2 * n_pairs`` capacity. Returns what
-    :func:`launch_count_tiles` returns."""
+    :func:`launch_count_tiles` returns. ``cache``: the one the count of the same splats, radii and camera filled
+    (CPU; None: every pair computed)."""
     from ..runtime import launch_split
     from ._checks import check_array
 
@@ -465,7 +526,7 @@ def launch_emit_pairs(splats, depths, radii, pair_offsets, cam: Camera, keys, sl
         raise ValueError(f"emit_pairs: buffers too small for {n_pairs} pairs (keys/slots need 2x for the sort)")
     if _is_cpu(device):
         return _launch_blocks(1, n, splats, depths, radii, pair_offsets, cam, None, keys, slots, pair_gauss, device,
-                              threads, min_chunk)
+                              threads, min_chunk, cache)
     launch_split(emit_pairs, n, [splats, depths, radii, pair_offsets, cam, keys, slots, pair_gauss], device,
                  threads=threads, min_chunk=min_chunk)
     return None
@@ -480,7 +541,7 @@ def _is_cpu(device) -> bool:
 
 
 def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touched, keys, slots, pair_gauss,
-                   device, threads, min_chunk):
+                   device, threads, min_chunk, cache=None):
     """The CPU's count (mode 0) or emit (1) in blocks of BIN_BLOCK Gaussians (:func:`bin_blocks`), spread over the
     cores; returns the blocks' status (1 where the C++ block ran)."""
     from ..runtime import placeholder
@@ -490,7 +551,8 @@ def _launch_blocks(mode, n, splats, depths, radii, pair_offsets, cam, tiles_touc
     i64 = placeholder(wp.int64, 1, device)
     inputs = [mode, splats, f32 if depths is None else depths, radii, i32 if pair_offsets is None else pair_offsets,
               cam, i32 if tiles_touched is None else tiles_touched, i64 if keys is None else keys,
-              i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss]
+              i32 if slots is None else slots, i32 if pair_gauss is None else pair_gauss,
+              i32 if cache is None else cache]
     return dynamic.launch_blocks(bin_blocks, bin_blocks_dynamic, n, BIN_BLOCK, inputs, native_flag(), device,
                                  threads=threads, min_chunk=min_chunk)
 
