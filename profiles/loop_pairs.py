@@ -35,15 +35,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "profiles"))
 
 
-def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a = np.c_[a, np.ones(len(a))]
-    b = np.c_[b, np.ones(len(b))]
-    Fa, Ftb = a @ F.T, b @ F
-    return np.abs(np.sum(b * Fa, 1)) / np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2)
-
-
 def _match_quality(pairs, feats, cam, args) -> dict:
     import cv2
+    from revisit_matches import _sampson  # profiles/revisit_matches.py: the Sampson distance to the epipolar line
 
     from mgso.geometry import hat
     from mgso.loop.verify import mutual_matches

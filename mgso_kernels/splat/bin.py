@@ -188,8 +188,9 @@ def emit_pairs(
 # computes 16 items' column ranges a vector at a time (two roots and four divisions each), and only then counts or
 # writes the pairs, in the kernels' order. mode 0: tiles_touched of [lo, hi); mode 1: their keys, slots and
 # pair_gauss. With a cache of 4 ints a Gaussian the count keeps the ranges of the Gaussians of up to 3 tile rows and
-# the emit writes their pairs from them (docs/rasteriser.md, "The count's tile ranges kept for the emit"). Returns 1, or 0 where it does not apply (CUDA, arrays not contiguous, a block too large, more than 1024
-# tile rows) and nothing is written.
+# the emit writes their pairs from them (docs/rasteriser.md, "The count's tile ranges kept for the emit"). Returns 1,
+# or 0 where it does not apply (CUDA, arrays not contiguous, a block too large, more than 1024 tile rows) and nothing
+# is written.
 _BIN_CPP = r"""
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 enum { BLK = 256, CAP = 2048, V = 16 };
@@ -214,6 +215,19 @@ long long DB[BLK];
 // the (Gaussian, tile row) items waiting, and their column ranges
 int IK[CAP], ITY[CAP], IX0[CAP], IX1[CAP];
 int ni = 0;
+// the pairs of Gaussian g in tile row ty, tiles tx0..tx1, from slot p on (its depth bits db); returns the next slot
+auto emit_row = [&](int p, int g, int ty, int tx0, int tx1, long long db) -> int {
+    long long* K = (long long*)keys.data;
+    int* SL = (int*)slots.data;
+    int* PG = (int*)pair_gauss.data;
+    const long long row = (long long)ty * tiles_x;
+    for (int tx = tx0; tx <= tx1; ++tx, ++p) {
+        K[p] = ((row + tx) << 32) | db;
+        SL[p] = p;
+        PG[p] = g;
+    }
+    return p;
+};
 auto flush = [&]() {
     for (int i0 = 0; i0 < ni; i0 += V) {
         vf a, nb, det, ar2, ry, ex, dyr, m0, m1;
@@ -257,19 +271,9 @@ auto flush = [&]() {
             }
         }
     } else {
-        long long* K = (long long*)keys.data;
-        int* SL = (int*)slots.data;
-        int* PG = (int*)pair_gauss.data;
         for (int i = 0; i < ni; ++i) {
             const int k = IK[i];
-            int p = CUR[k];
-            const long long row = (long long)ITY[i] * tiles_x;
-            for (int tx = IX0[i]; tx <= IX1[i]; ++tx, ++p) {
-                K[p] = ((row + tx) << 32) | DB[k];
-                SL[p] = p;
-                PG[p] = lo + k;
-            }
-            CUR[k] = p;
+            CUR[k] = emit_row(CUR[k], lo + k, ITY[i], IX0[i], IX1[i], DB[k]);
         }
     }
     ni = 0;
@@ -290,9 +294,6 @@ for (int k0 = 0; k0 < n; k0 += V) {
     // order), the rest are computed below
     int kept = 0;
     if (mode == 1 && use_cache) {
-        long long* K = (long long*)keys.data;
-        int* SL = (int*)slots.data;
-        int* PG = (int*)pair_gauss.data;
         for (int j = 0; j < V && k0 + j < n; ++j) {
             const int g = lo + k0 + j;
             const int* c = CC + 4L * g;
@@ -304,15 +305,7 @@ for (int k0 = 0; k0 < n; k0 += V) {
             int bits;
             __builtin_memcpy(&bits, (const float*)depths.data + g, 4);
             const long long db = (long long)bits;
-            for (int q = 0; q < r; ++q) {
-                const long long row = (long long)((c[0] & 0xffff) + q) * tiles_x;
-                const int tx1 = c[1 + q] >> 16;
-                for (int tx = c[1 + q] & 0xffff; tx <= tx1; ++tx, ++p) {
-                    K[p] = ((row + tx) << 32) | db;
-                    SL[p] = p;
-                    PG[p] = g;
-                }
-            }
+            for (int q = 0; q < r; ++q) p = emit_row(p, g, (c[0] & 0xffff) + q, c[1 + q] & 0xffff, c[1 + q] >> 16, db);
         }
         const int full = (n - k0 < V ? (1 << (n - k0)) : (1 << V)) - 1;
         if (kept == full) continue;
